@@ -1,0 +1,75 @@
+"""Pinhole camera of design.md §1: pixel offsets, focal length, and per-pixel rays in the world frame."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+FOV_EPS_DEG = 1e-3
+"""FoV is clamped to ``[FOV_EPS_DEG, 180 - FOV_EPS_DEG]`` so that ``tan(fov / 2)`` stays finite."""
+
+
+def pixel_offsets(size: tuple[int, int], *, device: torch.device | None = None,
+                  dtype: torch.dtype = torch.float32) -> tuple[Tensor, Tensor]:
+    """Image-plane offsets of the pixel centres from the principal point.
+
+    Args:
+        size: ``(H, W)`` in pixels.
+
+    Returns:
+        ``(u, v)``, each ``[H, W]``: ``u = j + 0.5 - W/2`` (right), ``v = i + 0.5 - H/2`` (down).
+    """
+    height, width = size
+    if height < 1 or width < 1:
+        raise ValueError(f"image size must be positive, got {size}")
+    v = torch.arange(height, device=device, dtype=dtype) + 0.5 - height / 2
+    u = torch.arange(width, device=device, dtype=dtype) + 0.5 - width / 2
+    return u.expand(height, width), v[:, None].expand(height, width)
+
+
+def inverse_focal(fov_deg: Tensor, width: int) -> Tensor:
+    """``1 / f = 2 tan(fov / 2) / W`` in 1/pixels, for a horizontal FoV across ``width`` pixels.
+
+    The FoV is clamped to (0, 180) degrees first so the result is finite for any input.
+    """
+    fov = fov_deg.clamp(FOV_EPS_DEG, 180.0 - FOV_EPS_DEG)
+    return 2.0 * torch.tan(torch.deg2rad(fov) / 2.0) / width
+
+
+def focal_length(fov_deg: float, width: int) -> float:
+    """Focal length ``f = W / (2 tan(fov / 2))`` in pixels (scalar helper for renderers and docs)."""
+    return width / (2.0 * math.tan(math.radians(fov_deg) / 2.0))
+
+
+def camera_rays(pitch_deg: Tensor, roll_deg: Tensor, fov_deg: Tensor,
+                size: tuple[int, int]) -> Tensor:
+    """Per-pixel ray directions ``d = (u/f) R' + (v/f) D' + F`` in the world frame (not unit length).
+
+    Args:
+        pitch_deg, roll_deg, fov_deg: ``[B]`` each.
+        size: ``(H, W)``.
+
+    Returns:
+        ``[B, H, W, 3]`` world (X forward-horizontal, Y left, Z up); the component along the optical
+        axis is exactly 1, so ``|d| = sqrt(1 + (u/f)^2 + (v/f)^2)``.
+
+    Convention:
+        At pitch -90 (nadir) the centre ray is ``(0, 0, -1)``; positive roll tilts the horizon right end up.
+    """
+    a, b = _plane_coords(fov_deg, size)  # [B, H, W] each: u/f, v/f
+    p, r = torch.deg2rad(pitch_deg)[:, None, None], torch.deg2rad(roll_deg)[:, None, None]
+    sp, cp, sr, cr = torch.sin(p), torch.cos(p), torch.sin(r), torch.cos(r)
+    # R' = (sr sp, -cr, -sr cp),  D' = (cr sp, sr, -cr cp),  F = (cp, 0, sp)
+    x = a * sr * sp + b * cr * sp + cp
+    y = -a * cr + b * sr
+    z = -a * sr * cp - b * cr * cp + sp
+    return torch.stack((x, y, z), dim=-1)
+
+
+def _plane_coords(fov_deg: Tensor, size: tuple[int, int]) -> tuple[Tensor, Tensor]:
+    """``(u/f, v/f)`` as ``[B, H, W]`` each."""
+    u, v = pixel_offsets(size, device=fov_deg.device, dtype=fov_deg.dtype)
+    inv_f = inverse_focal(fov_deg, size[1])[:, None, None]
+    return u * inv_f, v * inv_f

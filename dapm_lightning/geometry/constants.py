@@ -1,0 +1,24 @@
+"""The only home of the UAPD pose ranges, the depth limit and the sky grey level (design.md §1, §3)."""
+
+from __future__ import annotations
+
+from typing import Final
+
+POSE_KEYS: Final[tuple[str, str, str, str]] = ("height", "pitch", "roll", "fov")
+"""Order of the pose vector ``[..., 4]``: height m, pitch deg, roll deg, fov deg (UAPD's order)."""
+
+POSE_UNITS: Final[dict[str, str]] = {"height": "m", "pitch": "deg", "roll": "deg", "fov": "deg"}
+
+POSE_RANGES: Final[dict[str, tuple[float, float]]] = {
+    "height": (10.0, 100.0),
+    "pitch": (-100.0, 10.0),
+    "roll": (-30.0, 30.0),
+    "fov": (30.0, 120.0),
+}
+"""UAPD ranges, used for normalisation ``(x - lo) / (hi - lo)`` and for sampling synthetic poses."""
+
+MAX_DEPTH_M: Final[float] = 1000.0
+"""Depth beyond which a pixel counts as sky ("beyond d_max"), paper Eq. 20."""
+
+SKY_GREY: Final[int] = 255
+"""8-bit grey level of the log depth encoding that means "at or beyond MAX_DEPTH_M"."""

@@ -1,0 +1,41 @@
+"""Log depth encoding of UAPD (paper Eq. 20): metres <-> [0, 1] <-> 8-bit grey."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from dapm_lightning.geometry.constants import MAX_DEPTH_M, SKY_GREY
+
+
+def encode_log_depth(depth_m: Tensor, max_depth: float = MAX_DEPTH_M) -> Tensor:
+    """Metres to normalised log depth ``log2(d + 1) / log2(max_depth + 1)`` in [0, 1].
+
+    Depths are clamped to ``[0, max_depth]`` first, so sky (beyond ``max_depth``) encodes to 1.
+
+    Convention:
+        ``encode_log_depth(1000.0) == 1``; ``encode_log_depth(0.0) == 0``; one 8-bit grey step is a
+        depth factor of about ``1001 ** (1 / 255) ≈ 1.027``.
+    """
+    return torch.log2(depth_m.clamp(0.0, max_depth) + 1.0) / math.log2(max_depth + 1.0)
+
+
+def decode_log_depth(depth_norm: Tensor, max_depth: float = MAX_DEPTH_M) -> Tensor:
+    """Inverse of :func:`encode_log_depth`: normalised log depth in [0, 1] to metres."""
+    return torch.exp2(depth_norm.clamp(0.0, 1.0) * math.log2(max_depth + 1.0)) - 1.0
+
+
+def depth_to_grey(depth_m: np.ndarray, max_depth: float = MAX_DEPTH_M) -> np.ndarray:
+    """Metres to UAPD's 8-bit grey ``floor(255 * encode_log_depth(d))`` (uint8; 255 = at or beyond max_depth)."""
+    clamped = np.clip(np.nan_to_num(depth_m, nan=0.0, posinf=max_depth), 0.0, max_depth)
+    scaled = SKY_GREY * np.log2(clamped + 1.0) / math.log2(max_depth + 1.0)
+    return np.floor(scaled + 1e-9).astype(np.uint8)
+
+
+def grey_to_depth(grey: np.ndarray, max_depth: float = MAX_DEPTH_M) -> np.ndarray:
+    """UAPD 8-bit grey to metres (float32), decoding ``g / 255``; grey 255 decodes to ``max_depth``."""
+    norm = grey.astype(np.float64) / SKY_GREY
+    return (np.exp2(norm * math.log2(max_depth + 1.0)) - 1.0).astype(np.float32)

@@ -1,0 +1,85 @@
+"""Ideal Ground Depth (design.md §2): the depth a camera of a given pose would see on a flat ground."""
+
+from __future__ import annotations
+
+import math
+from typing import Literal
+
+import torch
+from torch import Tensor
+
+from dapm_lightning.geometry.camera import _plane_coords
+from dapm_lightning.geometry.constants import MAX_DEPTH_M
+
+IGDModel = Literal["pinhole", "paper"]
+DepthKind = Literal["range", "planar"]
+
+_MIN_DOWNWARD = 1e-6
+"""Rays whose downward component is below this never meet the ground (they get ``max_depth``)."""
+
+
+def ideal_ground_depth(pose: Tensor, size: tuple[int, int], *, model: IGDModel = "pinhole",
+                       depth_kind: DepthKind = "range", max_depth: float = MAX_DEPTH_M) -> Tensor:
+    """Depth of the flat ground ``Z = 0`` seen by a camera of the given pose, per pixel.
+
+    Args:
+        pose: ``[B, 4]`` or ``[4]`` (height m, pitch deg, roll deg, fov deg), float32 or float64.
+        size: ``(H, W)`` of the output in pixels; the FoV spans the width.
+        model: ``"pinhole"`` exact ray-plane intersection (default), or ``"paper"`` for the paper's
+            separable approximation (Eq. 10-17), which agrees on the central column at roll 0.
+        depth_kind: ``"range"`` (lens to ground point) or ``"planar"`` (along the optical axis).
+        max_depth: value for rays that never meet the ground; all values are clamped to it.
+
+    Returns:
+        ``[B, 1, H, W]`` depth in metres, in ``[0, max_depth]``; finite with finite gradients for
+        any pose (heights <= 0 give 0).
+
+    Convention:
+        A nadir camera (pitch -90) at 50 m sees the centre pixel at 50 m; at pitch -45 at
+        ``50 * sqrt(2)`` m. Mirroring the output left-right equals negating the roll.
+    """
+    if pose.ndim == 1:
+        pose = pose[None]
+    if pose.ndim != 2 or pose.shape[1] != 4:
+        raise ValueError(f"pose must be [B, 4] or [4] (height, pitch, roll, fov), got {tuple(pose.shape)}")
+    if not pose.is_floating_point():
+        raise ValueError(f"pose must be a floating point tensor, got {pose.dtype}")
+    if model not in ("pinhole", "paper"):
+        raise ValueError(f"model must be 'pinhole' or 'paper', got {model!r}")
+    if depth_kind not in ("range", "planar"):
+        raise ValueError(f"depth_kind must be 'range' or 'planar', got {depth_kind!r}")
+    height = pose[:, 0, None, None].clamp(min=0.0)
+    a, b = _plane_coords(pose[:, 3], size)  # [B, H, W]: u/f, v/f
+    norm = torch.sqrt(1.0 + a * a + b * b)  # |d| / (component along the optical axis)
+    if model == "pinhole":
+        depth = _pinhole(height, pose[:, 1], pose[:, 2], a, b, norm, depth_kind, max_depth)
+    else:
+        depth = _paper(height, pose[:, 1], pose[:, 2], a, b, norm, depth_kind, max_depth)
+    return depth[:, None]
+
+
+def _pinhole(height: Tensor, pitch_deg: Tensor, roll_deg: Tensor, a: Tensor, b: Tensor,
+             norm: Tensor, depth_kind: DepthKind, max_depth: float) -> Tensor:
+    """Exact ray-plane intersection of design.md §1, ``[B, H, W]``."""
+    p = torch.deg2rad(pitch_deg)[:, None, None]
+    r = torch.deg2rad(roll_deg)[:, None, None]
+    downward = torch.cos(p) * (a * torch.sin(r) + b * torch.cos(r)) - torch.sin(p)  # -d_z
+    hits = downward > _MIN_DOWNWARD
+    t = height / torch.where(hits, downward, torch.ones_like(downward))  # z-depth to the ground
+    depth = t * norm if depth_kind == "range" else t
+    return torch.where(hits, depth.clamp(max=max_depth), torch.full_like(depth, max_depth))
+
+
+def _paper(height: Tensor, pitch_deg: Tensor, roll_deg: Tensor, a: Tensor, b: Tensor,
+           norm: Tensor, depth_kind: DepthKind, max_depth: float) -> Tensor:
+    """The paper's separable model (Eq. 10-17) with the roll un-rotation of design.md §2, ``[B, H, W]``."""
+    r = torch.deg2rad(roll_deg)[:, None, None]
+    a_rolled = a * torch.cos(r) - b * torch.sin(r)  # u' / f = tan(theta_u)
+    b_rolled = a * torch.sin(r) + b * torch.cos(r)  # v' / f; theta_v = atan(-v'/f)
+    from_nadir = torch.deg2rad(pitch_deg)[:, None, None] + math.pi / 2 + torch.atan(-b_rolled)
+    hits = from_nadir.abs() < math.pi / 2 - _MIN_DOWNWARD
+    safe_angle = torch.where(hits, from_nadir, torch.zeros_like(from_nadir))
+    depth = height * torch.sqrt(a_rolled * a_rolled + torch.tan(safe_angle) ** 2 + 1.0)
+    if depth_kind == "planar":
+        depth = depth / norm
+    return torch.where(hits, depth.clamp(max=max_depth), torch.full_like(depth, max_depth))

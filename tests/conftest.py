@@ -1,0 +1,41 @@
+"""Shared fixtures: tiny UAPD-format trees written by the project's own generator."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from dapm_lightning.data.synthetic import generate_uapd, render_scene, sample_scene
+from dapm_lightning.geometry import MAX_DEPTH_M, depth_to_grey
+
+TINY_HW = (24, 40)  # non-square, so an H/W swap fails
+
+
+def write_pair(root: Path, split: str, name: str, pose, seed: int = 0, size=TINY_HW) -> None:
+    rgb, depth_m, _ = render_scene(np.asarray(pose, float), size, sample_scene(np.random.default_rng(seed)))
+    grey = depth_to_grey(np.where(np.isfinite(depth_m), depth_m, MAX_DEPTH_M))
+    (root / split / "rgb").mkdir(parents=True, exist_ok=True)
+    (root / split / "depth").mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(root / split / "rgb" / name), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+    cv2.imwrite(str(root / split / "depth" / name), grey)
+
+
+@pytest.fixture(scope="session")
+def tiny_uapd(tmp_path_factory) -> Path:
+    """3 train + 2 val generated images plus one shuffled-token name and one above-horizon pose each."""
+    root = tmp_path_factory.mktemp("uapd")
+    generate_uapd(root, train=3, val=2, size=TINY_HW, seed=7, workers=1)
+    write_pair(root, "train", "yaw_12.5_fov_70_roll_-8.25_Town03_z_45.5_pitch_-60_000777_x_-3.png",
+               (45.5, -60.0, -8.25, 70.0), seed=1)
+    write_pair(root, "val", "idx_3_pitch_5.0_z_30_fov_90.0_roll_4.png", (30.0, 5.0, 4.0, 90.0), seed=2)
+    return root
+
+
+@pytest.fixture()
+def uapd_copy(tiny_uapd, tmp_path) -> Path:
+    """A private copy of :func:`tiny_uapd` a test may break."""
+    return Path(shutil.copytree(tiny_uapd, tmp_path / "uapd"))
