@@ -1,0 +1,77 @@
+"""Initial estimates: the FPN depth decoder and the pooled multi-level pose decoder (paper §Encoder and Decoder)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from dapm_lightning.models.blocks import ResidualConvBlock, ResidualMLPBlock
+
+
+class DepthDecoder(nn.Module):
+    """FPN with 1x1 lateral convolutions + spatial dropout, residual top-down fusion, residual head.
+
+    Args:
+        in_channels: channels of the encoder stages it fuses, shallow to deep.
+        channels: FPN width.
+        dropout: spatial dropout (``Dropout2d``) on the laterals.
+
+    Returns (forward):
+        ``(feature [B, channels, h, w], depth_norm [B, 1, h, w])`` at the shallowest fused stage;
+        ``depth_norm`` is the initial normalised log depth (sigmoid).
+    """
+
+    def __init__(self, in_channels: Sequence[int], channels: int = 128, dropout: float = 0.1) -> None:
+        super().__init__()
+        self.laterals = nn.ModuleList(
+            nn.Sequential(nn.Conv2d(c, channels, 1), nn.Dropout2d(dropout)) for c in in_channels)
+        self.fuse = nn.ModuleList(ResidualConvBlock(channels) for _ in in_channels)
+        head_channels = max(channels // 2, 8)
+        self.head = nn.Sequential(nn.Conv2d(channels, head_channels, 1), ResidualConvBlock(head_channels),
+                                  nn.Conv2d(head_channels, 1, 1))
+
+    def forward(self, features: Sequence[Tensor]) -> tuple[Tensor, Tensor]:
+        x = self.fuse[-1](self.laterals[-1](features[-1]))
+        for level in range(len(features) - 2, -1, -1):
+            lateral = self.laterals[level](features[level])
+            x = F.interpolate(x, size=lateral.shape[-2:], mode="bilinear", align_corners=False) + lateral
+            x = self.fuse[level](x)
+        return x, torch.sigmoid(self.head(x))
+
+
+class PoseDecoder(nn.Module):
+    """Global average pooling of every encoder stage (shallow ones too) and of the initial depth,
+    linear projections, a residual MLP, and a sigmoid to the initial normalised pose.
+
+    Args:
+        in_channels: channels of all encoder stages used.
+        projection: width of each pooled projection.
+        hidden: width of the residual MLP (the pose feature).
+        depth_grid: the initial depth is average-pooled to ``depth_grid x depth_grid`` (its layout
+            carries the horizon); 0 for no depth input (DAPM(P)).
+    """
+
+    def __init__(self, in_channels: Sequence[int], projection: int = 128, hidden: int = 256,
+                 depth_grid: int = 8, mlp_blocks: int = 2) -> None:
+        super().__init__()
+        self.depth_grid = depth_grid
+        self.projections = nn.ModuleList(nn.Linear(c, projection) for c in in_channels)
+        self.depth_projection = nn.Linear(depth_grid * depth_grid, projection) if depth_grid else None
+        inputs = projection * (len(in_channels) + (1 if depth_grid else 0))
+        self.mlp = nn.Sequential(nn.Linear(inputs, hidden), nn.ReLU(inplace=True),
+                                 *[ResidualMLPBlock(hidden) for _ in range(mlp_blocks)])
+        self.out = nn.Linear(hidden, 4)
+
+    def forward(self, features: Sequence[Tensor], depth_norm: Tensor | None) -> tuple[Tensor, Tensor]:
+        """Returns ``(pose feature [B, hidden], initial pose_norm [B, 4])``."""
+        pooled = [proj(f.mean(dim=(2, 3))) for proj, f in zip(self.projections, features)]
+        if self.depth_projection is not None:
+            if depth_norm is None:
+                raise ValueError("this pose decoder was built with a depth input (depth_grid > 0) but got none")
+            grid = F.adaptive_avg_pool2d(depth_norm, self.depth_grid).flatten(1)
+            pooled.append(self.depth_projection(grid))
+        feature = self.mlp(torch.cat(pooled, dim=1))
+        return feature, torch.sigmoid(self.out(feature))

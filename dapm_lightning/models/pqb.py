@@ -1,0 +1,121 @@
+"""Progressive Quantization Bins (paper §PQB): coarse-to-fine per-pixel depth bins and per-component pose bins."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from torch import Tensor, nn
+
+from dapm_lightning.geometry.bins import bin_centers
+from dapm_lightning.models.blocks import conv_bn_relu
+
+SKY_STAGE_BINS = 2
+"""A depth stage of 2 bins is the binary "beyond d_max" (sky) map: one logit, trained with BCE."""
+
+
+def stage_probabilities(logits: Tensor, dim: int = 1) -> Tensor:
+    """Sigmoid for a one-logit (binary) stage, softmax otherwise."""
+    return torch.sigmoid(logits) if logits.shape[dim] == 1 else torch.softmax(logits, dim=dim)
+
+
+def expected_value(logits: Tensor, dim: int = 1) -> Tensor:
+    """Soft-argmax of a bins stage: the probability-weighted bin centre in [0, 1] (keeps ``dim`` as size 1)."""
+    centres = bin_centers(logits.shape[dim], logits)
+    shape = [1] * logits.ndim
+    shape[dim] = -1
+    return (torch.softmax(logits, dim=dim) * centres.view(shape)).sum(dim=dim, keepdim=True)
+
+
+class BinsBlock(nn.Module):
+    """Concatenated inputs -> two 3x3 conv-BN-ReLU layers -> 1x1 conv to ``num_outputs`` logits."""
+
+    def __init__(self, in_channels: int, channels: int, num_outputs: int) -> None:
+        super().__init__()
+        self.body = nn.Sequential(conv_bn_relu(in_channels, channels), conv_bn_relu(channels, channels),
+                                  nn.Conv2d(channels, num_outputs, 1))
+
+    def forward(self, x: Tensor) -> Tensor:
+        return self.body(x)
+
+
+class DepthPQB(nn.Module):
+    """Depth PQB: stages of per-pixel bins, then a depth head fusing all of them.
+
+    Each stage sees ``cat(depth feature, previous stage output, IGD feature)``; the first stage's
+    "previous output" is the initial depth. ``bins=(2, 16, 64)`` is the paper's: a binary sky map,
+    then 16 and 64 classes over the normalised log depth [0, 1].
+
+    Args:
+        feature_channels: channels of the depth feature.
+        igd_channels: channels of the IGD feature (0 without it).
+        bins: bins per stage; a 2 is only allowed first (the sky map).
+        channels: width of the bins blocks and the head.
+    """
+
+    def __init__(self, feature_channels: int, igd_channels: int, bins: Sequence[int], channels: int) -> None:
+        super().__init__()
+        self.bins = tuple(bins)
+        for k, n in enumerate(self.bins):
+            if n < 2 or (n == SKY_STAGE_BINS and k > 0):
+                raise ValueError(f"depth bins must be >= 2 with 2 (the sky map) only first, got {self.bins}")
+        outputs = [1 if n == SKY_STAGE_BINS else n for n in self.bins]
+        previous = [1, *outputs[:-1]]
+        self.blocks = nn.ModuleList(BinsBlock(feature_channels + p + igd_channels, channels, o)
+                                    for p, o in zip(previous, outputs))
+        expectations = sum(1 for n in self.bins if n != SKY_STAGE_BINS)
+        head_in = feature_channels + 1 + sum(outputs) + expectations + igd_channels
+        self.head = nn.Sequential(conv_bn_relu(head_in, channels, kernel_size=1), conv_bn_relu(channels, channels),
+                                  nn.Conv2d(channels, 1, 1))
+
+    def forward(self, feature: Tensor, depth_init: Tensor, igd_feature: Tensor | None
+                ) -> tuple[Tensor, Tensor | None, list[Tensor]]:
+        """``(refined depth logit [B,1,h,w], sky logit [B,1,h,w] or None, bin logits [B,n,h,w] per stage)``."""
+        extra = [] if igd_feature is None else [igd_feature]
+        previous, sky_logit = depth_init, None
+        bin_logits: list[Tensor] = []
+        fused = [feature, depth_init]
+        for n, block in zip(self.bins, self.blocks):
+            logits = block(torch.cat([feature, previous, *extra], dim=1))
+            previous = stage_probabilities(logits)
+            fused.append(previous)
+            if n == SKY_STAGE_BINS:
+                sky_logit = logits
+            else:
+                bin_logits.append(logits)
+                fused.append(expected_value(logits))
+        return self.head(torch.cat([*fused, *extra], dim=1)), sky_logit, bin_logits
+
+
+class PosePQB(nn.Module):
+    """Pose PQB: per-component bins stages (16 then 64 by default) and a linear refinement head.
+
+    Each stage sees ``cat(pose feature, previous output)`` (the initial pose first, then the previous
+    stage's probabilities) and emits ``[B, 4, n]`` logits; the head fuses the pose feature, the
+    initial pose, every stage's probabilities and soft-argmax into the final normalised pose.
+    """
+
+    def __init__(self, feature_size: int, bins: Sequence[int], hidden: int = 256) -> None:
+        super().__init__()
+        self.bins = tuple(bins)
+        if any(n < 2 for n in self.bins):
+            raise ValueError(f"pose bins must be >= 2, got {self.bins}")
+        previous = [4, *[4 * n for n in self.bins[:-1]]]
+        self.stages = nn.ModuleList(
+            nn.Sequential(nn.Linear(feature_size + p, hidden), nn.LayerNorm(hidden), nn.ReLU(inplace=True),
+                          nn.Linear(hidden, 4 * n)) for p, n in zip(previous, self.bins))
+        head_in = feature_size + 4 + sum(4 * n + 4 for n in self.bins)
+        self.head = nn.Sequential(nn.Linear(head_in, hidden), nn.LayerNorm(hidden), nn.ReLU(inplace=True),
+                                  nn.Linear(hidden, hidden), nn.LayerNorm(hidden), nn.ReLU(inplace=True),
+                                  nn.Linear(hidden, 4))
+
+    def forward(self, feature: Tensor, pose_init: Tensor) -> tuple[Tensor, list[Tensor]]:
+        """``(refined pose logit [B, 4], bin logits [B, 4, n] per stage)``."""
+        previous, fused, all_logits = pose_init, [feature, pose_init], []
+        for n, stage in zip(self.bins, self.stages):
+            logits = stage(torch.cat([feature, previous], dim=1)).view(-1, 4, n)
+            probs = torch.softmax(logits, dim=-1)
+            previous = probs.flatten(1)
+            fused += [previous, expected_value(logits, dim=-1).flatten(1)]
+            all_logits.append(logits)
+        return self.head(torch.cat(fused, dim=1)), all_logits

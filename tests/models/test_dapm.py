@@ -1,0 +1,159 @@
+import numpy as np
+import pytest
+import torch
+
+from dapm_lightning.data.synthetic import render_scene, sample_pose, sample_scene
+from dapm_lightning.geometry import MAX_DEPTH_M, POSE_RANGES, normalize_pose
+from dapm_lightning.losses import DAPMLoss
+from dapm_lightning.models import DAPMNet, DAPMOutput
+
+BACKBONE = "resnet18"
+ABLATIONS = {
+    "full": {},
+    "no_pqb": dict(depth_bins=(), pose_bins=()),
+    "no_d_pqb": dict(depth_bins=()),
+    "no_p_pqb": dict(pose_bins=()),
+    "no_igd_feature": dict(use_igd_feature=False),
+    "bins_2_16_16": dict(depth_bins=(2, 16, 16), pose_bins=(16, 16)),
+    "bins_2_64_64": dict(depth_bins=(2, 64, 64), pose_bins=(64, 64)),
+    "bins_2": dict(depth_bins=(2,), pose_bins=(16,)),
+    "paper_igd": dict(igd_model="paper", depth_kind="planar"),
+    "paper_faithful_heads": dict(head_stride=1, head_channels=16),
+    "dapm_d": dict(use_pose=False, use_igd_feature=False),
+    "dapm_p": dict(use_depth=False, use_igd_feature=False),
+}
+
+
+def targets_for(batch: int, size: tuple[int, int]) -> dict:
+    depth = torch.rand(batch, 1, *size) * 300 + 2
+    sky = torch.zeros(batch, 1, *size, dtype=torch.bool)
+    sky[..., : size[0] // 4, :] = True
+    depth[sky] = MAX_DEPTH_M
+    return dict(depth=depth, sky=sky, valid=torch.ones_like(sky),
+                pose=torch.tensor([[55.0, -45.0, 10.0, 75.0]] * batch), has_pose=torch.ones(batch, dtype=torch.bool))
+
+
+@pytest.mark.parametrize("size", [(96, 128), (37, 53)])
+def test_shapes_and_ranges_batch_one(size):
+    out = DAPMNet(BACKBONE).eval()(torch.rand(1, 3, *size))
+    assert isinstance(out, DAPMOutput)
+    for name in ("depth_norm", "depth_init_norm", "sky_logits", "depth_m"):
+        assert getattr(out, name).shape == (1, 1, *size), name
+    assert 0 <= out.depth_norm.min() and out.depth_norm.max() <= 1
+    assert 0 < out.depth_m.min() and out.depth_m.max() <= MAX_DEPTH_M
+    assert out.pose.shape == (1, 4) and ((out.pose_norm > 0) & (out.pose_norm < 1)).all()
+    assert [t.shape[1] for t in out.depth_bin_logits] == [16, 64]
+    assert [t.shape[1:] for t in out.pose_bin_logits] == [(4, 16), (4, 64)]
+
+
+@pytest.mark.parametrize("name", sorted(ABLATIONS))
+def test_every_ablation_runs_forward_and_backward(name):
+    net = DAPMNet(BACKBONE, **ABLATIONS[name])
+    loss = DAPMLoss(use_igd_loss=net.use_pose and name != "no_igd_feature")
+    out = net(torch.rand(2, 3, 48, 64))
+    terms = loss(out, targets_for(2, (48, 64)))
+    assert torch.isfinite(terms["total"])
+    terms["total"].backward()
+    assert all(p.grad is not None for p in net.encoder.parameters() if p.requires_grad)
+    assert ("depth" in terms) == (net.use_depth and bool(net.depth_bins))
+    assert ("pq" in terms) == (net.use_pose and bool(net.pose_bins))
+    assert (out.depth_m is None) == (not net.use_depth) and (out.pose is None) == (not net.use_pose)
+
+
+def test_invalid_switches_are_refused():
+    with pytest.raises(ValueError, match="use_igd_feature"):
+        DAPMNet(BACKBONE, use_pose=False)
+    with pytest.raises(ValueError, match="sky map"):
+        DAPMNet(BACKBONE, depth_bins=(16, 2))
+    with pytest.raises(ValueError, match="image must be"):
+        DAPMNet(BACKBONE)(torch.rand(3, 32, 32))
+
+
+def _grads(module, loss):
+    module.zero_grad()
+    loss.backward(retain_graph=True)
+    return {n: p.grad is not None and p.grad.abs().sum().item() > 0 for n, p in module.named_parameters()}
+
+
+def test_gradients_reach_only_where_they_should():
+    torch.manual_seed(0)
+    net = DAPMNet(BACKBONE)
+    terms = DAPMLoss()(net(torch.rand(2, 3, 48, 64), normalize_pose(torch.tensor([[50.0, -30, 5, 60]] * 2)), 0.5),
+                       targets_for(2, (48, 64)))
+    for key in ("depth", "init_depth", "dq", "pose", "init_pose", "pq", "pd"):
+        g = _grads(net, terms[key])
+        assert any(v for n, v in g.items() if n.startswith("encoder.")), key
+        reaches_pose = any(v for n, v in g.items() if n.startswith(("pose_decoder.", "pose_pqb.")))
+        reaches_depth = any(v for n, v in g.items() if n.startswith(("depth_decoder.", "depth_pqb.")))
+        assert reaches_pose == (key in ("pose", "init_pose", "pq", "pd")), key
+        assert reaches_depth == (key in ("depth", "init_depth", "dq")), key
+    # the initial pose feeds the PQB stages: the refined pose loss reaches it, the 64-bin CE reaches the 16-bin stage
+    g = _grads(net, terms["init_pose"])
+    assert not any(v for n, v in g.items() if n.startswith("pose_pqb.head"))
+
+
+def test_teacher_forcing_blends_the_igd_input():
+    net = DAPMNet(BACKBONE).eval()
+    image = torch.rand(1, 3, 48, 64)
+    true = normalize_pose(torch.tensor([[30.0, -90.0, 0.0, 60.0]]))
+    forced = net(image, true, predicted_share=0.0)
+    own = net(image, true, predicted_share=1.0)
+    from dapm_lightning.models.igd_branch import igd_norm_from_pose
+    torch.testing.assert_close(forced.igd_norm, igd_norm_from_pose(true, forced.igd_norm.shape[-2:]))
+    torch.testing.assert_close(own.igd_norm, igd_norm_from_pose(own.pose_norm, own.igd_norm.shape[-2:]))
+    assert not torch.allclose(forced.depth_norm, own.depth_norm)
+
+
+def test_loss_is_finite_on_edge_batches():
+    net = DAPMNet(BACKBONE)
+    loss = DAPMLoss()
+    size = (32, 48)
+    all_sky = targets_for(2, size)
+    all_sky["sky"][:] = True
+    all_sky["depth"][:] = MAX_DEPTH_M
+    invalid = targets_for(2, size)
+    invalid["valid"][:] = False
+    invalid["depth"][:] = 0.0
+    no_pose = targets_for(2, size)
+    no_pose["has_pose"][:] = False
+    no_pose["pose"][:] = float("nan")
+    for targets in (all_sky, invalid, no_pose, targets_for(1, size)):
+        batch = targets["depth"].shape[0]
+        terms = loss(net(torch.rand(batch, 3, *size)), targets)
+        for key, value in terms.items():
+            assert torch.isfinite(value), key
+        net.zero_grad()
+        terms["total"].backward()
+        assert all(torch.isfinite(p.grad).all() for p in net.parameters() if p.grad is not None)
+
+
+def test_tiny_model_overfits_synthetic_images():
+    torch.manual_seed(0)
+    rng = np.random.default_rng(0)
+    size = (48, 64)
+    images, depths, poses = [], [], []
+    for _ in range(4):
+        pose = sample_pose(rng)
+        rgb, range_m, _ = render_scene(pose, size, sample_scene(rng))
+        images.append(torch.from_numpy(rgb).permute(2, 0, 1).float() / 255)
+        depths.append(torch.from_numpy(np.minimum(range_m, MAX_DEPTH_M)).float()[None])
+        poses.append(torch.tensor(pose, dtype=torch.float32))
+    image, depth, pose = torch.stack(images), torch.stack(depths), torch.stack(poses)
+    targets = dict(depth=depth, sky=depth >= MAX_DEPTH_M, valid=torch.ones_like(depth, dtype=torch.bool), pose=pose)
+    net = DAPMNet(BACKBONE, decoder_channels=32, head_channels=16, pose_hidden=64)
+    loss = DAPMLoss()
+    optimizer = torch.optim.AdamW(net.parameters(), lr=2e-3)
+    history = []
+    for _ in range(60):
+        terms = loss(net(image, normalize_pose(pose), 0.5), targets)
+        optimizer.zero_grad()
+        terms["total"].backward()
+        optimizer.step()
+        history.append(terms["total"].item())
+    assert history[-1] < history[0] / 4, history[::10]
+
+
+def test_pose_ranges_are_configurable():
+    ranges = dict(POSE_RANGES, height=(0.0, 500.0))
+    out = DAPMNet(BACKBONE, pose_ranges=ranges).eval()(torch.rand(1, 3, 32, 32))
+    assert 0 <= out.pose[0, 0] <= 500
