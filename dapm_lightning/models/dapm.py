@@ -80,7 +80,7 @@ class DAPMNet(nn.Module):
     def __init__(self, backbone: str = "resnet50", *, pretrained: bool = False, weights_path: str | None = None,
                  use_depth: bool = True, use_pose: bool = True, depth_bins: Sequence[int] = (2, 16, 64),
                  pose_bins: Sequence[int] = (16, 64), use_igd_feature: bool = True, igd_model: IGDModel = "pinhole",
-                 depth_kind: DepthKind = "range", max_depth: float = MAX_DEPTH_M, decoder_channels: int = 128,
+                 depth_kind: DepthKind = "range", max_depth: float = MAX_DEPTH_M, decoder_channels: int = 96,
                  head_channels: int = 32, igd_channels: int = 16, head_stride: int = 4, dropout: float = 0.1,
                  pose_hidden: int = 256, igd_feature_grad: bool = False,
                  pose_ranges: Mapping[str, tuple[float, float]] = POSE_RANGES) -> None:

@@ -28,12 +28,12 @@ def expected_value(logits: Tensor, dim: int = 1) -> Tensor:
 
 
 class BinsBlock(nn.Module):
-    """Concatenated inputs -> two 3x3 conv-BN-ReLU layers -> 1x1 conv to ``num_outputs`` logits."""
+    """Concatenated inputs -> 1x1 then 3x3 conv-BN-ReLU (fuse, then spatial context) -> 1x1 conv to logits."""
 
     def __init__(self, in_channels: int, channels: int, num_outputs: int) -> None:
         super().__init__()
-        self.body = nn.Sequential(conv_bn_relu(in_channels, channels), conv_bn_relu(channels, channels),
-                                  nn.Conv2d(channels, num_outputs, 1))
+        self.body = nn.Sequential(conv_bn_relu(in_channels, channels, kernel_size=1),
+                                  conv_bn_relu(channels, channels), nn.Conv2d(channels, num_outputs, 1))
 
     def forward(self, x: Tensor) -> Tensor:
         return self.body(x)

@@ -1,0 +1,111 @@
+"""``make bench``: model size, compute, latency and memory of DAPM configurations, printed as a table.
+
+Latency ratios are measured in one process, side by side (the machine is noisy; compare ratios).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import statistics
+import subprocess
+import sys
+import time
+from typing import Any
+
+import torch
+from torch.utils.flop_counter import FlopCounterMode
+
+from dapm_lightning.models import DAPMNet
+
+CONFIGS: dict[str, dict[str, Any]] = {
+    "default": {},
+    "paper-faithful": {"head_stride": 1, "decoder_channels": 256, "head_channels": 128, "igd_channels": 32},
+}
+
+
+def _median_latency(fn: Any, x: torch.Tensor, repeats: int) -> float:
+    fn(x)  # warm-up
+    times = []
+    for _ in range(repeats):
+        if x.is_cuda:
+            torch.cuda.synchronize()
+        start = time.perf_counter()
+        fn(x)
+        if x.is_cuda:
+            torch.cuda.synchronize()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+def measure(config: str, backbone: str, size: int, repeats: int, device: str) -> dict[str, Any]:
+    """Measure one configuration in this process."""
+    torch.set_grad_enabled(False)
+    net = DAPMNet(backbone, **CONFIGS[config]).eval().to(device)
+    x = torch.rand(1, 3, size, size, device=device)
+
+    def encoder(im: torch.Tensor) -> list[torch.Tensor]:
+        return net.encoder((im - net.pixel_mean) / net.pixel_std)
+
+    with FlopCounterMode(display=False) as counter:
+        net(x)
+    full_gmac = counter.get_total_flops() / 2e9
+    with FlopCounterMode(display=False) as counter:
+        encoder(x)
+    encoder_gmac = counter.get_total_flops() / 2e9
+    rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    if device == "cuda":
+        torch.cuda.reset_peak_memory_stats()
+    latencies_full, latencies_encoder = [], []
+    for _ in range(2):  # interleave, so both see the same machine state
+        latencies_encoder.append(_median_latency(encoder, x, repeats))
+        latencies_full.append(_median_latency(net, x, repeats))
+    full, enc = min(latencies_full), min(latencies_encoder)
+    if device == "cuda":
+        peak_mb = torch.cuda.max_memory_allocated() / 2**20
+    else:
+        peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    return {"config": config, "device": device, "params_m": sum(p.numel() for p in net.parameters()) / 1e6,
+            "gmac": full_gmac, "encoder_gmac": encoder_gmac, "latency_ms": full * 1e3,
+            "encoder_latency_ms": enc * 1e3, "ratio": full / enc, "peak_mb": peak_mb,
+            "rss_before_mb": rss_before / 1024}
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Run every configuration in its own process (clean peak memory) and print a table."""
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--backbone", default="resnet50")
+    parser.add_argument("--size", type=int, default=512)
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--one", help=argparse.SUPPRESS)
+    parser.add_argument("--device", default=None, help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.one:
+        print(json.dumps(measure(args.one, args.backbone, args.size, args.repeats, args.device)))
+        return
+    torch.set_num_threads(torch.get_num_threads())
+    devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+    rows = []
+    for device in devices:
+        for config in CONFIGS:
+            repeats = args.repeats if (config == "default" or device == "cuda") else 1
+            cmd = [sys.executable, "-m", "dapm_lightning.bench", "--one", config, "--backbone", args.backbone,
+                   "--size", str(args.size), "--repeats", str(repeats), "--device", device]
+            result = subprocess.run(cmd, check=True, capture_output=True, text=True)
+            rows.append(json.loads(result.stdout.strip().splitlines()[-1]))
+    print(f"DAPM forward, {args.backbone}, {args.size}x{args.size}, batch 1, {torch.get_num_threads()} CPU threads")
+    header = (f"{'config':<16}{'device':<7}{'params M':>9}{'GMAC':>8}{'enc GMAC':>9}{'full ms':>10}"
+              f"{'enc ms':>9}{'ratio':>7}{'peak MB':>9}")
+    print(header)
+    print("-" * len(header))
+    for r in rows:
+        print(f"{r['config']:<16}{r['device']:<7}{r['params_m']:>9.2f}{r['gmac']:>8.1f}{r['encoder_gmac']:>9.1f}"
+              f"{r['latency_ms']:>10.0f}{r['encoder_latency_ms']:>9.0f}{r['ratio']:>7.2f}{r['peak_mb']:>9.0f}")
+    print("ratio = full model latency / encoder-alone latency (same process). "
+          "Paper: 42.82 M params; targets: default <= 42.82 M and ratio <= 1.3.")
+    print("peak MB: CPU = process max RSS (model + activations); CUDA = max allocated.")
+
+
+if __name__ == "__main__":
+    main()
