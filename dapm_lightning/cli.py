@@ -36,9 +36,9 @@ def synth_main(argv: Sequence[str]) -> None:
 def main(argv: Sequence[str] | None = None) -> None:
     """Entry point of ``dapm-lightning``."""
     args = list(sys.argv[1:] if argv is None else argv)
-    if args and args[0] == "synth":
+    if args and args[0] in TOOL_COMMANDS:
         synth_main(args[1:])
         return
     from dapm_lightning.lightning_cli import run_lightning_cli
 
-    run_lightning_cli(args)
+    run_lightning_cli(None if argv is None else args)

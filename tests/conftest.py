@@ -39,3 +39,17 @@ def tiny_uapd(tmp_path_factory) -> Path:
 def uapd_copy(tiny_uapd, tmp_path) -> Path:
     """A private copy of :func:`tiny_uapd` a test may break."""
     return Path(shutil.copytree(tiny_uapd, tmp_path / "uapd"))
+
+
+@pytest.fixture(scope="session")
+def tiny_potsdam(tmp_path_factory) -> Path:
+    """Two Potsdam-named tiles (RGB + float height TIFF), 64x96 each: 12 crops of 32 pixels."""
+    root = tmp_path_factory.mktemp("potsdam")
+    (root / "rgb").mkdir()
+    (root / "height").mkdir()
+    rng = np.random.default_rng(0)
+    for a, b in ((2, 10), (3, 11)):
+        cv2.imwrite(str(root / "rgb" / f"top_potsdam_{a}_{b}_RGB.tif"), rng.integers(0, 255, (64, 96, 3), np.uint8))
+        height = (rng.random((64, 96)) * 30).astype(np.float32)
+        cv2.imwrite(str(root / "height" / f"dsm_potsdam_{a:02d}_{b:02d}.tif"), height)
+    return root

@@ -117,7 +117,8 @@ class DAPMNet(nn.Module):
 
         Args:
             image: ``[B, 3, H, W]`` RGB in [0, 1] (any H, W).
-            pose_norm_true: ``[B, 4]`` normalised true pose, for the IGD teacher forcing in training.
+            pose_norm_true: ``[B, 4]`` normalised true pose, for the IGD teacher forcing in training
+                (rows with NaN, images without a pose, use the prediction).
             predicted_share: weight of the predicted pose in the IGD input,
                 ``w * predicted + (1 - w) * true``; 1 (predictions only) when no true pose is given.
         """
@@ -152,8 +153,10 @@ class DAPMNet(nn.Module):
         if self.igd_feature is not None:
             assert out.pose_norm is not None
             pose = out.pose_norm if self.igd_feature_grad else out.pose_norm.detach()
-            if pose_norm_true is not None and predicted_share < 1.0:
-                pose = predicted_share * pose + (1.0 - predicted_share) * pose_norm_true  # teacher forcing
+            if pose_norm_true is not None and predicted_share < 1.0:  # teacher forcing
+                known = torch.isfinite(pose_norm_true).all(dim=1, keepdim=True)  # images without a pose keep theirs
+                true = torch.where(known, pose_norm_true, pose)
+                pose = predicted_share * pose + (1.0 - predicted_share) * true
             out.igd_norm = igd_norm_from_pose(pose, head_size, model=self.igd_model, depth_kind=self.depth_kind,
                                               max_depth=self.max_depth, pose_ranges=self.pose_ranges)
             igd_feature = self.igd_feature(out.igd_norm)

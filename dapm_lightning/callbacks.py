@@ -1,0 +1,84 @@
+"""Callbacks that depend on training progress: IGD teacher forcing and picture panels."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import cv2
+import lightning as L
+import torch
+
+from dapm_lightning.visualize import depth_panel
+
+
+class IGDTeacherForcing(L.Callback):
+    """Sets the predicted share ``w`` of the IGD input ``w * predicted + (1 - w) * true`` pose.
+
+    ``w`` rises linearly from ``start_share`` at ``start_fraction`` of the training steps to
+    ``end_share`` at ``end_fraction`` (paper: from true poses to predictions only by the end of
+    training). Validation, test and predict always use predictions only (the module ignores ``w`` there).
+    Logged as ``train_igd_predicted_share``.
+    """
+
+    def __init__(self, start_share: float = 0.0, end_share: float = 1.0, start_fraction: float = 0.0,
+                 end_fraction: float = 1.0) -> None:
+        if not 0.0 <= start_fraction < end_fraction:
+            raise ValueError(f"need 0 <= start_fraction < end_fraction, got {start_fraction}, {end_fraction}")
+        self.start_share, self.end_share = start_share, end_share
+        self.start_fraction, self.end_fraction = start_fraction, end_fraction
+
+    def share(self, step: int, total_steps: int) -> float:
+        """The predicted share at ``step`` of ``total_steps``."""
+        progress = step / max(1, total_steps)
+        t = min(1.0, max(0.0, (progress - self.start_fraction) / (self.end_fraction - self.start_fraction)))
+        return self.start_share + (self.end_share - self.start_share) * t
+
+    def on_train_batch_start(self, trainer: L.Trainer, pl_module: L.LightningModule, batch: Any,
+                             batch_idx: int) -> None:
+        share = self.share(trainer.global_step, int(trainer.estimated_stepping_batches))
+        pl_module.predicted_share = share  # type: ignore[assignment]
+        pl_module.log("train_igd_predicted_share", share, on_step=True, on_epoch=False, batch_size=1)
+
+    def on_train_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        pl_module.predicted_share = 1.0  # type: ignore[assignment]
+
+
+class DepthPanelLogger(L.Callback):
+    """Every ``every_n_steps`` training steps, and on the first test batch, render panels
+    ``RGB | true depth | predicted depth | IGD of predicted pose | error`` of the current batch,
+    send them to the logger (TensorBoard) and write them as PNG under ``<log_dir>/panels``."""
+
+    def __init__(self, every_n_steps: int = 500, max_images: int = 4, output_dir: str | None = None) -> None:
+        self.every_n_steps, self.max_images, self.output_dir = every_n_steps, max_images, output_dir
+        self.written: list[Path] = []
+
+    def _render(self, trainer: L.Trainer, pl_module: L.LightningModule, batch: dict[str, Any], tag: str) -> None:
+        was_training = pl_module.training
+        pl_module.eval()
+        with torch.no_grad():
+            image = batch["image"][: self.max_images]
+            out = pl_module(image)
+        pl_module.train(was_training)
+        panel = depth_panel(image, batch["depth"][: self.max_images], out, self.max_images,
+                            pl_module.hparams.get("max_depth", 1000.0))
+        step = trainer.global_step
+        experiment = getattr(trainer.logger, "experiment", None)
+        if hasattr(experiment, "add_image"):
+            experiment.add_image(f"panels/{tag}", panel, step, dataformats="HWC")
+        if trainer.is_global_zero:
+            folder = Path(self.output_dir or trainer.log_dir or ".") / "panels"
+            folder.mkdir(parents=True, exist_ok=True)
+            path = folder / f"{tag}_step{step:06d}.png"
+            cv2.imwrite(str(path), cv2.cvtColor(panel, cv2.COLOR_RGB2BGR))
+            self.written.append(path)
+
+    def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any,
+                           batch_idx: int) -> None:
+        if self.every_n_steps > 0 and trainer.global_step % self.every_n_steps == 0:
+            self._render(trainer, pl_module, batch, "train")
+
+    def on_test_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any,
+                          batch_idx: int, dataloader_idx: int = 0) -> None:
+        if batch_idx == 0:
+            self._render(trainer, pl_module, batch, "test")

@@ -1,0 +1,48 @@
+from types import SimpleNamespace
+
+import pytest
+import torch
+
+from dapm_lightning.callbacks import IGDTeacherForcing
+from dapm_lightning.module import DAPMModule, warmup_cosine
+
+
+def test_teacher_forcing_schedule_start_middle_end():
+    cb = IGDTeacherForcing()
+    assert cb.share(0, 100) == 0.0
+    assert cb.share(50, 100) == pytest.approx(0.5)
+    assert cb.share(100, 100) == 1.0
+    late = IGDTeacherForcing(start_share=0.2, end_share=1.0, start_fraction=0.5, end_fraction=0.75)
+    assert late.share(10, 100) == pytest.approx(0.2)
+    assert late.share(625, 1000) == pytest.approx(0.6)
+    assert late.share(900, 1000) == 1.0
+    with pytest.raises(ValueError):
+        IGDTeacherForcing(start_fraction=0.8, end_fraction=0.2)
+
+
+def test_callback_sets_share_and_eval_ignores_it(monkeypatch):
+    module = DAPMModule(backbone="resnet18")
+    module.log = lambda *a, **k: None
+    trainer = SimpleNamespace(global_step=30, estimated_stepping_batches=120)
+    IGDTeacherForcing().on_train_batch_start(trainer, module, None, 0)
+    assert module.predicted_share == pytest.approx(0.25)
+    seen = []
+    real_forward = module.net.forward
+    monkeypatch.setattr(module.net, "forward", lambda image, true=None, share=1.0: seen.append((true, share))
+                        or real_forward(image, true, share))
+    module.log_dict = lambda *a, **k: None
+    batch = dict(image=torch.rand(2, 3, 32, 32), depth=torch.full((2, 1, 32, 32), 50.0),
+                 sky=torch.zeros(2, 1, 32, 32, dtype=torch.bool), valid=torch.ones(2, 1, 32, 32, dtype=torch.bool),
+                 pose=torch.tensor([[50.0, -40, 0, 60]] * 2), has_pose=torch.ones(2, dtype=torch.bool))
+    module._shared_step(batch, "train")
+    module.eval()
+    module._shared_step(batch, "val")
+    assert seen[0][1] == pytest.approx(0.25) and seen[0][0] is not None
+    assert seen[1] == (None, 1.0)  # validation: predictions only
+
+
+def test_warmup_then_cosine():
+    assert warmup_cosine(0, 100, 0.3, 0.0) == pytest.approx(1 / 30)
+    assert warmup_cosine(29, 100, 0.3, 0.0) == pytest.approx(1.0)
+    assert warmup_cosine(65, 100, 0.3, 0.0) == pytest.approx(0.5, abs=0.03)
+    assert warmup_cosine(100, 100, 0.3, 0.1) == pytest.approx(0.1)

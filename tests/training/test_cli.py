@@ -1,0 +1,116 @@
+"""End to end through the real CLI, in-process, on tiny generated data."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+import yaml
+
+from dapm_lightning.cli import main
+from dapm_lightning.data.datamodules import DAPMDataModule, PotsdamDataModule
+from dapm_lightning.lightning_cli import DAPMCLI, run_lightning_cli
+from dapm_lightning.module import DAPMModule
+
+CONFIGS = Path(__file__).resolve().parents[2] / "configs"
+PAPER = CONFIGS / "paper" / "uapd_dapm.yaml"
+CPU = ["--trainer.accelerator", "cpu", "--trainer.devices", "1", "--trainer.strategy", "auto",
+       "--trainer.sync_batchnorm", "false", "--trainer.precision", "32-true", "--model.backbone", "resnet18",
+       "--model.pretrained", "false", "--data.init_args.batch_size", "2", "--data.init_args.num_workers", "0",
+       "--data.init_args.pin_memory", "false", "--data.init_args.persistent_workers", "false"]
+
+
+def fast_fit(config_args, root, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    return run_lightning_cli(["fit", *config_args, *CPU, "--data.init_args.root", str(root),
+                              "--trainer.fast_dev_run", "1", "--trainer.default_root_dir", str(tmp_path)])
+
+
+@pytest.mark.parametrize("ablation", sorted(p.name for p in (CONFIGS / "ablations").glob("*.yaml")))
+def test_every_ablation_trains_a_step(ablation, tiny_uapd, tmp_path, monkeypatch):
+    cli = fast_fit(["--config", str(PAPER), "--config", str(CONFIGS / "ablations" / ablation)], tiny_uapd, tmp_path,
+                   monkeypatch)
+    assert cli.trainer.global_step == 1
+    overrides = yaml.safe_load((CONFIGS / "ablations" / ablation).read_text())["model"]
+    for key, value in overrides.items():
+        got = cli.model.hparams[key]
+        assert (list(got) if isinstance(got, tuple) else got) == value, key
+
+
+@pytest.mark.parametrize("config", ["uapd_dapm.yaml", "uapd_dapm_d.yaml", "uapd_dapm_p.yaml"])
+def test_paper_configs_train_a_step(config, tiny_uapd, tmp_path, monkeypatch):
+    cli = fast_fit(["--config", str(CONFIGS / "paper" / config)], tiny_uapd, tmp_path, monkeypatch)
+    assert cli.trainer.global_step == 1
+    assert "val_loss" in cli.trainer.callback_metrics
+
+
+def test_potsdam_config_trains_depth_only(tiny_potsdam, tmp_path, monkeypatch):
+    cli = fast_fit(["--config", str(CONFIGS / "paper" / "potsdam_dapm_d.yaml"), "--data.init_args.crop_size", "32"],
+                   tiny_potsdam, tmp_path, monkeypatch)
+    assert cli.trainer.global_step == 1
+    assert not cli.model.hparams["use_pose"]
+    dm = PotsdamDataModule(root=str(tiny_potsdam), crop_size=32)
+    dm.setup("fit")
+    assert len(dm.datasets["train"]) + len(dm.datasets["val"]) == 12
+    assert len(dm.datasets["val"]) == 2 and not set(dm.datasets["train"].names) & set(dm.datasets["val"].names)
+
+
+def test_quickstart_config_fit_test_and_outputs(tiny_uapd, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    common = ["--config", str(CONFIGS / "quickstart.yaml"), "--data.class_path",
+              "dapm_lightning.data.datamodules.UAPDDataModule", "--data.init_args.root", str(tiny_uapd),
+              "--data.init_args.batch_size", "2", "--data.init_args.num_workers", "0",
+              "--model.output_dir", str(tmp_path / "out")]
+    fit = run_lightning_cli(["fit", *common, "--trainer.max_epochs", "1", "--trainer.limit_train_batches", "2"])
+    ckpt = Path(fit.trainer.checkpoint_callback.last_model_path)
+    assert ckpt.is_file()
+    test = run_lightning_cli(["test", *common, "--ckpt_path", str(ckpt)])
+    metrics = test.trainer.callback_metrics
+    for key in ("test_depth_d1", "test_depth_abs_rel", "test_depthlog_d1", "test_pose_roll_median",
+                "test_pose_fov_auc5", "test_loss_pd", "test_view_pitch_bin0_d1"):
+        assert key in metrics, key
+    assert (tmp_path / "out" / "viewpoints.png").is_file()
+    assert list((tmp_path / "outputs" / "quickstart").rglob("panels/test_step*.png"))
+
+
+def test_checkpoint_roundtrip_identical_predictions(tiny_uapd, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    cli = run_lightning_cli(["fit", "--config", str(CONFIGS / "quickstart.yaml"), "--data.class_path",
+                             "dapm_lightning.data.datamodules.UAPDDataModule", "--data.init_args.root", str(tiny_uapd),
+                             "--data.init_args.batch_size", "2", "--data.init_args.num_workers", "0",
+                             "--trainer.max_steps", "2", "--trainer.limit_val_batches", "0"])
+    path = tmp_path / "model.ckpt"
+    cli.trainer.save_checkpoint(path)
+    loaded = DAPMModule.load_from_checkpoint(path, weights_only=True).eval()
+    model = cli.model.eval()
+    image = torch.rand(2, 3, 24, 40)
+    with torch.no_grad():
+        a, b = model(image), loaded(image)
+    torch.testing.assert_close(a.depth_m, b.depth_m, rtol=0, atol=0)
+    torch.testing.assert_close(a.pose, b.pose, rtol=0, atol=0)
+    assert loaded.hparams["backbone"] == "resnet18"
+
+
+@pytest.mark.parametrize("path", sorted(str(p.relative_to(CONFIGS)) for p in CONFIGS.rglob("*.yaml")))
+def test_every_config_parses(path):
+    stack = [] if path.startswith("paper") or path == "quickstart.yaml" else ["--config", str(PAPER)]
+    cli = DAPMCLI(DAPMModule, DAPMDataModule, subclass_mode_data=True, run=False, auto_configure_optimizers=False,
+                  args=[*stack, "--config", str(CONFIGS / path), "--trainer.accelerator", "cpu",
+                        "--trainer.devices", "1", "--trainer.strategy", "auto", "--model.pretrained", "false"])
+    assert isinstance(cli.model, DAPMModule)
+    assert isinstance(cli.datamodule, DAPMDataModule)
+
+
+def test_help_and_synth_subprocess():
+    out = subprocess.run([sys.executable, "-m", "dapm_lightning", "fit", "--help"], capture_output=True, text=True,
+                         check=True).stdout
+    assert "--model.depth_bins" in out and "--trainer.devices" in out
+    synth = subprocess.run([sys.executable, "-m", "dapm_lightning", "synth", "--help"], capture_output=True,
+                           text=True, check=True).stdout
+    assert "--out" in synth
+
+
+def test_main_dispatches_synth(tmp_path):
+    main(["synth", "--out", str(tmp_path / "s"), "--train", "1", "--val", "1", "--size", "12", "16", "--workers", "1"])
+    assert len(list((tmp_path / "s" / "train" / "rgb").glob("*.png"))) == 1
