@@ -148,7 +148,9 @@ class PoseMetrics(Metric):
         self.errors.append((pred.detach().double() - target.double()).abs())
 
     def compute(self) -> dict[str, Tensor]:
-        errors = dim_zero_cat(self.errors) if self.errors else torch.zeros(0, 4, dtype=torch.float64)
+        errors = self.errors  # a list of [B, 4] before a DDP sync, one tensor after
+        if isinstance(errors, list):
+            errors = dim_zero_cat(errors) if errors else torch.zeros(0, 4, dtype=torch.float64)
         result: dict[str, Tensor] = {}
         for k, key in enumerate(POSE_KEYS):
             component = errors[:, k]

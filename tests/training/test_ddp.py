@@ -1,0 +1,43 @@
+"""DDP with 2 CPU processes (gloo): training runs, and validation metrics equal a single-process run."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from dapm_lightning.data.synthetic import generate_uapd
+
+HERE = Path(__file__).resolve().parent
+QUICKSTART = HERE.parents[1] / "configs" / "quickstart.yaml"
+
+
+def run(tmp_path, name, *args):
+    out = tmp_path / f"{name}.json"
+    subprocess.run([sys.executable, str(HERE / "ddp_run.py"), str(out), *args], check=True, cwd=tmp_path,
+                   capture_output=True, text=True, timeout=300)
+    return json.loads(out.read_text())
+
+
+def test_ddp_two_cpu_processes_match_single_process(tmp_path):
+    root = generate_uapd(tmp_path / "data", train=8, val=6, size=(24, 40), seed=11, workers=1)
+    common = ["--config", str(QUICKSTART), "--data.class_path", "dapm_lightning.data.datamodules.UAPDDataModule",
+              "--data.init_args.root", str(root), "--data.init_args.batch_size", "2",
+              "--data.init_args.num_workers", "0", "--trainer.accelerator", "cpu",
+              "--trainer.callbacks+=lightning.pytorch.callbacks.ModelCheckpoint",
+              "--trainer.callbacks.dirpath", str(tmp_path / "ckpt")]
+    try:
+        fit = run(tmp_path, "fit", "fit", *common, "--trainer.devices", "2", "--trainer.strategy", "ddp",
+                  "--trainer.max_steps", "3", "--trainer.limit_val_batches", "0")
+    except subprocess.CalledProcessError as error:
+        pytest.fail(f"DDP fit failed:\n{error.stderr[-3000:]}")
+    assert fit["global_step"] == 3
+    ckpt = sorted((tmp_path / "ckpt").glob("*.ckpt"))[-1]
+    single = run(tmp_path, "one", "validate", *common, "--trainer.devices", "1", "--ckpt_path", str(ckpt))
+    double = run(tmp_path, "two", "validate", *common, "--trainer.devices", "2", "--trainer.strategy", "ddp",
+                 "--ckpt_path", str(ckpt))
+    keys = [k for k in single["metrics"] if k.startswith(("val_depth_", "val_pose_"))]
+    assert "val_pose_roll_median" in keys and "val_depth_abs_rel" in keys
+    for key in keys:
+        assert double["metrics"][key] == pytest.approx(single["metrics"][key], rel=1e-5, abs=1e-6), key
