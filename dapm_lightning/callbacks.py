@@ -45,9 +45,12 @@ class IGDTeacherForcing(L.Callback):
 
 
 class DepthPanelLogger(L.Callback):
-    """Every ``every_n_steps`` training steps, and on the first test batch, render panels
-    ``RGB | true depth | predicted depth | IGD of predicted pose | error`` of the current batch,
-    send them to the logger (TensorBoard) and write them as PNG under ``<log_dir>/panels``."""
+    """Picture panels of the current batch, to the logger and as PNG files.
+
+    Every ``every_n_steps`` training steps and on the first test batch, renders
+    ``RGB | true depth | predicted depth | IGD of predicted pose | error``, sends it to the logger
+    (TensorBoard) and writes it under ``<output_dir or log_dir>/panels``.
+    """
 
     def __init__(self, every_n_steps: int = 500, max_images: int = 4, output_dir: str | None = None) -> None:
         self.every_n_steps, self.max_images, self.output_dir = every_n_steps, max_images, output_dir

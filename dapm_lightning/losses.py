@@ -22,8 +22,11 @@ IGNORE = -100
 
 
 class LossTargets(TypedDict, total=False):
-    """Targets in physical units: ``depth`` ``[B,1,H,W]`` m, ``sky``/``valid`` ``[B,1,H,W]`` bool,
-    ``pose`` ``[B,4]`` (m, deg, deg, deg), ``has_pose`` ``[B]`` bool."""
+    """Targets in physical units.
+
+    ``depth`` ``[B,1,H,W]`` m, ``sky``/``valid`` ``[B,1,H,W]`` bool, ``pose`` ``[B,4]``
+    (m, deg, deg, deg), ``has_pose`` ``[B]`` bool.
+    """
 
     depth: Tensor
     sky: Tensor

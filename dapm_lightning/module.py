@@ -89,7 +89,8 @@ class DAPMModule(L.LightningModule):
         terms = self.criterion(out, batch)
         batch_size = image.shape[0]
         named = {f"{stage}_loss_{k}": v.detach() for k, v in terms.items() if k != "total"}
-        self.log_dict(named, batch_size=batch_size, on_step=stage == "train", on_epoch=True, prog_bar=False, sync_dist=stage != "train")
+        self.log_dict(named, batch_size=batch_size, on_step=stage == "train", on_epoch=True,
+                      sync_dist=stage != "train")
         self.log(f"{stage}_loss", terms["total"].detach(), batch_size=batch_size, prog_bar=True,
                  on_step=stage == "train", on_epoch=True, sync_dist=stage != "train")
         if stage != "train":

@@ -10,7 +10,6 @@ import json
 import math
 import time
 from pathlib import Path
-from typing import Any
 
 import torch
 
@@ -77,7 +76,8 @@ def main(argv: list[str] | None = None) -> int:
         "trainer": {"default_root_dir": str(out), "logger": [
             {"class_path": "lightning.pytorch.loggers.TensorBoardLogger", "init_args": {"save_dir": str(out),
                                                                                        "name": "logs"}},
-            {"class_path": "lightning.pytorch.loggers.CSVLogger", "init_args": {"save_dir": str(out), "name": "logs"}}]},
+            {"class_path": "lightning.pytorch.loggers.CSVLogger",
+             "init_args": {"save_dir": str(out), "name": "logs"}}]},
         "model": {"output_dir": str(out)},
         "data": {"init_args": {"root": str(data_root)}}}, indent=2))
     common = ["--config", str(args.config), "--config", str(overrides)]
@@ -109,10 +109,11 @@ def main(argv: list[str] | None = None) -> int:
     print("\n" + ("The trained model beats both baselines on depth d1, AbsRel and every pose median."
                   if not failures else f"NOT beaten: {', '.join(failures)}"))
     print(f"\nOutputs in {out}:")
-    print(f"  metrics.json       all figures above (and the paper's 8-bit log-space depth metrics)")
-    print(f"  viewpoints.png     d1 and pose error per bin of pitch, height, roll, FoV")
-    print(f"  panels/            {len(panels)} picture(s): RGB | true depth | predicted | IGD of predicted pose | error")
-    print(f"  logs/              TensorBoard and CSV logs; checkpoints under logs/*/checkpoints")
+    print("  metrics.json       all figures above (and the paper's 8-bit log-space depth metrics)")
+    print("  viewpoints.png     d1 and pose error per bin of pitch, height, roll, FoV")
+    print(f"  panels/            {len(panels)} picture(s): "
+          "RGB | true depth | predicted | IGD of predicted pose | error")
+    print("  logs/              TensorBoard and CSV logs; checkpoints under logs/*/checkpoints")
     print(f"Took {(time.time() - start) / 60:.1f} min.")
     return 0 if not failures else 1
 

@@ -43,8 +43,10 @@ class DepthDecoder(nn.Module):
 
 
 class PoseDecoder(nn.Module):
-    """Global average pooling of every encoder stage (shallow ones too) and of the initial depth,
-    linear projections, a residual MLP, and a sigmoid to the initial normalised pose.
+    """Pose from pooled multi-level features: the initial normalised pose.
+
+    Global average pooling of every encoder stage (shallow ones too) and of the initial depth,
+    linear projections, a residual MLP, and a sigmoid.
 
     Args:
         in_channels: channels of all encoder stages used.
