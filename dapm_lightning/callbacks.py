@@ -70,7 +70,7 @@ class DepthPanelLogger(L.Callback):
         if hasattr(experiment, "add_image"):
             experiment.add_image(f"panels/{tag}", panel, step, dataformats="HWC")
         if trainer.is_global_zero:
-            folder = Path(self.output_dir or trainer.log_dir or ".") / "panels"
+            folder = Path(self.output_dir or pl_module.hparams.get("output_dir") or trainer.log_dir or ".") / "panels"
             folder.mkdir(parents=True, exist_ok=True)
             path = folder / f"{tag}_step{step:06d}.png"
             cv2.imwrite(str(path), cv2.cvtColor(panel, cv2.COLOR_RGB2BGR))

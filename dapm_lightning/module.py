@@ -172,11 +172,11 @@ class DAPMModule(L.LightningModule):
         if gathered.ndim == 3:
             gathered = gathered.flatten(0, 1)
         table = viewpoint_table(gathered.cpu(), self.hparams["viewpoint_bins"])
-        for row in table:
-            prefix = f"test_view_{row['component']}_bin{row['bin']}"
-            self.log_dict({f"{prefix}_d1": row["d1"], f"{prefix}_error": row["error"]}, rank_zero_only=True)
         self.viewpoint_table = table
         if self.trainer.is_global_zero:
+            values = {f"test_view_{r['component']}_bin{r['bin']}_{k}": r[k] for r in table for k in ("d1", "error")}
+            for logger in self.loggers:  # to the loggers only: the console table stays readable
+                logger.log_metrics(values, step=self.global_step)
             folder = Path(self.hparams["output_dir"] or self.trainer.log_dir or ".")
             folder.mkdir(parents=True, exist_ok=True)
             plot_viewpoints(table, folder / "viewpoints.png")

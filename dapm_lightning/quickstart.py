@@ -43,16 +43,15 @@ def baselines(root: Path, depth_kind: str = "range") -> dict[str, dict[str, floa
 
 def report(model: dict[str, dict[str, float]], base: dict[str, dict[str, float]]) -> tuple[str, list[str]]:
     """A table of the model against the baselines, and the rows where it does not beat them."""
-    lines = [f"{'metric':<24}{'DAPM':>10}{'baseline':>11}{'  gain':>8}",
-             "-" * 53]
+    lines = [f"{'metric':<26}{'DAPM':>9}{'baseline':>10}{'ratio':>8}", "-" * 53]
     failures = []
     for group, name, better in ROWS:
         ours, theirs = model[group].get(name, math.nan), base[group].get(name, math.nan)
-        unit = {"height_median": " m", "abs_rel": "", "rmse": " m"}.get(name, " deg" if "median" in name else "")
-        arrow = "↑" if better == "higher" else "↓"
+        unit = {"height_median": " [m]", "rmse": " [m]"}.get(name, " [deg]" if "median" in name else "")
+        arrow = " ↑" if better == "higher" else " ↓"
         beaten = ours > theirs if better == "higher" else ours < theirs
         gain = (ours / theirs if better == "higher" else theirs / ours) if ours and theirs else math.nan
-        lines.append(f"{group + ' ' + name + arrow:<24}{ours:>10.3f}{theirs:>11.3f}{gain:>7.1f}x{unit}")
+        lines.append(f"{group + ' ' + name + unit + arrow:<26}{ours:>9.3f}{theirs:>10.3f}{gain:>7.1f}x")
         if not beaten and (name in ("d1", "abs_rel") or name.endswith("_median")):
             failures.append(f"{group} {name}")
     return "\n".join(lines), failures
@@ -74,10 +73,9 @@ def main(argv: list[str] | None = None) -> int:
     overrides = out / "quickstart_overrides.yaml"
     overrides.write_text(json.dumps({
         "trainer": {"default_root_dir": str(out), "logger": [
-            {"class_path": "lightning.pytorch.loggers.TensorBoardLogger", "init_args": {"save_dir": str(out),
-                                                                                       "name": "logs"}},
-            {"class_path": "lightning.pytorch.loggers.CSVLogger",
-             "init_args": {"save_dir": str(out), "name": "logs"}}]},
+            {"class_path": "lightning.pytorch.loggers.TensorBoardLogger",
+             "init_args": {"save_dir": str(out), "name": "tensorboard"}},
+            {"class_path": "lightning.pytorch.loggers.CSVLogger", "init_args": {"save_dir": str(out), "name": "csv"}}]},
         "model": {"output_dir": str(out)},
         "data": {"init_args": {"root": str(data_root)}}}, indent=2))
     common = ["--config", str(args.config), "--config", str(overrides)]
@@ -104,7 +102,7 @@ def main(argv: list[str] | None = None) -> int:
     (out / "metrics.json").write_text(json.dumps(summary, indent=2) + "\n")
     print("\nDAPM vs baselines on the validation images (depth in metres; one 8-bit grey level of the")
     print("ground truth is a factor of ~1.027 in depth). Baselines: depth = IGD of the mean training pose,")
-    print("pose = the mean training pose.\n")
+    print("pose = the mean training pose. ratio > 1: the model is better by that factor.\n")
     print(table)
     print("\n" + ("The trained model beats both baselines on depth d1, AbsRel and every pose median."
                   if not failures else f"NOT beaten: {', '.join(failures)}"))
@@ -113,7 +111,7 @@ def main(argv: list[str] | None = None) -> int:
     print("  viewpoints.png     d1 and pose error per bin of pitch, height, roll, FoV")
     print(f"  panels/            {len(panels)} picture(s): "
           "RGB | true depth | predicted | IGD of predicted pose | error")
-    print("  logs/              TensorBoard and CSV logs; checkpoints under logs/*/checkpoints")
+    print("  tensorboard/, csv/ logs of the fit and test runs; checkpoints in tensorboard/version_0/checkpoints")
     print(f"Took {(time.time() - start) / 60:.1f} min.")
     return 0 if not failures else 1
 

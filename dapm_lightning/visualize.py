@@ -30,7 +30,7 @@ def colorize_error(pred_m: Tensor, true_m: Tensor, max_depth: float = MAX_DEPTH_
 
 
 def depth_panel(image: Tensor, depth_true: Tensor | None, out: DAPMOutput, max_images: int = 4,
-                max_depth: float = MAX_DEPTH_M) -> np.ndarray:
+                max_depth: float = MAX_DEPTH_M, min_tile: int = 128) -> np.ndarray:
     """Stack rows ``RGB | true depth | predicted depth | IGD(predicted pose) | error`` for up to ``max_images``.
 
     Args:
@@ -60,4 +60,6 @@ def depth_panel(image: Tensor, depth_true: Tensor | None, out: DAPMOutput, max_i
         tiles.append(colorize_error(out.depth_m[b, 0].detach(), depth_true[b, 0], max_depth)
                      if out.depth_m is not None and depth_true is not None else blank)
         rows.append(np.concatenate(tiles, axis=1))
-    return np.concatenate(rows, axis=0)
+    panel = np.concatenate(rows, axis=0)
+    scale = max(1, -(-min_tile // size[0]))  # small images are enlarged (nearest) to be seen
+    return np.repeat(np.repeat(panel, scale, axis=0), scale, axis=1) if scale > 1 else panel

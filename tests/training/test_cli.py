@@ -68,10 +68,15 @@ def test_quickstart_config_fit_test_and_outputs(tiny_uapd, tmp_path, monkeypatch
     test = run_lightning_cli(["test", *common, "--ckpt_path", str(ckpt)])
     metrics = test.trainer.callback_metrics
     for key in ("test_depth_d1", "test_depth_abs_rel", "test_depthlog_d1", "test_pose_roll_median",
-                "test_pose_fov_auc5", "test_loss_pd", "test_view_pitch_bin0_d1"):
+                "test_pose_fov_auc5", "test_loss_pd"):
         assert key in metrics, key
+    table = test.model.viewpoint_table
+    assert {r["component"] for r in table} == {"height", "pitch", "roll", "fov"}
+    assert sum(r["count"] for r in table if r["component"] == "roll") == 3  # each val image counted once per component
+    csvs = [p.read_text() for p in (tmp_path / "outputs" / "quickstart" / "csv").rglob("metrics.csv")]
+    assert any("test_view_pitch_bin0_d1" in text for text in csvs)
     assert (tmp_path / "out" / "viewpoints.png").is_file()
-    assert list((tmp_path / "outputs" / "quickstart").rglob("panels/test_step*.png"))
+    assert list((tmp_path / "out" / "panels").glob("test_step*.png"))
 
 
 def test_checkpoint_roundtrip_identical_predictions(tiny_uapd, tmp_path, monkeypatch):

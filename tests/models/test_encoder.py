@@ -1,0 +1,37 @@
+import pytest
+import timm
+import torch
+from safetensors.torch import save_file
+
+from dapm_lightning.models import Encoder
+
+
+def test_local_weights_file_is_loaded(tmp_path):
+    source = timm.create_model("resnet18", pretrained=False)
+    with torch.no_grad():
+        source.conv1.weight.fill_(0.123)
+    path = tmp_path / "resnet18.safetensors"
+    save_file(source.state_dict(), str(path))
+    encoder = Encoder("resnet18", weights_path=str(path))
+    assert torch.all(encoder.body.conv1.weight == 0.123)
+    assert not torch.all(Encoder("resnet18").body.conv1.weight == 0.123)
+
+
+def test_missing_weights_file_is_a_clear_error(tmp_path):
+    with pytest.raises(FileNotFoundError, match="nope.pth"):
+        Encoder("resnet18", weights_path=str(tmp_path / "nope.pth"))
+
+
+def test_stages_and_strides():
+    encoder = Encoder("resnet18")
+    features = encoder(torch.rand(1, 3, 64, 96))
+    assert encoder.strides == [4, 8, 16, 32]
+    assert [f.shape[-2:] for f in features] == [(16, 24), (8, 12), (4, 6), (2, 3)]
+
+
+def test_public_names_of_the_design_contract():
+    from dapm_lightning.data import UAPDDataset, parse_uapd_filename  # noqa: F401
+    from dapm_lightning.geometry import (POSE_RANGES, decode_log_depth, denormalize_pose,  # noqa: F401
+                                         encode_log_depth, ideal_ground_depth, normalize_pose)
+    from dapm_lightning.metrics import DepthMetrics, PoseMetrics  # noqa: F401
+    assert POSE_RANGES["pitch"] == (-100.0, 10.0)
