@@ -1,0 +1,12 @@
+"""Data: UAPD reading, Potsdam crops, synthetic UAPD-format generation, the sample schema.
+
+The Lightning data modules live in :mod:`dapm_lightning.data.datamodules`.
+"""
+
+from dapm_lightning.data.errors import DatasetError
+from dapm_lightning.data.potsdam import PotsdamDataset
+from dapm_lightning.data.sample import Sample
+from dapm_lightning.data.synthetic import generate_uapd
+from dapm_lightning.data.uapd import UAPDDataset, parse_uapd_filename
+
+__all__ = ["DatasetError", "PotsdamDataset", "Sample", "UAPDDataset", "generate_uapd", "parse_uapd_filename"]

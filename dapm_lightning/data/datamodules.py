@@ -1,0 +1,153 @@
+"""Lightning data modules: UAPD, synthetic UAPD-format (generated on first use) and Potsdam."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any, Literal
+
+import lightning as L
+from torch.utils.data import DataLoader, Dataset
+from torch.utils.data._utils.collate import default_collate
+
+from dapm_lightning.data.potsdam import PotsdamDataset
+from dapm_lightning.data.sample import Sample
+from dapm_lightning.data.synthetic import generate_uapd
+from dapm_lightning.data.transforms import train_transform
+from dapm_lightning.data.uapd import UAPDDataset
+
+
+def collate_samples(samples: list[Sample]) -> dict[str, Any]:
+    """Stack the tensors of a list of samples; ``name`` and ``meta`` stay lists."""
+    batch: dict[str, Any] = {k: default_collate([s[k] for s in samples])  # type: ignore[literal-required]
+                             for k in samples[0] if k not in ("name", "meta")}
+    batch["name"] = [s["name"] for s in samples]
+    batch["meta"] = [s.get("meta", {}) for s in samples]
+    return batch
+
+
+class DAPMDataModule(L.LightningDataModule):
+    """Loaders shared by every data set: batch size, workers, pinned memory, augmentation.
+
+    Args:
+        batch_size: per process (the global batch is ``batch_size x devices x nodes``).
+        num_workers, pin_memory, persistent_workers: ``DataLoader`` settings.
+        augment: the paper's augmentation on the training split (colour jitter, noise, pose-aware flip).
+        image_dtype: ``"uint8"`` ships 4x fewer bytes per sample; the model normalises on the device.
+        eval_batch_size: batch size of validation/test/predict (default: ``batch_size``).
+    """
+
+    def __init__(self, batch_size: int = 8, num_workers: int = 2, pin_memory: bool = False,
+                 persistent_workers: bool = False, augment: bool = True,
+                 image_dtype: Literal["float32", "uint8"] = "uint8", eval_batch_size: int | None = None) -> None:
+        super().__init__()
+        self.batch_size, self.num_workers = batch_size, num_workers
+        self.pin_memory, self.persistent_workers = pin_memory, persistent_workers and num_workers > 0
+        self.augment, self.image_dtype = augment, image_dtype
+        self.eval_batch_size = eval_batch_size or batch_size
+        self.datasets: dict[str, Dataset[Sample]] = {}
+
+    def make_dataset(self, split: str, train: bool) -> Dataset[Sample]:
+        """The data set of one split (``train`` says whether to augment)."""
+        raise NotImplementedError
+
+    def setup(self, stage: str | None = None) -> None:
+        if stage in (None, "fit"):
+            self.datasets["train"] = self.make_dataset("train", True)
+        if stage in (None, "fit", "validate"):
+            self.datasets["val"] = self.make_dataset("val", False)
+        if stage in (None, "test"):
+            self.datasets["test"] = self.make_dataset(self.test_split, False)
+        if stage in (None, "predict"):
+            self.datasets["predict"] = self.make_dataset(self.test_split, False)
+
+    test_split = "val"
+
+    def _loader(self, split: str, shuffle: bool) -> DataLoader[dict[str, Any]]:
+        return DataLoader(self.datasets[split], batch_size=self.batch_size if shuffle else self.eval_batch_size,
+                          shuffle=shuffle, num_workers=self.num_workers, pin_memory=self.pin_memory,
+                          persistent_workers=self.persistent_workers, collate_fn=collate_samples,
+                          drop_last=shuffle and len(self.datasets[split]) > self.batch_size)  # type: ignore[arg-type]
+
+    def train_dataloader(self) -> DataLoader[dict[str, Any]]:
+        return self._loader("train", True)
+
+    def val_dataloader(self) -> DataLoader[dict[str, Any]]:
+        return self._loader("val", False)
+
+    def test_dataloader(self) -> DataLoader[dict[str, Any]]:
+        return self._loader("test", False)
+
+    def predict_dataloader(self) -> DataLoader[dict[str, Any]]:
+        return self._loader("predict", False)
+
+
+class UAPDDataModule(DAPMDataModule):
+    """UAPD-format data: ``root/{train,val}/{rgb,depth}/NAME.png`` with the pose in NAME.
+
+    Args:
+        root: data set root.
+        test_split: folder used by ``test`` and ``predict`` (UAPD publishes train and val only).
+        on_bad_file: ``"raise"`` lists every broken file at start-up; ``"skip"`` leaves them out.
+        depth_kind: what the depth PNGs hold ("range" for synthetic data; check real data with the
+            doctor); the model's ``depth_kind`` must match.
+    """
+
+    def __init__(self, root: str = "data/uapd", test_split: str = "val",
+                 on_bad_file: Literal["raise", "skip"] = "raise", depth_kind: Literal["range", "planar"] = "range",
+                 **kwargs: Any) -> None:
+        super().__init__(**kwargs)
+        self.root, self.test_split, self.on_bad_file, self.depth_kind = Path(root), test_split, on_bad_file, depth_kind
+
+    def make_dataset(self, split: str, train: bool) -> Dataset[Sample]:
+        return UAPDDataset(self.root, split, train_transform() if train and self.augment else None,
+                           image_dtype=self.image_dtype, on_bad_file=self.on_bad_file)
+
+
+class SyntheticDataModule(UAPDDataModule):
+    """Synthetic UAPD-format data, rendered into ``root`` on first use (and re-rendered if the settings change).
+
+    Args:
+        root: cache folder.
+        train_size, val_size: image counts. image_size: square side in pixels. seed: generator seed.
+        workers: processes for the generator.
+    """
+
+    def __init__(self, root: str = "data/synthetic", train_size: int = 1000, val_size: int = 200,
+                 image_size: int = 64, seed: int = 0, workers: int | None = None, **kwargs: Any) -> None:
+        super().__init__(root=root, **kwargs)
+        self.train_size, self.val_size, self.image_size = train_size, val_size, image_size
+        self.seed, self.workers = seed, workers
+
+    def prepare_data(self) -> None:
+        info = self.root / "synth.json"
+        wanted = {"train": self.train_size, "val": self.val_size, "size": [self.image_size] * 2, "seed": self.seed}
+        if info.is_file():
+            have = json.loads(info.read_text())
+            if all(have.get(k) == v for k, v in wanted.items()):
+                return
+        generate_uapd(self.root, train=self.train_size, val=self.val_size, size=self.image_size, seed=self.seed,
+                      workers=self.workers)
+
+
+class PotsdamDataModule(DAPMDataModule):
+    """ISPRS Potsdam, depth only (train DAPM(D)): tiles in ``root/rgb`` and ``root/height``, cut into
+    ``crop_size`` crops on first use, split 8:2 with a fixed seed."""
+
+    def __init__(self, root: str = "data/potsdam", crop_size: int = 512, val_fraction: float = 0.2,
+                 split_seed: int = 0, **kwargs: Any) -> None:
+        super().__init__(**kwargs)
+        self.root, self.crop_size, self.val_fraction, self.split_seed = Path(root), crop_size, val_fraction, split_seed
+
+    def prepare_data(self) -> None:
+        from dapm_lightning.data.potsdam import PotsdamCrops
+
+        PotsdamCrops(self.root, crop_size=self.crop_size).prepare()
+
+    def make_dataset(self, split: str, train: bool) -> Dataset[Sample]:
+        return PotsdamDataset(self.root, "train" if split == "train" else "val",
+                              train_transform() if train and self.augment else None, crop_size=self.crop_size,
+                              val_fraction=self.val_fraction, seed=self.split_seed, image_dtype=self.image_dtype)
+
+
+__all__ = ["DAPMDataModule", "PotsdamDataModule", "SyntheticDataModule", "UAPDDataModule", "collate_samples"]

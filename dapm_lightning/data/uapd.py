@@ -1,0 +1,216 @@
+"""UAPD on disk (design.md §4): file-name pose parsing and the data set reading rgb/depth pairs."""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Callable
+from pathlib import Path, PurePath
+from typing import Any, Literal
+
+import cv2
+import numpy as np
+import torch
+
+from dapm_lightning.data.errors import DatasetError
+from dapm_lightning.data.pngcheck import read_png_info
+from dapm_lightning.data.sample import Sample
+from dapm_lightning.geometry.constants import MAX_DEPTH_M, POSE_KEYS, SKY_GREY
+from dapm_lightning.geometry.depth_codec import grey_to_depth
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
+KEY_ALIASES = {"z": "height", "height": "height", "pitch": "pitch", "roll": "roll", "fov": "fov"}
+"""File-name keys that carry the pose, mapped to the pose component they name."""
+_NUMBER = re.compile(r"^[+-]?(\d+(\.\d*)?|\.\d+)$")
+_KEY = re.compile(r"^[A-Za-z]+$")
+
+Transform = Callable[..., dict[str, Any]]
+"""Called as ``transform(image=rgb, mask=grey, pose=pose)``; returns the same keys (albumentations style)."""
+
+
+def parse_uapd_filename(name: str | PurePath) -> dict[str, Any]:
+    """Parse the pose (and other ``key_value`` tokens) out of a UAPD file name.
+
+    Args:
+        name: e.g. ``"Town03_000123_x_-12.5_y_40.1_z_57.20_pitch_-63.40_roll_12.75_yaw_33.0_fov_88.10.png"``;
+            a directory and an image extension are ignored; tokens may come in any order.
+
+    Returns:
+        ``{"height", "pitch", "roll", "fov"}`` as floats (``z`` is the height), every other
+        ``letters_number`` pair as a float under its own key (``x``, ``y``, ``yaw``, ...), and the
+        remaining tokens, in order, as a list under ``"tokens"`` (``["Town03", "000123"]``).
+
+    Raises:
+        ValueError: naming the file, for a missing pose key, a pose key without a number, or a key
+            given twice with different values.
+    """
+    path = PurePath(name)
+    stem = path.stem if path.suffix.lower() in IMAGE_SUFFIXES else path.name
+    tokens = stem.split("_")
+    parsed: dict[str, Any] = {}
+    loose: list[str] = []
+    i = 0
+    while i < len(tokens):
+        token = tokens[i]
+        key = KEY_ALIASES.get(token.lower(), token) if _KEY.match(token) else None
+        following = tokens[i + 1] if i + 1 < len(tokens) else None
+        if key in POSE_KEYS and (following is None or not _NUMBER.match(following)):
+            raise ValueError(f"{name}: pose key {token!r} is followed by {following!r}, not a number")
+        if key is not None and following is not None and _NUMBER.match(following):
+            value = float(following)
+            if key in parsed and parsed[key] != value:
+                raise ValueError(f"{name}: key {key!r} given twice with different values "
+                                 f"({parsed[key]} and {value})")
+            parsed[key] = value
+            i += 2
+            continue
+        loose.append(token)
+        i += 1
+    missing = [key for key in POSE_KEYS if key not in parsed]
+    if missing:
+        raise ValueError(f"{name}: missing pose key(s) {missing} (expected tokens z_, pitch_, roll_, fov_)")
+    parsed["tokens"] = loose
+    return parsed
+
+
+def pose_from_parsed(parsed: dict[str, Any]) -> np.ndarray:
+    """The ``[4]`` float32 pose (height, pitch, roll, fov) of a :func:`parse_uapd_filename` result."""
+    return np.array([parsed[key] for key in POSE_KEYS], dtype=np.float32)
+
+
+def read_rgb(path: Path, *, expected_hw: tuple[int, int] | None = None) -> np.ndarray:
+    """Read an image as ``[H, W, 3]`` uint8 RGB; a clear error naming the file if it cannot be decoded."""
+    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if image is None:
+        raise ValueError(f"{path}: cannot be decoded as an image")
+    if expected_hw is not None and image.shape[:2] != expected_hw:
+        raise ValueError(f"{path}: size {image.shape[1]}x{image.shape[0]} differs from its depth "
+                         f"{expected_hw[1]}x{expected_hw[0]}")
+    return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+
+
+def read_depth_grey(path: Path) -> np.ndarray:
+    """Read a UAPD depth PNG as ``[H, W]`` uint8 grey; a clear error naming the file otherwise."""
+    grey = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if grey is None:
+        raise ValueError(f"{path}: cannot be decoded as an image")
+    if grey.ndim != 2 or grey.dtype != np.uint8:
+        raise ValueError(f"{path}: depth must be single-channel 8-bit, got shape {grey.shape} {grey.dtype}")
+    return grey
+
+
+class UAPDDataset(torch.utils.data.Dataset[Sample]):
+    """UAPD-format pairs ``ROOT/SPLIT/rgb/NAME.png`` + ``ROOT/SPLIT/depth/NAME.png``, pose in NAME.
+
+    The folder is scanned once when the data set is built: every unpaired, unparsable, truncated,
+    wrongly typed or mismatched file is listed in one :class:`DatasetError` (or, with
+    ``on_bad_file="skip"``, left out and listed in :attr:`skipped`).
+
+    Args:
+        root: data set root holding ``train/`` and ``val/``.
+        split: sub-folder, e.g. ``"train"`` or ``"val"``.
+        transform: albumentations-style callable applied to the decoded arrays before the sample is
+            built (see :mod:`dapm_lightning.data.transforms`).
+        max_depth: metres that grey 255 means.
+        image_dtype: ``"float32"`` (RGB in [0, 1]) or ``"uint8"`` (4x fewer bytes per sample;
+            the Lightning module normalises on the device).
+        on_bad_file: ``"raise"`` (default) or ``"skip"``.
+
+    Example:
+        >>> ds = UAPDDataset("data/uapd", "val")                       # doctest: +SKIP
+        >>> sample = ds[0]; sample["depth"].shape, sample["pose"]      # doctest: +SKIP
+    """
+
+    rgb_dir = "rgb"
+    depth_dir = "depth"
+
+    def __init__(self, root: str | Path, split: str, transform: Transform | None = None, *,
+                 max_depth: float = MAX_DEPTH_M, image_dtype: Literal["float32", "uint8"] = "float32",
+                 on_bad_file: Literal["raise", "skip"] = "raise") -> None:
+        self.root = Path(root)
+        self.split = split
+        self.transform = transform
+        self.max_depth = max_depth
+        if image_dtype not in ("float32", "uint8"):
+            raise ValueError(f"image_dtype must be 'float32' or 'uint8', got {image_dtype!r}")
+        self.image_dtype = image_dtype
+        self.names, self.poses, self.meta, self.skipped = self._scan(on_bad_file)
+
+    def _scan(self, on_bad_file: str) -> tuple[list[str], np.ndarray, list[dict[str, Any]], list[str]]:
+        split_dir = self.root / self.split
+        rgb_dir, depth_dir = split_dir / self.rgb_dir, split_dir / self.depth_dir
+        for folder in (split_dir, rgb_dir, depth_dir):
+            if not folder.is_dir():
+                raise DatasetError(self.root, [f"{folder}: missing folder (expected ROOT/{self.split}/"
+                                               f"{{{self.rgb_dir},{self.depth_dir}}}/NAME.png)"])
+        rgb = {p.name: p for p in rgb_dir.iterdir() if p.suffix.lower() == ".png"}
+        depth = {p.name: p for p in depth_dir.iterdir() if p.suffix.lower() == ".png"}
+        problems: list[str] = []
+        bad: set[str] = set()
+        for name in sorted(rgb.keys() - depth.keys()):
+            problems.append(f"{rgb[name]}: no depth twin {depth_dir / name}")
+            bad.add(name)
+        for name in sorted(depth.keys() - rgb.keys()):
+            problems.append(f"{depth[name]}: no rgb twin {rgb_dir / name}")
+            bad.add(name)
+        names, poses, meta = [], [], []
+        for name in sorted(rgb.keys() & depth.keys()):
+            try:
+                parsed = parse_uapd_filename(name)
+                rgb_info, depth_info = read_png_info(rgb[name]), read_png_info(depth[name])
+                if depth_info.bit_depth != 8 or depth_info.color_type != 0:
+                    raise ValueError(f"{depth[name]}: depth must be single-channel 8-bit, got "
+                                     f"{depth_info.bit_depth}-bit {depth_info.color}")
+                if rgb_info.color_type not in (2, 6) or rgb_info.bit_depth != 8:
+                    raise ValueError(f"{rgb[name]}: rgb must be 8-bit RGB or RGBA, got "
+                                     f"{rgb_info.bit_depth}-bit {rgb_info.color}")
+                if (rgb_info.width, rgb_info.height) != (depth_info.width, depth_info.height):
+                    raise ValueError(f"{rgb[name]}: size {rgb_info.width}x{rgb_info.height} differs "
+                                     f"from its depth {depth_info.width}x{depth_info.height}")
+            except ValueError as error:
+                message = str(error)
+                problems.append(message if message.startswith(str(self.root)) else f"{rgb[name]}: {message}")
+                bad.add(name)
+                continue
+            names.append(name)
+            poses.append(pose_from_parsed(parsed))
+            meta.append({k: v for k, v in parsed.items() if k not in POSE_KEYS})
+        if problems and on_bad_file != "skip":
+            raise DatasetError(split_dir, problems)
+        if not names:
+            raise DatasetError(split_dir, problems or [f"{rgb_dir}: no PNG images"])
+        pose_array = np.stack(poses) if poses else np.zeros((0, 4), np.float32)
+        return names, pose_array, meta, problems
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+    def load(self, index: int) -> tuple[np.ndarray, np.ndarray]:
+        """Decoded ``(rgb [H, W, 3] uint8, depth grey [H, W] uint8)`` of one pair, without the transform."""
+        name = self.names[index]
+        split_dir = self.root / self.split
+        grey = read_depth_grey(split_dir / self.depth_dir / name)
+        rgb = read_rgb(split_dir / self.rgb_dir / name, expected_hw=grey.shape[:2])
+        return rgb, grey
+
+    def __getitem__(self, index: int) -> Sample:
+        rgb, grey = self.load(index)
+        pose = self.poses[index]
+        if self.transform is not None:
+            result = self.transform(image=rgb, mask=grey, pose=pose)
+            rgb, grey, pose = result["image"], result["mask"], result["pose"]
+        return make_sample(rgb, grey_to_depth(grey, self.max_depth), grey == SKY_GREY, pose,
+                           Path(self.names[index]).stem, self.meta[index], image_dtype=self.image_dtype)
+
+
+def make_sample(rgb: np.ndarray, depth_m: np.ndarray, sky: np.ndarray, pose: np.ndarray | None,
+                name: str, meta: dict[str, Any], *, image_dtype: str = "float32") -> Sample:
+    """Build a :class:`Sample` from ``[H, W, 3]`` uint8 RGB, ``[H, W]`` metres and sky mask, and a pose."""
+    image = torch.from_numpy(np.ascontiguousarray(rgb.transpose(2, 0, 1)))
+    if image_dtype == "float32":
+        image = image.float().div_(255.0)
+    depth = torch.from_numpy(np.ascontiguousarray(depth_m, dtype=np.float32))[None]
+    has_pose = pose is not None
+    pose_tensor = torch.from_numpy(np.asarray(pose, np.float32)) if has_pose else torch.full((4,), float("nan"))
+    return Sample(image=image, depth=depth, sky=torch.from_numpy(np.ascontiguousarray(sky))[None],
+                  valid=torch.isfinite(depth) & (depth > 0), pose=pose_tensor,
+                  has_pose=torch.tensor(has_pose), name=name, meta=meta)
