@@ -72,12 +72,42 @@ def measure(config: str, backbone: str, size: int, repeats: int, device: str) ->
             "rss_before_mb": rss_before / 1024}
 
 
+def sample_bytes(sample: dict[str, Any]) -> int:
+    """Bytes of the tensors of one sample (what crosses the worker boundary)."""
+    return sum(v.numel() * v.element_size() for v in sample.values() if isinstance(v, torch.Tensor))
+
+
+def data_pipeline(size: int, images: int, repeats: int) -> list[dict[str, Any]]:
+    """Samples/s of one loader worker (decode + augmentation + sample building) and bytes per sample."""
+    import tempfile
+
+    from dapm_lightning.data.synthetic import generate_uapd
+    from dapm_lightning.data.transforms import train_transform
+    from dapm_lightning.data.uapd import UAPDDataset
+
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        generate_uapd(tmp, train=images, val=0, size=size, seed=0)
+        for dtype in ("uint8", "float32"):
+            dataset = UAPDDataset(tmp, "train", train_transform(), image_dtype=dtype)  # type: ignore[arg-type]
+            dataset[0]
+            start = time.perf_counter()
+            for _ in range(repeats):
+                for i in range(len(dataset)):
+                    sample = dataset[i]
+            elapsed = time.perf_counter() - start
+            rows.append({"image_dtype": dtype, "samples_per_s": repeats * len(dataset) / elapsed,
+                         "mb_per_sample": sample_bytes(dict(sample)) / 2**20})
+    return rows
+
+
 def main(argv: list[str] | None = None) -> None:
     """Run every configuration in its own process (clean peak memory) and print a table."""
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--backbone", default="resnet50")
     parser.add_argument("--size", type=int, default=512)
     parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--data-images", type=int, default=24, help="synthetic files for the data-pipeline benchmark")
     parser.add_argument("--one", help=argparse.SUPPRESS)
     parser.add_argument("--device", default=None, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -105,6 +135,14 @@ def main(argv: list[str] | None = None) -> None:
     print("ratio = full model latency / encoder-alone latency (same process). "
           "Paper: 42.82 M params; targets: default <= 42.82 M and ratio <= 1.3.")
     print("peak MB: CPU = process max RSS (model + activations); CUDA = max allocated.")
+    torch.set_num_threads(1)  # one loader worker = one core
+    print(f"\nUAPD training pipeline, one worker ({args.size}x{args.size}: PNG decode + colour jitter, noise, "
+          "pose-aware flip + sample)")
+    print(f"{'image dtype':<14}{'samples/s':>10}{'MB/sample':>11}")
+    for row in data_pipeline(args.size, args.data_images, repeats=3):
+        print(f"{row['image_dtype']:<14}{row['samples_per_s']:>10.1f}{row['mb_per_sample']:>11.2f}")
+    print("Authors' loader: 6.9 samples/s per worker, 90 MB/sample (one-hot maps). Targets: >= 70 and <= 2 MB. "
+          "Data modules ship uint8 by default.")
 
 
 if __name__ == "__main__":

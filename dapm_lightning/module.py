@@ -10,6 +10,7 @@ import lightning as L
 import torch
 from torch import Tensor
 
+from dapm_lightning.data.sample import depth_masks
 from dapm_lightning.geometry.constants import MAX_DEPTH_M
 from dapm_lightning.geometry.igd import DepthKind, IGDModel
 from dapm_lightning.geometry.pose import normalize_pose
@@ -86,7 +87,8 @@ class DAPMModule(L.LightningModule):
         pose_norm_true = normalize_pose(batch["pose"]) if stage == "train" else None
         share = self.predicted_share if stage == "train" else 1.0
         out = self.net(image, pose_norm_true, share)
-        terms = self.criterion(out, batch)
+        sky, valid = depth_masks(batch["depth"], self.hparams["max_depth"])
+        terms = self.criterion(out, {**batch, "sky": sky, "valid": valid})
         batch_size = image.shape[0]
         named = {f"{stage}_loss_{k}": v.detach() for k, v in terms.items() if k != "total"}
         self.log_dict(named, batch_size=batch_size, on_step=stage == "train", on_epoch=True,

@@ -131,8 +131,11 @@ class SyntheticDataModule(UAPDDataModule):
 
 
 class PotsdamDataModule(DAPMDataModule):
-    """ISPRS Potsdam, depth only (train DAPM(D)): tiles in ``root/rgb`` and ``root/height``, cut into
-    ``crop_size`` crops on first use, split 8:2 with a fixed seed."""
+    """ISPRS Potsdam, depth only (train DAPM(D)).
+
+    Tiles in ``root/rgb`` and ``root/height`` are cut into ``crop_size`` crops on first use and
+    split 8:2 with a fixed seed.
+    """
 
     def __init__(self, root: str = "data/potsdam", crop_size: int = 512, val_fraction: float = 0.2,
                  split_seed: int = 0, **kwargs: Any) -> None:

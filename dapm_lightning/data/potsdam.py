@@ -113,6 +113,7 @@ class PotsdamDataset(torch.utils.data.Dataset[Sample]):
         if self.transform is not None:
             result = self.transform(image=rgb, mask=height, pose=pose)
             rgb, height, pose = result["image"], result["mask"], result["pose"]
-        sample = make_sample(rgb, height, np.zeros(height.shape, bool), None, name, {}, image_dtype=self.image_dtype)
-        sample["depth"] = sample["depth"].clamp(max=MAX_DEPTH_M)
-        return sample
+        if not np.isfinite(height).all():
+            raise ValueError(f"{self.crops / 'height' / name}.npy: {int((~np.isfinite(height)).sum())} "
+                             "non-finite height value(s) (NaN or Inf) in this crop")
+        return make_sample(rgb, np.minimum(height, MAX_DEPTH_M - 1e-3), None, name, {}, image_dtype=self.image_dtype)

@@ -37,8 +37,11 @@ class PoseAwareHorizontalFlip(A.HorizontalFlip):
 
 def train_transform(*, flip_p: float = 0.5, color_jitter_p: float = 0.8, noise_p: float = 0.3,
                     brightness: float = 0.2, contrast: float = 0.2, saturation: float = 0.2) -> A.Compose:
-    """The paper's light augmentation: colour jitter (brightness, contrast, saturation), Gaussian noise,
-    and the pose-aware horizontal flip. No vertical flips or rotations."""
+    """The paper's light augmentation.
+
+    Colour jitter (brightness, contrast, saturation), Gaussian noise, and the pose-aware horizontal
+    flip. No vertical flips or rotations.
+    """
     return A.Compose([
         A.ColorJitter(brightness=brightness, contrast=contrast, saturation=saturation, hue=0.0, p=color_jitter_p),
         A.GaussNoise(std_range=(0.01, 0.04), p=noise_p),

@@ -14,7 +14,7 @@ import torch
 from dapm_lightning.data.errors import DatasetError
 from dapm_lightning.data.pngcheck import read_png_info
 from dapm_lightning.data.sample import Sample
-from dapm_lightning.geometry.constants import MAX_DEPTH_M, POSE_KEYS, SKY_GREY
+from dapm_lightning.geometry.constants import MAX_DEPTH_M, POSE_KEYS
 from dapm_lightning.geometry.depth_codec import grey_to_depth
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
@@ -198,19 +198,17 @@ class UAPDDataset(torch.utils.data.Dataset[Sample]):
         if self.transform is not None:
             result = self.transform(image=rgb, mask=grey, pose=pose)
             rgb, grey, pose = result["image"], result["mask"], result["pose"]
-        return make_sample(rgb, grey_to_depth(grey, self.max_depth), grey == SKY_GREY, pose,
-                           Path(self.names[index]).stem, self.meta[index], image_dtype=self.image_dtype)
+        return make_sample(rgb, grey_to_depth(grey, self.max_depth), pose, Path(self.names[index]).stem,
+                           self.meta[index], image_dtype=self.image_dtype)
 
 
-def make_sample(rgb: np.ndarray, depth_m: np.ndarray, sky: np.ndarray, pose: np.ndarray | None,
-                name: str, meta: dict[str, Any], *, image_dtype: str = "float32") -> Sample:
-    """Build a :class:`Sample` from ``[H, W, 3]`` uint8 RGB, ``[H, W]`` metres and sky mask, and a pose."""
+def make_sample(rgb: np.ndarray, depth_m: np.ndarray, pose: np.ndarray | None, name: str, meta: dict[str, Any],
+                *, image_dtype: str = "float32") -> Sample:
+    """Build a :class:`Sample` from ``[H, W, 3]`` uint8 RGB, ``[H, W]`` metres and a pose (None: no pose)."""
     image = torch.from_numpy(np.ascontiguousarray(rgb.transpose(2, 0, 1)))
     if image_dtype == "float32":
         image = image.float().div_(255.0)
     depth = torch.from_numpy(np.ascontiguousarray(depth_m, dtype=np.float32))[None]
     has_pose = pose is not None
     pose_tensor = torch.from_numpy(np.asarray(pose, np.float32)) if has_pose else torch.full((4,), float("nan"))
-    return Sample(image=image, depth=depth, sky=torch.from_numpy(np.ascontiguousarray(sky))[None],
-                  valid=torch.isfinite(depth) & (depth > 0), pose=pose_tensor,
-                  has_pose=torch.tensor(has_pose), name=name, meta=meta)
+    return Sample(image=image, depth=depth, pose=pose_tensor, has_pose=torch.tensor(has_pose), name=name, meta=meta)

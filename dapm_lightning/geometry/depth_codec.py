@@ -36,6 +36,7 @@ def depth_to_grey(depth_m: np.ndarray, max_depth: float = MAX_DEPTH_M) -> np.nda
 
 
 def grey_to_depth(grey: np.ndarray, max_depth: float = MAX_DEPTH_M) -> np.ndarray:
-    """UAPD 8-bit grey to metres (float32), decoding ``g / 255``; grey 255 decodes to ``max_depth``."""
+    """UAPD 8-bit grey to metres (float32), decoding ``g / 255``; grey 255 decodes to exactly ``max_depth``."""
     norm = grey.astype(np.float64) / SKY_GREY
-    return (np.exp2(norm * math.log2(max_depth + 1.0)) - 1.0).astype(np.float32)
+    depth = (np.exp2(norm * math.log2(max_depth + 1.0)) - 1.0).astype(np.float32)
+    return np.where(grey == SKY_GREY, np.float32(max_depth), depth)  # exact, so sky = (depth >= max_depth)

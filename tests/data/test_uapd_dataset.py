@@ -6,6 +6,7 @@ import pytest
 import torch
 
 from dapm_lightning.data import DatasetError, UAPDDataset, parse_uapd_filename
+from dapm_lightning.data.sample import depth_masks
 from dapm_lightning.geometry import grey_to_depth
 from tests.conftest import TINY_HW
 
@@ -17,20 +18,20 @@ def test_samples_have_the_documented_schema(tiny_uapd):
         s = ds[i]
         assert s["image"].shape == (3, *TINY_HW) and s["image"].dtype == torch.float32
         assert 0.0 <= s["image"].min() and s["image"].max() <= 1.0
-        assert s["depth"].shape == (1, *TINY_HW) and s["sky"].shape == (1, *TINY_HW)
+        assert s["depth"].shape == (1, *TINY_HW)
         assert s["pose"].shape == (4,)
         parsed = parse_uapd_filename(s["name"] + ".png")
         assert s["pose"].tolist() == pytest.approx([parsed[k] for k in ("height", "pitch", "roll", "fov")])
         grey = cv2.imread(str(tiny_uapd / "train" / "depth" / (s["name"] + ".png")), cv2.IMREAD_UNCHANGED)
         np.testing.assert_allclose(s["depth"][0].numpy(), grey_to_depth(grey))
-        assert torch.equal(s["sky"][0], torch.from_numpy(grey == 255))
+        assert torch.equal(depth_masks(s["depth"])[0][0], torch.from_numpy(grey == 255))
 
 
 def test_shuffled_name_and_sky(tiny_uapd):
     ds = UAPDDataset(tiny_uapd, "val", image_dtype="uint8")
     above = [ds[i] for i in range(len(ds)) if ds[i]["name"].startswith("idx_3")][0]
     assert above["pose"].tolist() == [30.0, 5.0, 4.0, 90.0]
-    assert above["sky"].float().mean() > 0.3  # looking above the horizon
+    assert depth_masks(above["depth"])[0].float().mean() > 0.3  # looking above the horizon
     assert above["image"].dtype == torch.uint8
 
 

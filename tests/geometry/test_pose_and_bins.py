@@ -39,3 +39,8 @@ def test_grey_codec_matches_paper_equation():
     # one grey level is a factor ~1.027 in depth
     levels = grey_to_depth(np.array([200, 201], np.uint8))
     assert levels[1] / levels[0] == pytest.approx(1.027, abs=0.002)
+
+
+def test_grey_255_decodes_to_exactly_max_depth():
+    depth = grey_to_depth(np.array([254, 255], np.uint8), max_depth=1000.0)
+    assert depth[1] == np.float32(1000.0) and depth[0] < 1000.0
