@@ -7,7 +7,6 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-TOOL_COMMANDS = ("synth",)
 
 
 def synth_main(argv: Sequence[str]) -> None:
@@ -36,8 +35,13 @@ def synth_main(argv: Sequence[str]) -> None:
 def main(argv: Sequence[str] | None = None) -> None:
     """Entry point of ``dapm-lightning``."""
     args = list(sys.argv[1:] if argv is None else argv)
-    if args and args[0] in TOOL_COMMANDS:
+    if args and args[0] == "synth":
         synth_main(args[1:])
+        return
+    if args and args[0] == "export":
+        from dapm_lightning.export import export_main
+
+        export_main(args[1:])
         return
     from dapm_lightning.lightning_cli import run_lightning_cli
 

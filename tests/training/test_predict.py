@@ -13,20 +13,6 @@ from dapm_lightning.predict import DEPTH16_SCALE, DAPMPredictor, ImageFolderData
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 
 
-@pytest.fixture(scope="module")
-def checkpoint(tiny_uapd, tmp_path_factory):
-    work = tmp_path_factory.mktemp("predict_ckpt")
-    cli = run_lightning_cli(["fit", "--config", str(CONFIGS / "quickstart.yaml"), "--data.class_path",
-                             "dapm_lightning.data.datamodules.UAPDDataModule", "--data.init_args.root", str(tiny_uapd),
-                             "--data.init_args.batch_size", "2", "--data.init_args.num_workers", "0",
-                             "--trainer.max_steps", "1", "--trainer.limit_val_batches", "0",
-                             "--trainer.logger", "false", "--trainer.callbacks", "[]",
-                             "--trainer.enable_checkpointing", "false", "--trainer.default_root_dir", str(work)])
-    path = work / "model.ckpt"
-    cli.trainer.save_checkpoint(path)
-    return path
-
-
 @pytest.fixture()
 def image_folder(tmp_path):
     folder = tmp_path / "images"
