@@ -38,6 +38,10 @@ def main(argv: Sequence[str] | None = None) -> None:
     if args and args[0] == "synth":
         synth_main(args[1:])
         return
+    if args and args[0] == "doctor":
+        from dapm_lightning.doctor import doctor_main
+
+        raise SystemExit(doctor_main(args[1:]))
     if args and args[0] == "export":
         from dapm_lightning.export import export_main
 
