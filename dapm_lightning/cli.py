@@ -42,6 +42,11 @@ def main(argv: Sequence[str] | None = None) -> None:
         from dapm_lightning.doctor import doctor_main
 
         raise SystemExit(doctor_main(args[1:]))
+    if args and args[0] == "collect-carla":
+        from dapm_lightning.carla_collect import collect_main
+
+        collect_main(args[1:])
+        return
     if args and args[0] == "export":
         from dapm_lightning.export import export_main
 
