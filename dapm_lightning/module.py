@@ -8,6 +8,7 @@ from typing import Any, Literal
 
 import lightning as L
 import torch
+from lightning.pytorch.utilities import rank_zero_warn
 from torch import Tensor
 
 from dapm_lightning.data.sample import depth_masks
@@ -17,6 +18,7 @@ from dapm_lightning.geometry.pose import normalize_pose
 from dapm_lightning.losses import DAPMLoss
 from dapm_lightning.metrics import DepthMetrics, PoseMetrics, per_image_depth_metrics
 from dapm_lightning.models.dapm import DAPMNet, DAPMOutput
+from dapm_lightning.reliability import check_architecture, rng_states, set_rng_states
 
 Stage = Literal["train", "val", "test"]
 
@@ -39,6 +41,10 @@ class DAPMModule(L.LightningModule):
     teacher forcing weight) is set by :class:`~dapm_lightning.callbacks.IGDTeacherForcing` during
     training; validation, test and predict always use the predicted pose alone.
 
+    A non-finite training loss skips the step with a warning and ``train_nonfinite_steps``
+    (``skip_nonfinite_loss``). Checkpoints carry the RNG states, and loading one trained with another
+    architecture fails with a message listing what differs.
+
     Logged keys: ``<stage>_loss_<term>``, ``<stage>_depth_<metric>`` (metres),
     ``<stage>_depthlog_<metric>`` (paper's 8-bit log space), ``<stage>_pose_<component>_<stat>``.
     """
@@ -52,7 +58,7 @@ class DAPMModule(L.LightningModule):
                  loss_weights: dict[str, float] | None = None, lr: float = 1e-4, weight_decay: float = 0.01,
                  betas: tuple[float, float] = (0.9, 0.999), warmup_fraction: float = 0.3, min_lr_ratio: float = 0.0,
                  log_space_metrics: bool = True, pose_auc_min_error: float | None = None,
-                 viewpoint_bins: int = 5, output_dir: str | None = None) -> None:
+                 viewpoint_bins: int = 5, output_dir: str | None = None, skip_nonfinite_loss: bool = True) -> None:
         super().__init__()
         self.save_hyperparameters()
         self.net = DAPMNet(backbone, pretrained=pretrained, weights_path=weights_path, use_depth=use_depth,
@@ -73,6 +79,7 @@ class DAPMModule(L.LightningModule):
             if use_pose:
                 self.metrics[f"{stage}_pose"] = PoseMetrics(min_error=pose_auc_min_error)
         self._viewpoint_records: list[Tensor] = []
+        self.nonfinite_steps = 0
 
     def forward(self, image: Tensor) -> DAPMOutput:
         """``image [B, 3, H, W]`` (uint8 or float in [0, 1]) -> :class:`DAPMOutput` (predictions only)."""
@@ -121,9 +128,26 @@ class DAPMModule(L.LightningModule):
             metric.reset()
         return logged
 
-    def training_step(self, batch: dict[str, Any], batch_idx: int) -> Tensor:
+    def training_step(self, batch: dict[str, Any], batch_idx: int) -> Tensor | None:
         loss, _ = self._shared_step(batch, "train")
-        return loss
+        if torch.isfinite(loss) or not self.hparams["skip_nonfinite_loss"]:
+            return loss
+        self.nonfinite_steps += 1
+        names = ", ".join(batch.get("name", [])[:8])
+        rank_zero_warn(f"non-finite training loss at step {self.global_step} (batch {batch_idx}: {names}); "
+                       f"step skipped, weights unchanged ({self.nonfinite_steps} so far)")
+        self.log("train_nonfinite_steps", float(self.nonfinite_steps), on_step=True, on_epoch=False, batch_size=1)
+        if self.trainer.world_size > 1:  # every process must run backward under DDP: a zero-gradient step
+            return sum((p.sum() * 0.0 for p in self.parameters() if p.requires_grad), torch.zeros(()))
+        return None  # Lightning skips backward and the optimiser step
+
+    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        checkpoint["dapm_rng_states"] = rng_states()
+
+    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        check_architecture(checkpoint.get("hyper_parameters", {}), self.hparams, "the checkpoint")
+        if self._trainer is not None and "dapm_rng_states" in checkpoint:
+            set_rng_states(checkpoint["dapm_rng_states"])  # a resumed run draws what the uninterrupted one would
 
     def validation_step(self, batch: dict[str, Any], batch_idx: int) -> None:
         self._shared_step(batch, "val")

@@ -1,5 +1,7 @@
-"""Long-job safety: checkpoint I/O with clear errors, a save on SIGTERM, RNG state in checkpoints,
-and a data order that is a function of (seed, epoch) so a resumed run continues exactly."""
+"""Long-job safety: checkpoint I/O with clear errors, a save on SIGTERM, RNG states in checkpoints.
+
+Also the training sampler whose order is a function of (seed, epoch), so a resumed run continues exactly.
+"""
 
 from __future__ import annotations
 
@@ -20,8 +22,11 @@ ARCHITECTURE_KEYS = ("backbone", "use_depth", "use_pose", "depth_bins", "pose_bi
 
 
 class SafeCheckpointIO(TorchCheckpointIO):
-    """Lightning's checkpoint I/O (atomic writes through an fsspec transaction) that loads with
-    ``weights_only=True`` by default (no arbitrary pickled code) and names the file when it cannot."""
+    """Lightning's checkpoint I/O with safe loading.
+
+    Writes are Lightning's (atomic: an fsspec transaction). Loading uses ``weights_only=True`` by
+    default (no arbitrary pickled code) and names the file when it cannot read it.
+    """
 
     def load_checkpoint(self, path: Any, map_location: Callable[..., Any] | None = lambda storage, loc: storage,
                         weights_only: bool | None = None) -> dict[str, Any]:

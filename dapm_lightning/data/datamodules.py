@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import lightning as L
+import torch
 from torch.utils.data import DataLoader, Dataset
 from torch.utils.data._utils.collate import default_collate
 
@@ -15,6 +16,7 @@ from dapm_lightning.data.sample import Sample
 from dapm_lightning.data.synthetic import generate_uapd
 from dapm_lightning.data.transforms import train_transform
 from dapm_lightning.data.uapd import UAPDDataset
+from dapm_lightning.reliability import EpochShuffleSampler
 
 
 def collate_samples(samples: list[Sample]) -> dict[str, Any]:
@@ -35,16 +37,23 @@ class DAPMDataModule(L.LightningDataModule):
         augment: the paper's augmentation on the training split (colour jitter, noise, pose-aware flip).
         image_dtype: ``"uint8"`` ships 4x fewer bytes per sample; the model normalises on the device.
         eval_batch_size: batch size of validation/test/predict (default: ``batch_size``).
+        seed: the training order is a permutation drawn from (seed, epoch) and the augmentation of
+            each sample is seeded by (seed, epoch, index), so runs repeat exactly and a run resumed
+            from a mid-epoch checkpoint continues with the batches the uninterrupted run would see
+            (with ``num_workers=0`` or non-persistent workers).
     """
 
     def __init__(self, batch_size: int = 8, num_workers: int = 2, pin_memory: bool = False,
                  persistent_workers: bool = False, augment: bool = True,
-                 image_dtype: Literal["float32", "uint8"] = "uint8", eval_batch_size: int | None = None) -> None:
+                 image_dtype: Literal["float32", "uint8"] = "uint8", eval_batch_size: int | None = None,
+                 seed: int = 0) -> None:
         super().__init__()
         self.batch_size, self.num_workers = batch_size, num_workers
         self.pin_memory, self.persistent_workers = pin_memory, persistent_workers and num_workers > 0
         self.augment, self.image_dtype = augment, image_dtype
         self.eval_batch_size = eval_batch_size or batch_size
+        self.seed = seed
+        self._resume_position: dict[str, int] | None = None
         self.datasets: dict[str, Dataset[Sample]] = {}
 
     def make_dataset(self, split: str, train: bool) -> Dataset[Sample]:
@@ -63,23 +72,41 @@ class DAPMDataModule(L.LightningDataModule):
 
     test_split = "val"
 
-    def _loader(self, split: str, shuffle: bool) -> DataLoader[dict[str, Any]]:
-        return DataLoader(self.datasets[split], batch_size=self.batch_size if shuffle else self.eval_batch_size,
-                          shuffle=shuffle, num_workers=self.num_workers, pin_memory=self.pin_memory,
+    def _loader(self, split: str, sampler: torch.utils.data.Sampler[int] | None = None) -> DataLoader[dict[str, Any]]:
+        train = sampler is not None
+        return DataLoader(self.datasets[split], batch_size=self.batch_size if train else self.eval_batch_size,
+                          sampler=sampler, num_workers=self.num_workers, pin_memory=self.pin_memory,
                           persistent_workers=self.persistent_workers, collate_fn=collate_samples,
-                          drop_last=shuffle and len(self.datasets[split]) > self.batch_size)  # type: ignore[arg-type]
+                          drop_last=train and len(self.datasets[split]) > self.batch_size,  # type: ignore[arg-type]
+                          generator=torch.Generator().manual_seed(self.seed))  # worker seeds: not the global RNG
 
     def train_dataloader(self) -> DataLoader[dict[str, Any]]:
-        return self._loader("train", True)
+        dataset = self.datasets["train"]
+        sampler = EpochShuffleSampler(len(dataset), self.seed, getattr(dataset, "set_epoch", None))  # type: ignore[arg-type]
+        if self._resume_position is not None:  # restored from a checkpoint taken mid-epoch
+            sampler.resume(self._resume_position["epoch"], self._resume_position["samples_seen"])
+            self._resume_position = None
+        return self._loader("train", sampler)
+
+    def state_dict(self) -> dict[str, Any]:
+        """Where training stands in the epoch, saved in every checkpoint (for an exact mid-epoch resume)."""
+        trainer = self.trainer
+        if trainer is None or not trainer.training:
+            return {}
+        batches = trainer.fit_loop.epoch_loop.batch_progress.current.processed
+        return {"epoch": trainer.current_epoch, "samples_seen": batches * self.batch_size}
+
+    def load_state_dict(self, state_dict: dict[str, Any]) -> None:
+        self._resume_position = dict(state_dict) if state_dict else None
 
     def val_dataloader(self) -> DataLoader[dict[str, Any]]:
-        return self._loader("val", False)
+        return self._loader("val")
 
     def test_dataloader(self) -> DataLoader[dict[str, Any]]:
-        return self._loader("test", False)
+        return self._loader("test")
 
     def predict_dataloader(self) -> DataLoader[dict[str, Any]]:
-        return self._loader("predict", False)
+        return self._loader("predict")
 
 
 class UAPDDataModule(DAPMDataModule):
@@ -101,7 +128,7 @@ class UAPDDataModule(DAPMDataModule):
 
     def make_dataset(self, split: str, train: bool) -> Dataset[Sample]:
         return UAPDDataset(self.root, split, train_transform() if train and self.augment else None,
-                           image_dtype=self.image_dtype, on_bad_file=self.on_bad_file)
+                           image_dtype=self.image_dtype, on_bad_file=self.on_bad_file, augment_seed=self.seed)
 
 
 class SyntheticDataModule(UAPDDataModule):
@@ -150,7 +177,8 @@ class PotsdamDataModule(DAPMDataModule):
     def make_dataset(self, split: str, train: bool) -> Dataset[Sample]:
         return PotsdamDataset(self.root, "train" if split == "train" else "val",
                               train_transform() if train and self.augment else None, crop_size=self.crop_size,
-                              val_fraction=self.val_fraction, seed=self.split_seed, image_dtype=self.image_dtype)
+                              val_fraction=self.val_fraction, seed=self.split_seed, image_dtype=self.image_dtype,
+                              augment_seed=self.seed)
 
 
 __all__ = ["DAPMDataModule", "PotsdamDataModule", "SyntheticDataModule", "UAPDDataModule", "collate_samples"]

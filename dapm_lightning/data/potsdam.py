@@ -13,7 +13,7 @@ import torch
 
 from dapm_lightning.data.errors import DatasetError
 from dapm_lightning.data.sample import Sample
-from dapm_lightning.data.uapd import Transform, make_sample
+from dapm_lightning.data.uapd import Transform, make_sample, seed_augmentation
 from dapm_lightning.geometry.constants import MAX_DEPTH_M
 
 
@@ -88,7 +88,7 @@ class PotsdamDataset(torch.utils.data.Dataset[Sample]):
 
     def __init__(self, root: str | Path, split: Literal["train", "val"], transform: Transform | None = None, *,
                  crop_size: int = 512, val_fraction: float = 0.2, seed: int = 0,
-                 image_dtype: Literal["float32", "uint8"] = "float32") -> None:
+                 image_dtype: Literal["float32", "uint8"] = "float32", augment_seed: int | None = None) -> None:
         crops = PotsdamCrops(root, crop_size=crop_size).prepare()
         names: list[str] = json.loads((crops / "crops.json").read_text())["names"]
         order = torch.randperm(len(names), generator=torch.Generator().manual_seed(seed)).tolist()
@@ -96,8 +96,13 @@ class PotsdamDataset(torch.utils.data.Dataset[Sample]):
         chosen = order[:n_val] if split == "val" else order[n_val:]
         self.crops, self.names = crops, [names[i] for i in sorted(chosen)]
         self.transform, self.image_dtype = transform, image_dtype
+        self.augment_seed, self.epoch = augment_seed, 0
         if not self.names:
             raise DatasetError(root, [f"{crops}: no crops for split {split!r}"])
+
+    def set_epoch(self, epoch: int) -> None:
+        """Epoch used to seed the augmentation (called by the training sampler)."""
+        self.epoch = epoch
 
     def __len__(self) -> int:
         return len(self.names)
@@ -111,6 +116,7 @@ class PotsdamDataset(torch.utils.data.Dataset[Sample]):
         height = np.load(self.crops / "height" / f"{name}.npy")
         pose = np.full(4, np.nan, np.float32)
         if self.transform is not None:
+            seed_augmentation(self.transform, self.augment_seed, self.epoch, index)
             result = self.transform(image=rgb, mask=height, pose=pose)
             rgb, height, pose = result["image"], result["mask"], result["pose"]
         if not np.isfinite(height).all():

@@ -125,7 +125,7 @@ class UAPDDataset(torch.utils.data.Dataset[Sample]):
 
     def __init__(self, root: str | Path, split: str, transform: Transform | None = None, *,
                  max_depth: float = MAX_DEPTH_M, image_dtype: Literal["float32", "uint8"] = "float32",
-                 on_bad_file: Literal["raise", "skip"] = "raise") -> None:
+                 on_bad_file: Literal["raise", "skip"] = "raise", augment_seed: int | None = None) -> None:
         self.root = Path(root)
         self.split = split
         self.transform = transform
@@ -134,6 +134,11 @@ class UAPDDataset(torch.utils.data.Dataset[Sample]):
             raise ValueError(f"image_dtype must be 'float32' or 'uint8', got {image_dtype!r}")
         self.image_dtype = image_dtype
         self.names, self.poses, self.meta, self.skipped = self._scan(on_bad_file)
+        self.augment_seed, self.epoch = augment_seed, 0
+
+    def set_epoch(self, epoch: int) -> None:
+        """Epoch used to seed the augmentation (called by the training sampler)."""
+        self.epoch = epoch
 
     def _scan(self, on_bad_file: str) -> tuple[list[str], np.ndarray, list[dict[str, Any]], list[str]]:
         split_dir = self.root / self.split
@@ -196,10 +201,17 @@ class UAPDDataset(torch.utils.data.Dataset[Sample]):
         rgb, grey = self.load(index)
         pose = self.poses[index]
         if self.transform is not None:
+            seed_augmentation(self.transform, self.augment_seed, self.epoch, index)
             result = self.transform(image=rgb, mask=grey, pose=pose)
             rgb, grey, pose = result["image"], result["mask"], result["pose"]
         return make_sample(rgb, grey_to_depth(grey, self.max_depth), pose, Path(self.names[index]).stem,
                            self.meta[index], image_dtype=self.image_dtype)
+
+
+def seed_augmentation(transform: Transform, seed: int | None, epoch: int, index: int) -> None:
+    """Seed an albumentations pipeline by (seed, epoch, index), so a sample's augmentation is reproducible."""
+    if seed is not None and hasattr(transform, "set_random_seed"):
+        transform.set_random_seed(int(np.random.SeedSequence([seed, epoch, index]).generate_state(1)[0]))
 
 
 def make_sample(rgb: np.ndarray, depth_m: np.ndarray, pose: np.ndarray | None, name: str, meta: dict[str, Any],

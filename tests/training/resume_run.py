@@ -1,0 +1,40 @@
+"""Fit through the DAPM CLI in a subprocess, optionally pausing at a step (for a test to signal it),
+and save the final weights. Usage: python resume_run.py WEIGHTS.pt [CLI fit args without 'fit'].
+Environment: PAUSE_AT="STEP,MARKER_FILE" pauses after STEP until SIGTERM (or 120 s)."""
+
+import os
+import sys
+import time
+from pathlib import Path
+
+import lightning as L
+import torch
+
+from dapm_lightning.lightning_cli import run_lightning_cli
+
+
+class PauseAt(L.Callback):
+    def __init__(self, step: int, marker: str) -> None:
+        self.step, self.marker = step, Path(marker)
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
+        if trainer.global_step == self.step:
+            self.marker.write_text(str(trainer.global_step))
+            deadline = time.time() + 120
+            while not trainer.received_sigterm and time.time() < deadline:
+                time.sleep(0.05)
+
+
+if __name__ == "__main__":
+    weights, args = sys.argv[1], sys.argv[2:]
+    ckpt = None
+    if "--ckpt_path" in args:
+        i = args.index("--ckpt_path")
+        ckpt = args[i + 1]
+        del args[i:i + 2]
+    cli = run_lightning_cli(args, run=False)
+    if os.environ.get("PAUSE_AT"):
+        step, marker = os.environ["PAUSE_AT"].split(",")
+        cli.trainer.callbacks.append(PauseAt(int(step), marker))
+    cli.trainer.fit(cli.model, datamodule=cli.datamodule, ckpt_path=ckpt)
+    torch.save({"state_dict": cli.model.state_dict(), "global_step": cli.trainer.global_step}, weights)

@@ -1,0 +1,173 @@
+"""Long jobs: resume after SIGKILL / SIGTERM, checkpoints, non-finite losses, bad data at scale, determinism."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+import yaml
+
+from dapm_lightning.data import DatasetError, UAPDDataset
+from dapm_lightning.data.synthetic import generate_uapd
+from dapm_lightning.lightning_cli import run_lightning_cli
+from dapm_lightning.reliability import SafeCheckpointIO
+
+HERE = Path(__file__).resolve().parent
+QUICKSTART = HERE.parents[1] / "configs" / "quickstart.yaml"
+TINY = ["--model.backbone", "mobilenetv3_small_050", "--model.decoder_channels", "16", "--model.head_channels", "8",
+        "--model.pose_hidden", "32", "--data.init_args.batch_size", "2", "--data.init_args.num_workers", "0",
+        "--trainer.limit_val_batches", "0", "--trainer.deterministic", "true", "--trainer.max_steps", "8",
+        "--trainer.enable_progress_bar", "false"]
+
+
+@pytest.fixture(scope="module")
+def data8(tmp_path_factory):
+    return generate_uapd(tmp_path_factory.mktemp("rel") / "d", train=8, val=2, size=(24, 32), seed=5, workers=1)
+
+
+def job_config(tmp_path, name):
+    """Callbacks of a resumable job: save on SIGTERM, a checkpoint every step (last.ckpt)."""
+    path = tmp_path / f"{name}.yaml"
+    path.write_text(yaml.safe_dump({"trainer": {"logger": False, "callbacks": [
+        {"class_path": "dapm_lightning.reliability.CheckpointOnSigterm"},
+        {"class_path": "lightning.pytorch.callbacks.ModelCheckpoint",
+         "init_args": {"dirpath": str(tmp_path / name), "every_n_train_steps": 1, "save_last": True,
+                       "monitor": "step", "mode": "max", "save_top_k": 1}}]}}))
+    return ["--config", str(QUICKSTART), "--config", str(path)]
+
+
+def start(tmp_path, name, data, extra=(), pause=None):
+    env = dict(os.environ, PAUSE_AT=f"{pause},{tmp_path / (name + '.marker')}" if pause else "")
+    cmd = [sys.executable, str(HERE / "resume_run.py"), str(tmp_path / f"{name}.pt"), *job_config(tmp_path, name),
+           "--data.class_path", "dapm_lightning.data.datamodules.UAPDDataModule", "--data.init_args.root", str(data),
+           *TINY, *extra]
+    return subprocess.Popen(cmd, cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+
+def finish(process, timeout=240):
+    out, _ = process.communicate(timeout=timeout)
+    return process.returncode, out
+
+
+def wait_for(path, process, timeout=180):
+    deadline = time.time() + timeout
+    while not path.exists():
+        if process.poll() is not None:
+            pytest.fail(f"run ended before the marker:\n{process.stdout.read()[-3000:]}")
+        assert time.time() < deadline, "marker never appeared"
+        time.sleep(0.1)
+
+
+def weights(path):
+    return torch.load(path, weights_only=True)
+
+
+def test_killed_and_terminated_runs_resume_to_the_uninterrupted_weights(data8, tmp_path):
+    code, out = finish(start(tmp_path, "straight", data8))
+    assert code == 0, out[-3000:]
+    reference = weights(tmp_path / "straight.pt")
+    assert reference["global_step"] == 8
+
+    killed = start(tmp_path, "killed", data8, pause=3)  # mid-epoch 0 (4 batches per epoch)
+    wait_for(tmp_path / "killed.marker", killed)
+    killed.send_signal(signal.SIGKILL)
+    finish(killed)
+    assert (tmp_path / "killed" / "last.ckpt").is_file()  # never half-written: the last complete step's
+
+    terminated = start(tmp_path, "termed", data8, pause=5)  # mid-epoch 1
+    wait_for(tmp_path / "termed.marker", terminated)
+    terminated.send_signal(signal.SIGTERM)
+    code, out = finish(terminated)
+    assert "Received SIGTERM" in out and (tmp_path / "termed" / "last.ckpt").is_file(), out[-2000:]
+    saved = torch.load(tmp_path / "termed" / "last.ckpt", weights_only=True)
+    assert saved["global_step"] == 5
+
+    for name in ("killed", "termed"):
+        code, out = finish(start(tmp_path, name, data8, extra=["--ckpt_path", str(tmp_path / name / "last.ckpt")]))
+        assert code == 0, out[-3000:]
+        resumed = weights(tmp_path / f"{name}.pt")
+        assert resumed["global_step"] == 8
+        for key, value in reference["state_dict"].items():
+            assert torch.equal(value, resumed["state_dict"][key]), f"{name}: {key} differs"
+
+
+def test_two_seeded_runs_are_bit_identical(data8, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    states = []
+    for _ in range(2):
+        cli = run_lightning_cli(["fit", "--config", str(QUICKSTART), "--data.class_path",
+                                 "dapm_lightning.data.datamodules.UAPDDataModule", "--data.init_args.root", str(data8),
+                                 *TINY, "--trainer.max_steps", "3", "--trainer.logger", "false",
+                                 "--trainer.callbacks", "[]", "--trainer.enable_checkpointing", "false"])
+        states.append({k: v.clone() for k, v in cli.model.state_dict().items()})
+    assert all(torch.equal(states[0][k], states[1][k]) for k in states[0])
+
+
+def test_truncated_and_foreign_checkpoints_are_clear(checkpoint, tmp_path, tiny_uapd, monkeypatch):
+    truncated = tmp_path / "truncated.ckpt"
+    truncated.write_bytes(checkpoint.read_bytes()[:5000])
+    with pytest.raises(RuntimeError, match="truncated.ckpt: not a readable checkpoint"):
+        SafeCheckpointIO().load_checkpoint(truncated)
+    evil = tmp_path / "evil.ckpt"
+    torch.save({"state_dict": {}, "payload": Path("x")}, evil)  # an arbitrary pickled object
+    with pytest.raises(RuntimeError, match="weights_only"):
+        SafeCheckpointIO().load_checkpoint(evil)
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(RuntimeError, match="truncated.ckpt: not a readable checkpoint"):
+        run_lightning_cli(["validate", "--config", str(QUICKSTART), "--ckpt_path", str(truncated)])
+    with pytest.raises(ValueError, match=r"depth_bins: checkpoint \[2, 16, 64\], this run \[2, 16, 16\]"):
+        run_lightning_cli(["fit", "--config", str(QUICKSTART), "--data.class_path",
+                           "dapm_lightning.data.datamodules.UAPDDataModule", "--data.init_args.root", str(tiny_uapd),
+                           "--data.init_args.batch_size", "2", "--data.init_args.num_workers", "0",
+                           "--model.depth_bins", "[2, 16, 16]", "--trainer.max_steps", "1",
+                           "--ckpt_path", str(checkpoint)])
+
+
+def test_nonfinite_loss_skips_the_step(tiny_uapd, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    cli = run_lightning_cli(["--config", str(QUICKSTART), "--data.class_path",
+                             "dapm_lightning.data.datamodules.UAPDDataModule", "--data.init_args.root", str(tiny_uapd),
+                             *TINY, "--trainer.max_steps", "1", "--trainer.logger", "false",
+                             "--trainer.callbacks", "[]", "--trainer.enable_checkpointing", "false"], run=False)
+    model = cli.model
+    before = {k: v.clone() for k, v in model.state_dict().items()}
+    real = model.criterion.forward
+    monkeypatch.setattr(model.criterion, "forward",
+                        lambda out, t: {**real(out, t), "total": torch.tensor(float("nan"), requires_grad=True)})
+    with pytest.warns(UserWarning, match="non-finite training loss"):
+        cli.trainer.fit(model, datamodule=cli.datamodule)
+    assert model.nonfinite_steps >= 1
+    for key, value in model.state_dict().items():
+        if "running" not in key and "num_batches" not in key:  # batch-norm statistics move in any forward
+            assert torch.equal(value, before[key]), key
+
+
+def test_bad_files_at_scale_are_all_listed_and_skippable(tmp_path, monkeypatch):
+    root = generate_uapd(tmp_path / "big", train=1000, val=2, size=(8, 12), seed=1)
+    rgb, depth = root / "train" / "rgb", root / "train" / "depth"
+    names = sorted(p.name for p in rgb.iterdir())
+    (rgb / names[10]).write_bytes((rgb / names[10]).read_bytes()[:40])                     # truncated
+    (depth / names[20]).unlink()                                                            # missing twin
+    for sub in (rgb, depth):
+        (sub / names[30]).rename(sub / "no_pose_here.png")                                  # unparsable name
+    cv2.imwrite(str(rgb / names[40]), np.zeros((9, 12, 3), np.uint8))                       # wrong size
+    cv2.imwrite(str(depth / names[50]), np.zeros((8, 12, 3), np.uint8))                     # 3-channel depth
+    with pytest.raises(DatasetError) as info:
+        UAPDDataset(root, "train")
+    problems = info.value.problems
+    assert len(problems) == 5
+    for needle in (names[10], names[20], "no_pose_here.png", names[40], names[50]):
+        assert any(needle in p for p in problems), needle
+    skipped = UAPDDataset(root, "train", on_bad_file="skip")
+    assert len(skipped) == 995 and len(skipped.skipped) == 5
+    monkeypatch.chdir(tmp_path)
+    cli = run_lightning_cli(["fit", "--config", str(QUICKSTART), "--data.class_path",
+                             "dapm_lightning.data.datamodules.UAPDDataModule", "--data.init_args.root", str(root),
+                             "--data.init_args.on_bad_file", "skip", *TINY, "--trainer.fast_dev_run", "2"])
+    assert cli.trainer.global_step == 2
