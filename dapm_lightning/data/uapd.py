@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+import warnings
 from collections.abc import Callable
 from pathlib import Path, PurePath
 from typing import Any, Literal
@@ -181,6 +182,9 @@ class UAPDDataset(torch.utils.data.Dataset[Sample]):
             meta.append({k: v for k, v in parsed.items() if k not in POSE_KEYS})
         if problems and on_bad_file != "skip":
             raise DatasetError(split_dir, problems)
+        if problems:
+            warnings.warn(f"{split_dir}: skipping {len(problems)} bad file(s):\n  " + "\n  ".join(problems[:50]),
+                          stacklevel=3)
         if not names:
             raise DatasetError(split_dir, problems or [f"{rgb_dir}: no PNG images"])
         pose_array = np.stack(poses) if poses else np.zeros((0, 4), np.float32)

@@ -105,6 +105,7 @@ def test_missing_and_empty_split(uapd_copy):
 def test_skip_mode_lists_and_keeps_the_rest(uapd_copy):
     name = _name(uapd_copy)
     (uapd_copy / "train" / "depth" / name).unlink()
-    ds = UAPDDataset(uapd_copy, "train", on_bad_file="skip")
+    with pytest.warns(UserWarning, match=name):
+        ds = UAPDDataset(uapd_copy, "train", on_bad_file="skip")
     assert len(ds) == 3 and name not in ds.names
     assert len(ds.skipped) == 1 and name in ds.skipped[0]

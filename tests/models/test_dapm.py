@@ -157,3 +157,18 @@ def test_pose_ranges_are_configurable():
     ranges = dict(POSE_RANGES, height=(0.0, 500.0))
     out = DAPMNet(BACKBONE, pose_ranges=ranges).eval()(torch.rand(1, 3, 32, 32))
     assert 0 <= out.pose[0, 0] <= 500
+
+
+@pytest.mark.parametrize("pose", [
+    [10.0, -100.0, -30.0, 30.0], [100.0, 10.0, 30.0, 120.0],  # at the range limits
+    [1e-4, -90.0, 0.0, 60.0], [250.0, 45.0, 120.0, 1e-3], [50.0, -40.0, 0.0, 179.999],  # beyond them
+])
+def test_loss_and_gradients_finite_for_extreme_true_poses(pose):
+    net = DAPMNet(BACKBONE)
+    targets = targets_for(2, (32, 48))
+    targets["pose"] = torch.tensor([pose, pose])
+    out = net(torch.rand(2, 3, 32, 48), normalize_pose(targets["pose"]), 0.3)
+    terms = DAPMLoss()(out, targets)
+    assert all(torch.isfinite(v) for v in terms.values())
+    terms["total"].backward()
+    assert all(torch.isfinite(p.grad).all() for p in net.parameters() if p.grad is not None)

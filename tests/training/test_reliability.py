@@ -164,7 +164,8 @@ def test_bad_files_at_scale_are_all_listed_and_skippable(tmp_path, monkeypatch):
     assert len(problems) == 5
     for needle in (names[10], names[20], "no_pose_here.png", names[40], names[50]):
         assert any(needle in p for p in problems), needle
-    skipped = UAPDDataset(root, "train", on_bad_file="skip")
+    with pytest.warns(UserWarning, match="skipping 5 bad file"):
+        skipped = UAPDDataset(root, "train", on_bad_file="skip")
     assert len(skipped) == 995 and len(skipped.skipped) == 5
     monkeypatch.chdir(tmp_path)
     cli = run_lightning_cli(["fit", "--config", str(QUICKSTART), "--data.class_path",
