@@ -9,6 +9,7 @@ import argparse
 import json
 import math
 import time
+import warnings
 from pathlib import Path
 
 import torch
@@ -66,6 +67,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--max-epochs", type=int, default=None, help="override the config's trainer.max_epochs")
     parser.add_argument("--train-size", type=int, default=None, help="override the synthetic training set size")
     args = parser.parse_args(argv)
+    warnings.filterwarnings("ignore", message="LightningCLI's args parameter")  # we call the CLI from Python
+    warnings.filterwarnings("ignore", message=".*treespec, LeafSpec.*")
     start = time.time()
     out = args.out.resolve()
     out.mkdir(parents=True, exist_ok=True)
