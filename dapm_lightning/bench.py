@@ -114,7 +114,6 @@ def main(argv: list[str] | None = None) -> None:
     if args.one:
         print(json.dumps(measure(args.one, args.backbone, args.size, args.repeats, args.device)))
         return
-    torch.set_num_threads(torch.get_num_threads())
     devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
     rows = []
     for device in devices:
