@@ -85,20 +85,21 @@ def data_pipeline(size: int, images: int, repeats: int) -> list[dict[str, Any]]:
     from dapm_lightning.data.transforms import train_transform
     from dapm_lightning.data.uapd import UAPDDataset
 
-    rows = []
     with tempfile.TemporaryDirectory() as tmp:
         generate_uapd(tmp, train=images, val=0, size=size, seed=0)
-        for dtype in ("uint8", "float32"):
-            dataset = UAPDDataset(tmp, "train", train_transform(), image_dtype=dtype)  # type: ignore[arg-type]
-            dataset[0]
-            start = time.perf_counter()
-            for _ in range(repeats):
+        datasets = {dtype: UAPDDataset(tmp, "train", train_transform(), image_dtype=dtype, augment_seed=0)
+                    for dtype in ("uint8", "float32")}
+        best = dict.fromkeys(datasets, 0.0)
+        for i in range(images):  # warm-up: page cache, first decode
+            datasets["uint8"][i]
+        for _ in range(repeats):  # rounds alternate between the two, best round kept (noisy machine)
+            for dtype, dataset in datasets.items():
+                start = time.perf_counter()
                 for i in range(len(dataset)):
-                    sample = dataset[i]
-            elapsed = time.perf_counter() - start
-            rows.append({"image_dtype": dtype, "samples_per_s": repeats * len(dataset) / elapsed,
-                         "mb_per_sample": sample_bytes(dict(sample)) / 2**20})
-    return rows
+                    dataset[i]
+                best[dtype] = max(best[dtype], len(dataset) / (time.perf_counter() - start))
+        return [{"image_dtype": dtype, "samples_per_s": best[dtype],
+                 "mb_per_sample": sample_bytes(dict(dataset[0])) / 2**20} for dtype, dataset in datasets.items()]
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -137,8 +138,8 @@ def main(argv: list[str] | None = None) -> None:
     torch.set_num_threads(1)  # one loader worker = one core
     print(f"\nUAPD training pipeline, one worker ({args.size}x{args.size}: PNG decode + colour jitter, noise, "
           "pose-aware flip + sample)")
-    print(f"{'image dtype':<14}{'samples/s':>10}{'MB/sample':>11}")
-    for row in data_pipeline(args.size, args.data_images, repeats=3):
+    print(f"{'image dtype':<14}{'samples/s':>10}{'MB/sample':>11}   (best of 4 alternating rounds)")
+    for row in data_pipeline(args.size, args.data_images, repeats=4):
         print(f"{row['image_dtype']:<14}{row['samples_per_s']:>10.1f}{row['mb_per_sample']:>11.2f}")
     print("Authors' loader: 6.9 samples/s per worker, 90 MB/sample (one-hot maps). Targets: >= 70 and <= 2 MB. "
           "Data modules ship uint8 by default.")
