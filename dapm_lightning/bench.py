@@ -54,7 +54,6 @@ def measure(config: str, backbone: str, size: int, repeats: int, device: str) ->
     with FlopCounterMode(display=False) as counter:
         encoder(x)
     encoder_gmac = counter.get_total_flops() / 2e9
-    rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     if device == "cuda":
         torch.cuda.reset_peak_memory_stats()
     latencies_full, latencies_encoder = [], []
@@ -68,8 +67,7 @@ def measure(config: str, backbone: str, size: int, repeats: int, device: str) ->
         peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     return {"config": config, "device": device, "params_m": sum(p.numel() for p in net.parameters()) / 1e6,
             "gmac": full_gmac, "encoder_gmac": encoder_gmac, "latency_ms": full * 1e3,
-            "encoder_latency_ms": enc * 1e3, "ratio": full / enc, "peak_mb": peak_mb,
-            "rss_before_mb": rss_before / 1024}
+            "encoder_latency_ms": enc * 1e3, "ratio": full / enc, "peak_mb": peak_mb}
 
 
 def sample_bytes(sample: dict[str, Any]) -> int:

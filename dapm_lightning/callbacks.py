@@ -9,6 +9,7 @@ import cv2
 import lightning as L
 import torch
 
+from dapm_lightning.geometry.constants import MAX_DEPTH_M
 from dapm_lightning.visualize import depth_panel
 
 
@@ -64,7 +65,7 @@ class DepthPanelLogger(L.Callback):
             out = pl_module(image)
         pl_module.train(was_training)
         panel = depth_panel(image, batch["depth"][: self.max_images], out, self.max_images,
-                            pl_module.hparams.get("max_depth", 1000.0))
+                            pl_module.hparams.get("max_depth", MAX_DEPTH_M))
         step = trainer.global_step
         experiment = getattr(trainer.logger, "experiment", None)
         if hasattr(experiment, "add_image"):

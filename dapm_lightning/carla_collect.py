@@ -20,7 +20,7 @@ import queue
 import re
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -63,7 +63,6 @@ class CarlaConfig:
     lens_x_size: tuple[float, float] = (0.3, 0.7)
     lens_y_size: tuple[float, float] = (0.3, 0.7)
     pause_s: float = 0.2
-    extra: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)

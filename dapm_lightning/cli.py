@@ -1,4 +1,4 @@
-"""The ``dapm-lightning`` command: LightningCLI subcommands plus ``synth``."""
+"""The ``dapm-lightning`` command: LightningCLI subcommands plus the tools synth, doctor, collect-carla, export."""
 
 from __future__ import annotations
 

@@ -117,16 +117,11 @@ class DAPMModule(L.LightningModule):
         if stage == "test":
             self._record_viewpoints(out, batch)
 
-    def _log_metrics(self, stage: str) -> dict[str, float]:
-        logged: dict[str, float] = {}
+    def _log_metrics(self, stage: str) -> None:
         for name, metric in self.metrics.items():
-            if not name.startswith(stage + "_") or not metric.update_called:
-                continue
-            values = {f"{name}_{k}": v for k, v in metric.compute().items()}
-            self.log_dict(values)
-            logged.update({k: float(v) for k, v in values.items()})
-            metric.reset()
-        return logged
+            if name.startswith(stage + "_") and metric.update_called:
+                self.log_dict({f"{name}_{k}": v for k, v in metric.compute().items()})
+                metric.reset()
 
     def training_step(self, batch: dict[str, Any], batch_idx: int) -> Tensor | None:
         loss, _ = self._shared_step(batch, "train")

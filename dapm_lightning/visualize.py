@@ -10,7 +10,7 @@ from torch import Tensor
 from dapm_lightning.geometry.constants import MAX_DEPTH_M
 from dapm_lightning.geometry.depth_codec import encode_log_depth
 from dapm_lightning.models.dapm import DAPMOutput
-from dapm_lightning.models.igd_branch import igd_norm_from_pose
+from dapm_lightning.geometry.igd import ideal_ground_depth
 
 
 def colorize_depth(depth_m: Tensor, max_depth: float = MAX_DEPTH_M) -> np.ndarray:
@@ -42,9 +42,9 @@ def depth_panel(image: Tensor, depth_true: Tensor | None, out: DAPMOutput, max_i
     """
     rows = []
     size = (image.shape[-2], image.shape[-1])
-    igd = None
-    if out.pose_norm is not None:
-        igd = igd_norm_from_pose(out.pose_norm.detach().float(), size, max_depth=max_depth)
+    igd_m = None
+    if out.pose is not None:
+        igd_m = ideal_ground_depth(out.pose.detach().float(), size, max_depth=max_depth)  # [B, 1, H, W] metres
     for b in range(min(max_images, image.shape[0])):
         rgb = image[b].float()
         rgb = rgb / 255 if image.dtype == torch.uint8 else rgb
@@ -52,11 +52,7 @@ def depth_panel(image: Tensor, depth_true: Tensor | None, out: DAPMOutput, max_i
         blank = np.zeros_like(tiles[0])
         tiles.append(colorize_depth(depth_true[b, 0], max_depth) if depth_true is not None else blank)
         tiles.append(colorize_depth(out.depth_m[b, 0].detach(), max_depth) if out.depth_m is not None else blank)
-        if igd is not None:
-            metres = torch.exp2(igd[b, 0] * np.log2(max_depth + 1)) - 1
-            tiles.append(colorize_depth(metres, max_depth))
-        else:
-            tiles.append(blank)
+        tiles.append(colorize_depth(igd_m[b, 0], max_depth) if igd_m is not None else blank)
         tiles.append(colorize_error(out.depth_m[b, 0].detach(), depth_true[b, 0], max_depth)
                      if out.depth_m is not None and depth_true is not None else blank)
         rows.append(np.concatenate(tiles, axis=1))
