@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 import argparse
+import importlib
 import sys
 from collections.abc import Sequence
 from pathlib import Path
-
 
 
 def synth_main(argv: Sequence[str]) -> None:
@@ -32,26 +32,42 @@ def synth_main(argv: Sequence[str]) -> None:
     print(f"wrote {args.train} train + {args.val} val images to {out}")
 
 
+TOOLS = {
+    "synth": ("dapm_lightning.cli", "synth_main", "render a synthetic data set in UAPD layout and naming"),
+    "doctor": ("dapm_lightning.tools.doctor", "doctor_main", "check a UAPD-format data set against its poses"),
+    "export": ("dapm_lightning.tools.export", "export_main", "export a checkpoint to ONNX, checked with onnxruntime"),
+    "collect-carla": ("dapm_lightning.tools.carla_collect", "collect_main",
+                      "collect UAPD-format images from a running CARLA server"),
+}
+"""Subcommands beside LightningCLI's: ``name -> (module, function, one-line help)``."""
+
+LIGHTNING_SUBCOMMANDS = {"fit": "train (and validate) a model", "validate": "validate a checkpoint",
+                         "test": "test a checkpoint (metrics, viewpoint figure)",
+                         "predict": "predict depth and pose for a folder of images"}
+
+
+def usage() -> str:
+    """Top-level help: every subcommand with one line."""
+    rows = [*LIGHTNING_SUBCOMMANDS.items(), *((name, tool[2]) for name, tool in TOOLS.items())]
+    lines = ["usage: dapm-lightning SUBCOMMAND [--help] ...", "",
+             "DAPM: metric depth and camera pose (height, pitch, roll, FoV) from one UAV image.", "",
+             "subcommands:"] + [f"  {name:<15}{text}" for name, text in rows]
+    lines += ["", "`dapm-lightning SUBCOMMAND --help` lists every setting of one subcommand."]
+    return "\n".join(lines)
+
+
 def main(argv: Sequence[str] | None = None) -> None:
     """Entry point of ``dapm-lightning``."""
     args = list(sys.argv[1:] if argv is None else argv)
-    if args and args[0] == "synth":
-        synth_main(args[1:])
+    if not args or args[0] in ("-h", "--help"):
+        print(usage())
         return
-    if args and args[0] == "doctor":
-        from dapm_lightning.doctor import doctor_main
-
-        raise SystemExit(doctor_main(args[1:]))
-    if args and args[0] == "collect-carla":
-        from dapm_lightning.carla_collect import collect_main
-
-        collect_main(args[1:])
+    if args[0] in TOOLS:
+        module_name, function, _ = TOOLS[args[0]]
+        result = getattr(importlib.import_module(module_name), function)(args[1:])
+        if isinstance(result, int):
+            raise SystemExit(result)
         return
-    if args and args[0] == "export":
-        from dapm_lightning.export import export_main
-
-        export_main(args[1:])
-        return
-    from dapm_lightning.lightning_cli import run_lightning_cli
+    from dapm_lightning.training.lightning_cli import run_lightning_cli
 
     run_lightning_cli(None if argv is None else args)

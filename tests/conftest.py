@@ -9,6 +9,8 @@ import cv2
 import numpy as np
 import pytest
 
+from dapm_lightning.training.lightning_cli import run_lightning_cli
+
 from dapm_lightning.data.synthetic import generate_uapd, render_scene, sample_scene
 from dapm_lightning.geometry import MAX_DEPTH_M, depth_to_grey
 
@@ -53,3 +55,24 @@ def tiny_potsdam(tmp_path_factory) -> Path:
         height = (rng.random((64, 96)) * 30).astype(np.float32)
         cv2.imwrite(str(root / "height" / f"dsm_potsdam_{a:02d}_{b:02d}.tif"), height)
     return root
+
+
+REPO = Path(__file__).resolve().parents[1]
+CONFIGS = REPO / "configs"
+QUICKSTART = REPO / "dapm_lightning" / "configs" / "quickstart.yaml"
+
+
+@pytest.fixture(scope="session")
+def checkpoint(tiny_uapd, tmp_path_factory):
+    work = tmp_path_factory.mktemp("predict_ckpt")
+    cli = run_lightning_cli(["fit", "--config", str(QUICKSTART), "--data.class_path",
+                             "dapm_lightning.data.datamodules.UAPDDataModule", "--data.init_args.root", str(tiny_uapd),
+                             "--data.init_args.batch_size", "2", "--data.init_args.num_workers", "0",
+                             "--trainer.max_steps", "1", "--trainer.limit_val_batches", "0",
+                             "--trainer.logger", "false", "--trainer.callbacks", "[]",
+                             "--trainer.enable_checkpointing", "false", "--trainer.default_root_dir", str(work)])
+    path = work / "model.ckpt"
+    cli.trainer.save_checkpoint(path)
+    return path
+
+

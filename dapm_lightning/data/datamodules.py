@@ -11,12 +11,12 @@ import torch
 from torch.utils.data import DataLoader, Dataset
 from torch.utils.data._utils.collate import default_collate
 
-from dapm_lightning.data.potsdam import PotsdamDataset
+from dapm_lightning.data.potsdam import PotsdamCrops, PotsdamDataset
 from dapm_lightning.data.sample import Sample
+from dapm_lightning.data.samplers import EpochShuffleSampler
 from dapm_lightning.data.synthetic import generate_uapd
 from dapm_lightning.data.transforms import train_transform
 from dapm_lightning.data.uapd import UAPDDataset
-from dapm_lightning.reliability import EpochShuffleSampler
 
 
 def collate_samples(samples: list[Sample]) -> dict[str, Any]:
@@ -38,9 +38,9 @@ class DAPMDataModule(L.LightningDataModule):
         image_dtype: ``"uint8"`` ships 4x fewer bytes per sample; the model normalises on the device.
         eval_batch_size: batch size of validation/test/predict (default: ``batch_size``).
         seed: the training order is a permutation drawn from (seed, epoch) and the augmentation of
-            each sample is seeded by (seed, epoch, index), so runs repeat exactly and a run resumed
-            from a mid-epoch checkpoint continues with the batches the uninterrupted run would see
-            (with ``num_workers=0`` or non-persistent workers).
+            each sample is seeded by (seed, epoch, index), so runs repeat exactly, with any number of
+            workers, persistent or not, and under DDP; a run resumed from a mid-epoch checkpoint
+            continues with the batches the uninterrupted run would see.
     """
 
     def __init__(self, batch_size: int = 8, num_workers: int = 2, pin_memory: bool = False,
@@ -72,29 +72,37 @@ class DAPMDataModule(L.LightningDataModule):
 
     test_split = "val"
 
-    def _loader(self, split: str, sampler: torch.utils.data.Sampler[int] | None = None) -> DataLoader[dict[str, Any]]:
-        train = sampler is not None
-        return DataLoader(self.datasets[split], batch_size=self.batch_size if train else self.eval_batch_size,
-                          sampler=sampler, num_workers=self.num_workers, pin_memory=self.pin_memory,
-                          persistent_workers=self.persistent_workers, collate_fn=collate_samples,
-                          drop_last=train and len(self.datasets[split]) > self.batch_size,  # type: ignore[arg-type]
+    def _processes(self) -> tuple[int, int]:
+        trainer = self.trainer
+        return (trainer.world_size, trainer.global_rank) if trainer is not None else (1, 0)
+
+    def _loader(self, split: str, train: bool = False) -> DataLoader[dict[str, Any]]:
+        dataset = self.datasets[split]
+        world_size, rank = self._processes()
+        sampler = EpochShuffleSampler(len(dataset), self.seed, num_replicas=world_size, rank=rank,  # type: ignore[arg-type]
+                                      shuffle=train, drop_last=train)
+        if train and self._resume_position is not None:  # restored from a checkpoint taken mid-epoch
+            sampler.resume(self._resume_position["epoch"], self._resume_position["samples_seen"])
+            self._resume_position = None
+        batch_size = self.batch_size if train else self.eval_batch_size
+        return DataLoader(dataset, batch_size=batch_size, sampler=sampler, num_workers=self.num_workers,
+                          pin_memory=self.pin_memory, persistent_workers=self.persistent_workers,
+                          collate_fn=collate_samples, drop_last=train and len(sampler) > batch_size,
                           generator=torch.Generator().manual_seed(self.seed))  # worker seeds: not the global RNG
 
     def train_dataloader(self) -> DataLoader[dict[str, Any]]:
-        dataset = self.datasets["train"]
-        sampler = EpochShuffleSampler(len(dataset), self.seed, getattr(dataset, "set_epoch", None))  # type: ignore[arg-type]
-        if self._resume_position is not None:  # restored from a checkpoint taken mid-epoch
-            sampler.resume(self._resume_position["epoch"], self._resume_position["samples_seen"])
-            self._resume_position = None
-        return self._loader("train", sampler)
+        return self._loader("train", train=True)
 
     def state_dict(self) -> dict[str, Any]:
-        """Where training stands in the epoch, saved in every checkpoint (for an exact mid-epoch resume)."""
+        """Where training stands in the epoch, saved in every checkpoint (for an exact mid-epoch resume).
+
+        ``samples_seen`` counts the samples of all processes together (the global position).
+        """
         trainer = self.trainer
         if trainer is None or not trainer.training:
             return {}
         batches = trainer.fit_loop.epoch_loop.batch_progress.current.processed
-        return {"epoch": trainer.current_epoch, "samples_seen": batches * self.batch_size}
+        return {"epoch": trainer.current_epoch, "samples_seen": batches * self.batch_size * trainer.world_size}
 
     def load_state_dict(self, state_dict: dict[str, Any]) -> None:
         self._resume_position = dict(state_dict) if state_dict else None
@@ -136,25 +144,29 @@ class SyntheticDataModule(UAPDDataModule):
 
     Args:
         root: cache folder.
-        train_size, val_size: image counts. image_size: square side in pixels. seed: generator seed.
-        workers: processes for the generator.
+        train_size, val_size: image counts.
+        image_size: square side in pixels.
+        render_seed: seed of the generator (the scenes and poses); ``seed`` is the loaders'.
+        render_workers: processes for the generator (default: CPU count, at most 8).
     """
 
     def __init__(self, root: str = "data/synthetic", train_size: int = 1000, val_size: int = 200,
-                 image_size: int = 64, seed: int = 0, workers: int | None = None, **kwargs: Any) -> None:
+                 image_size: int = 64, render_seed: int = 0, render_workers: int | None = None,
+                 **kwargs: Any) -> None:
         super().__init__(root=root, **kwargs)
         self.train_size, self.val_size, self.image_size = train_size, val_size, image_size
-        self.seed, self.workers = seed, workers
+        self.render_seed, self.render_workers = render_seed, render_workers
 
     def prepare_data(self) -> None:
         info = self.root / "synth.json"
-        wanted = {"train": self.train_size, "val": self.val_size, "size": [self.image_size] * 2, "seed": self.seed}
+        wanted = {"train": self.train_size, "val": self.val_size, "size": [self.image_size] * 2,
+                  "seed": self.render_seed}
         if info.is_file():
             have = json.loads(info.read_text())
             if all(have.get(k) == v for k, v in wanted.items()):
                 return
-        generate_uapd(self.root, train=self.train_size, val=self.val_size, size=self.image_size, seed=self.seed,
-                      workers=self.workers)
+        generate_uapd(self.root, train=self.train_size, val=self.val_size, size=self.image_size,
+                      seed=self.render_seed, workers=self.render_workers)
 
 
 class PotsdamDataModule(DAPMDataModule):
@@ -170,8 +182,6 @@ class PotsdamDataModule(DAPMDataModule):
         self.root, self.crop_size, self.val_fraction, self.split_seed = Path(root), crop_size, val_fraction, split_seed
 
     def prepare_data(self) -> None:
-        from dapm_lightning.data.potsdam import PotsdamCrops
-
         PotsdamCrops(self.root, crop_size=self.crop_size).prepare()
 
     def make_dataset(self, split: str, train: bool) -> Dataset[Sample]:

@@ -12,9 +12,8 @@ import numpy as np
 import torch
 
 from dapm_lightning.data.errors import DatasetError
-from dapm_lightning.data.sample import Sample
-from dapm_lightning.data.uapd import Transform, make_sample, seed_augmentation
-from dapm_lightning.geometry.constants import MAX_DEPTH_M
+from dapm_lightning.data.sample import Sample, SampleKey, Transform, make_sample, seed_augmentation, split_key
+from dapm_lightning.geometry.constants import MAX_DEPTH_M, MIN_DEPTH_M
 
 
 class PotsdamCrops:
@@ -96,18 +95,15 @@ class PotsdamDataset(torch.utils.data.Dataset[Sample]):
         chosen = order[:n_val] if split == "val" else order[n_val:]
         self.crops, self.names = crops, [names[i] for i in sorted(chosen)]
         self.transform, self.image_dtype = transform, image_dtype
-        self.augment_seed, self.epoch = augment_seed, 0
+        self.augment_seed = augment_seed
         if not self.names:
             raise DatasetError(root, [f"{crops}: no crops for split {split!r}"])
-
-    def set_epoch(self, epoch: int) -> None:
-        """Epoch used to seed the augmentation (called by the training sampler)."""
-        self.epoch = epoch
 
     def __len__(self) -> int:
         return len(self.names)
 
-    def __getitem__(self, index: int) -> Sample:
+    def __getitem__(self, key: SampleKey) -> Sample:
+        epoch, index = split_key(key)
         name = self.names[index]
         bgr = cv2.imread(str(self.crops / "rgb" / f"{name}.png"), cv2.IMREAD_COLOR)
         if bgr is None:
@@ -116,10 +112,10 @@ class PotsdamDataset(torch.utils.data.Dataset[Sample]):
         height = np.load(self.crops / "height" / f"{name}.npy")
         pose = np.full(4, np.nan, np.float32)
         if self.transform is not None:
-            seed_augmentation(self.transform, self.augment_seed, self.epoch, index)
+            seed_augmentation(self.transform, self.augment_seed, epoch, index)
             result = self.transform(image=rgb, mask=height, pose=pose)
             rgb, height, pose = result["image"], result["mask"], result["pose"]
         if not np.isfinite(height).all():
             raise ValueError(f"{self.crops / 'height' / name}.npy: {int((~np.isfinite(height)).sum())} "
                              "non-finite height value(s) (NaN or Inf) in this crop")
-        return make_sample(rgb, np.minimum(height, MAX_DEPTH_M - 1e-3), None, name, {}, image_dtype=self.image_dtype)
+        return make_sample(rgb, np.minimum(height, MAX_DEPTH_M - MIN_DEPTH_M), None, name, {}, image_dtype=self.image_dtype)

@@ -1,9 +1,15 @@
-"""The one sample schema shared by every data set, transform, collate and the Lightning module."""
+"""The one sample schema shared by every data set, transform, collate and the Lightning module.
+
+Also what every data set does the same way: build a sample, seed its augmentation by (seed, epoch,
+index), and read the ``(epoch, index)`` keys the training sampler yields.
+"""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any, TypedDict
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -36,3 +42,35 @@ class Sample(TypedDict, total=False):
 def depth_masks(depth_m: Tensor, max_depth: float = MAX_DEPTH_M) -> tuple[Tensor, Tensor]:
     """``(sky, valid)`` bool masks of a depth map in metres: at/beyond ``max_depth``; finite and positive."""
     return depth_m >= max_depth, torch.isfinite(depth_m) & (depth_m > 0)
+
+
+Transform = Callable[..., dict[str, Any]]
+"""An albumentations-style pipeline: ``transform(image=, mask=, pose=) -> dict`` with the same keys."""
+
+SampleKey = int | tuple[int, int]
+"""A data set index, or ``(epoch, index)`` from the training sampler (the epoch seeds the augmentation)."""
+
+
+def split_key(key: SampleKey) -> tuple[int, int]:
+    """``(epoch, index)`` of a sample key; a plain index is epoch 0."""
+    if isinstance(key, tuple):
+        return int(key[0]), int(key[1])
+    return 0, int(key)
+
+
+def seed_augmentation(transform: Transform, seed: int | None, epoch: int, index: int) -> None:
+    """Seed an albumentations pipeline by (seed, epoch, index), so a sample's augmentation is reproducible."""
+    if seed is not None and hasattr(transform, "set_random_seed"):
+        transform.set_random_seed(int(np.random.SeedSequence([seed, epoch, index]).generate_state(1)[0]))
+
+
+def make_sample(rgb: np.ndarray, depth_m: np.ndarray, pose: np.ndarray | None, name: str, meta: dict[str, Any],
+                *, image_dtype: str = "float32") -> Sample:
+    """Build a :class:`Sample` from ``[H, W, 3]`` uint8 RGB, ``[H, W]`` metres and a pose (None: no pose)."""
+    image = torch.from_numpy(np.ascontiguousarray(rgb.transpose(2, 0, 1)))
+    if image_dtype == "float32":
+        image = image.float().div_(255.0)
+    depth = torch.from_numpy(np.ascontiguousarray(depth_m, dtype=np.float32))[None]
+    has_pose = pose is not None
+    pose_tensor = torch.from_numpy(np.asarray(pose, np.float32)) if has_pose else torch.full((4,), float("nan"))
+    return Sample(image=image, depth=depth, pose=pose_tensor, has_pose=torch.tensor(has_pose), name=name, meta=meta)

@@ -11,10 +11,9 @@ from typing import Any
 
 import albumentations as A
 import numpy as np
+import torch
 
-from dapm_lightning.geometry.constants import POSE_KEYS
-
-ROLL_INDEX = POSE_KEYS.index("roll")
+from dapm_lightning.geometry.pose import flip_pose
 
 
 class PoseAwareHorizontalFlip(A.HorizontalFlip):
@@ -30,9 +29,7 @@ class PoseAwareHorizontalFlip(A.HorizontalFlip):
 
     def apply_to_pose(self, pose: np.ndarray, **params: Any) -> np.ndarray:
         """``[4]`` (height, pitch, roll, fov) -> roll negated."""
-        flipped = np.array(pose, dtype=np.float32, copy=True)
-        flipped[ROLL_INDEX] = -flipped[ROLL_INDEX]
-        return flipped
+        return flip_pose(torch.as_tensor(np.asarray(pose, np.float32))).numpy()
 
 
 def train_transform(*, flip_p: float = 0.5, color_jitter_p: float = 0.8, noise_p: float = 0.3,

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import re
 import warnings
-from collections.abc import Callable
 from pathlib import Path, PurePath
 from typing import Any, Literal
 
@@ -14,7 +13,7 @@ import torch
 
 from dapm_lightning.data.errors import DatasetError
 from dapm_lightning.data.pngcheck import read_png_info
-from dapm_lightning.data.sample import Sample
+from dapm_lightning.data.sample import Sample, SampleKey, Transform, make_sample, seed_augmentation, split_key
 from dapm_lightning.geometry.constants import MAX_DEPTH_M, POSE_KEYS
 from dapm_lightning.geometry.depth_codec import grey_to_depth
 
@@ -24,7 +23,6 @@ KEY_ALIASES = {"z": "height", "height": "height", "pitch": "pitch", "roll": "rol
 _NUMBER = re.compile(r"^[+-]?(\d+(\.\d*)?|\.\d+)$")
 _KEY = re.compile(r"^[A-Za-z]+$")
 
-Transform = Callable[..., dict[str, Any]]
 """Called as ``transform(image=rgb, mask=grey, pose=pose)``; returns the same keys (albumentations style)."""
 
 
@@ -135,11 +133,7 @@ class UAPDDataset(torch.utils.data.Dataset[Sample]):
             raise ValueError(f"image_dtype must be 'float32' or 'uint8', got {image_dtype!r}")
         self.image_dtype = image_dtype
         self.names, self.poses, self.meta, self.skipped = self._scan(on_bad_file)
-        self.augment_seed, self.epoch = augment_seed, 0
-
-    def set_epoch(self, epoch: int) -> None:
-        """Epoch used to seed the augmentation (called by the training sampler)."""
-        self.epoch = epoch
+        self.augment_seed = augment_seed
 
     def _scan(self, on_bad_file: str) -> tuple[list[str], np.ndarray, list[dict[str, Any]], list[str]]:
         split_dir = self.root / self.split
@@ -201,30 +195,13 @@ class UAPDDataset(torch.utils.data.Dataset[Sample]):
         rgb = read_rgb(split_dir / self.rgb_dir / name, expected_hw=grey.shape[:2])
         return rgb, grey
 
-    def __getitem__(self, index: int) -> Sample:
+    def __getitem__(self, key: SampleKey) -> Sample:
+        epoch, index = split_key(key)
         rgb, grey = self.load(index)
         pose = self.poses[index]
         if self.transform is not None:
-            seed_augmentation(self.transform, self.augment_seed, self.epoch, index)
+            seed_augmentation(self.transform, self.augment_seed, epoch, index)
             result = self.transform(image=rgb, mask=grey, pose=pose)
             rgb, grey, pose = result["image"], result["mask"], result["pose"]
         return make_sample(rgb, grey_to_depth(grey, self.max_depth), pose, Path(self.names[index]).stem,
                            self.meta[index], image_dtype=self.image_dtype)
-
-
-def seed_augmentation(transform: Transform, seed: int | None, epoch: int, index: int) -> None:
-    """Seed an albumentations pipeline by (seed, epoch, index), so a sample's augmentation is reproducible."""
-    if seed is not None and hasattr(transform, "set_random_seed"):
-        transform.set_random_seed(int(np.random.SeedSequence([seed, epoch, index]).generate_state(1)[0]))
-
-
-def make_sample(rgb: np.ndarray, depth_m: np.ndarray, pose: np.ndarray | None, name: str, meta: dict[str, Any],
-                *, image_dtype: str = "float32") -> Sample:
-    """Build a :class:`Sample` from ``[H, W, 3]`` uint8 RGB, ``[H, W]`` metres and a pose (None: no pose)."""
-    image = torch.from_numpy(np.ascontiguousarray(rgb.transpose(2, 0, 1)))
-    if image_dtype == "float32":
-        image = image.float().div_(255.0)
-    depth = torch.from_numpy(np.ascontiguousarray(depth_m, dtype=np.float32))[None]
-    has_pose = pose is not None
-    pose_tensor = torch.from_numpy(np.asarray(pose, np.float32)) if has_pose else torch.full((4,), float("nan"))
-    return Sample(image=image, depth=depth, pose=pose_tensor, has_pose=torch.tensor(has_pose), name=name, meta=meta)

@@ -1,8 +1,6 @@
-"""Pinhole camera of design.md §1: pixel offsets, focal length, and per-pixel rays in the world frame."""
+"""Pinhole camera of design.md §1: pixel offsets, intrinsics, and per-pixel rays in the world frame."""
 
 from __future__ import annotations
-
-import math
 
 import torch
 from torch import Tensor
@@ -38,9 +36,26 @@ def inverse_focal(fov_deg: Tensor, width: int) -> Tensor:
     return 2.0 * torch.tan(torch.deg2rad(fov) / 2.0) / width
 
 
-def focal_length(fov_deg: float, width: int) -> float:
-    """Focal length ``f = W / (2 tan(fov / 2))`` in pixels (scalar helper for renderers and docs)."""
-    return width / (2.0 * math.tan(math.radians(fov_deg) / 2.0))
+def intrinsics_matrix(fov_deg: Tensor, size: tuple[int, int]) -> Tensor:
+    """Pinhole intrinsics ``K`` of design.md §1 for a horizontal FoV across the image width.
+
+    Args:
+        fov_deg: ``[B]`` horizontal field of view in degrees.
+        size: ``(H, W)`` in pixels.
+
+    Returns:
+        ``[B, 3, 3]``: ``fx = fy = W / (2 tan(fov / 2))`` (square pixels), principal point at the image
+        centre ``(W / 2, H / 2)`` in the convention where pixel ``(i, j)`` has its centre at ``(j + 0.5, i + 0.5)``.
+
+    Convention:
+        FoV 90 deg over 512 px: ``fx = 256``, ``cx = cy = 256``.
+    """
+    height, width = size
+    focal = 1.0 / inverse_focal(fov_deg, width)
+    k = torch.zeros(*fov_deg.shape, 3, 3, dtype=fov_deg.dtype, device=fov_deg.device)
+    k[..., 0, 0], k[..., 1, 1] = focal, focal
+    k[..., 0, 2], k[..., 1, 2], k[..., 2, 2] = width / 2.0, height / 2.0, 1.0
+    return k
 
 
 def camera_rays(pitch_deg: Tensor, roll_deg: Tensor, fov_deg: Tensor,

@@ -22,3 +22,6 @@ MAX_DEPTH_M: Final[float] = 1000.0
 
 SKY_GREY: Final[int] = 255
 """8-bit grey level of the log depth encoding that means "at or beyond MAX_DEPTH_M"."""
+
+MIN_DEPTH_M: Final[float] = 1e-3
+"""Smallest depth treated as valid (metrics, loss masks, log guards): the toolbox's ``min_depth``."""

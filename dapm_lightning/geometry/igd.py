@@ -3,13 +3,17 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
 from typing import Literal
 
 import torch
 from torch import Tensor
 
 from dapm_lightning.geometry.camera import _plane_coords
-from dapm_lightning.geometry.constants import MAX_DEPTH_M
+from dapm_lightning.geometry.constants import MAX_DEPTH_M, POSE_RANGES
+from dapm_lightning.geometry.depth_codec import encode_log_depth
+from dapm_lightning.geometry.pose import denormalize_pose, normalize_pose
 
 IGDModel = Literal["pinhole", "paper"]
 DepthKind = Literal["range", "planar"]
@@ -83,3 +87,48 @@ def _paper(height: Tensor, pitch_deg: Tensor, roll_deg: Tensor, a: Tensor, b: Te
     if depth_kind == "planar":
         depth = depth / norm
     return torch.where(hits, depth.clamp(max=max_depth), torch.full_like(depth, max_depth))
+
+
+def _uapd_ranges() -> dict[str, tuple[float, float]]:
+    return dict(POSE_RANGES)
+
+
+@dataclass(frozen=True)
+class IGDSpec:
+    """How a pose becomes an ideal ground depth: one specification shared by the network and the loss.
+
+    Args:
+        model: ``"pinhole"`` (exact) or ``"paper"`` (the paper's approximation), see :func:`ideal_ground_depth`.
+        depth_kind: ``"range"`` or ``"planar"``; must be what the data set's depth maps hold.
+        max_depth: metres; sky and the clamp of every depth.
+        pose_ranges: normalisation ranges of the pose, ``{key: (lo, hi)}`` (UAPD's by default).
+    """
+
+    model: IGDModel = "pinhole"
+    depth_kind: DepthKind = "range"
+    max_depth: float = MAX_DEPTH_M
+    pose_ranges: Mapping[str, tuple[float, float]] = field(default_factory=_uapd_ranges)
+
+    def __post_init__(self) -> None:
+        ranges = {str(k): (float(v[0]), float(v[1])) for k, v in self.pose_ranges.items()}
+        missing = set(POSE_RANGES) - set(ranges)
+        if missing:
+            raise ValueError(f"pose_ranges lacks {sorted(missing)}; it needs {list(POSE_RANGES)}")
+        object.__setattr__(self, "pose_ranges", ranges)
+
+    def normalize(self, pose: Tensor) -> Tensor:
+        """``[..., 4]`` physical pose -> ``[..., 4]`` in [0, 1] with :attr:`pose_ranges`."""
+        return normalize_pose(pose, self.pose_ranges)
+
+    def denormalize(self, pose_norm: Tensor) -> Tensor:
+        """Inverse of :meth:`normalize`."""
+        return denormalize_pose(pose_norm, self.pose_ranges)
+
+    def depth(self, pose: Tensor, size: tuple[int, int]) -> Tensor:
+        """IGD in metres ``[B, 1, H, W]`` of a physical pose ``[B, 4]``."""
+        return ideal_ground_depth(pose, size, model=self.model, depth_kind=self.depth_kind,
+                                  max_depth=self.max_depth)
+
+    def depth_norm(self, pose_norm: Tensor, size: tuple[int, int]) -> Tensor:
+        """IGD of a normalised pose ``[B, 4]`` in the normalised log space: ``[B, 1, H, W]`` in [0, 1]."""
+        return encode_log_depth(self.depth(self.denormalize(pose_norm), size), self.max_depth)

@@ -1,6 +1,9 @@
-"""Pure torch models: the DAPM network and its parts (never imports Lightning)."""
+"""Pure torch models: the DAPM network, its settings and parts (never imports Lightning)."""
 
-from dapm_lightning.models.dapm import DAPMNet, DAPMOutput
+from dapm_lightning.models.config import DAPMConfig
+from dapm_lightning.models.dapm import DAPMNet, DAPMOutput, DepthPrediction, PosePrediction
 from dapm_lightning.models.encoder import Encoder
+from dapm_lightning.models.teacher_forcing import TeacherForcing, predicted_share_at
 
-__all__ = ["DAPMNet", "DAPMOutput", "Encoder"]
+__all__ = ["DAPMConfig", "DAPMNet", "DAPMOutput", "DepthPrediction", "Encoder", "PosePrediction", "TeacherForcing",
+           "predicted_share_at"]

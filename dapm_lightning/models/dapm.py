@@ -2,177 +2,183 @@
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from dapm_lightning.geometry.constants import MAX_DEPTH_M, POSE_RANGES
 from dapm_lightning.geometry.depth_codec import decode_log_depth
-from dapm_lightning.geometry.igd import DepthKind, IGDModel
-from dapm_lightning.geometry.pose import denormalize_pose
 from dapm_lightning.models.blocks import conv_bn_relu
+from dapm_lightning.models.config import DAPMConfig
 from dapm_lightning.models.decoders import DepthDecoder, PoseDecoder
 from dapm_lightning.models.encoder import Encoder
-from dapm_lightning.models.igd_branch import IGDFeature, igd_norm_from_pose
+from dapm_lightning.models.igd_branch import IGDFeature
 from dapm_lightning.models.pqb import DepthPQB, PosePQB
+from dapm_lightning.models.teacher_forcing import TeacherForcing
 from dapm_lightning.models.upsample import ConvexUpsample
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
 
 
-@dataclass
-class DAPMOutput:
-    """Everything one forward pass predicts; ``None`` where the branch is switched off.
+class DepthPrediction(NamedTuple):
+    """Depth branch output. Full resolution ``[B, 1, H, W]`` unless noted.
 
-    Full resolution ``[B, 1, H, W]``: ``depth_norm`` (refined normalised log depth), ``depth_init_norm``,
-    ``sky_logits``, ``depth_m`` (metres, sky set to ``max_depth``). Head resolution: ``depth_bin_logits``
-    (``[B, n, h, w]`` per stage), ``igd_norm`` (the IGD fed to the bins). Pose: ``pose_norm`` and
-    ``pose_init_norm`` ``[B, 4]`` in [0, 1], ``pose`` ``[B, 4]`` physical (m, deg, deg, deg),
-    ``pose_bin_logits`` (``[B, 4, n]`` per stage).
+    ``depth_norm``: refined normalised log depth (the initial one when nothing refines it);
+    ``depth_init_norm``: the decoder's; ``depth_m``: metres, sky set to ``max_depth``;
+    ``sky_logits`` (None without a 2-bin stage); ``bin_logits``: ``[B, n, h, w]`` per bins stage;
+    ``igd_norm``: the IGD fed to the refinement at head resolution (None without the IGD feature);
+    ``refined``: whether a refinement head produced ``depth_norm``.
     """
 
-    depth_norm: Tensor | None = None
-    depth_init_norm: Tensor | None = None
-    sky_logits: Tensor | None = None
-    depth_bin_logits: list[Tensor] = field(default_factory=list)
-    depth_m: Tensor | None = None
-    igd_norm: Tensor | None = None
-    pose_norm: Tensor | None = None
-    pose_init_norm: Tensor | None = None
-    pose_bin_logits: list[Tensor] = field(default_factory=list)
-    pose: Tensor | None = None
+    depth_norm: Tensor
+    depth_init_norm: Tensor
+    depth_m: Tensor
+    sky_logits: Tensor | None
+    bin_logits: tuple[Tensor, ...]
+    igd_norm: Tensor | None
+    refined: bool
+
+
+class PosePrediction(NamedTuple):
+    """Pose branch output: ``pose_norm``/``pose_init_norm`` ``[B, 4]`` in [0, 1], ``pose`` ``[B, 4]``
+    physical (m, deg, deg, deg), ``bin_logits`` ``[B, 4, n]`` per bins stage, ``refined`` as for depth."""
+
+    pose_norm: Tensor
+    pose_init_norm: Tensor
+    pose: Tensor
+    bin_logits: tuple[Tensor, ...]
+    refined: bool
+
+
+class DAPMOutput(NamedTuple):
+    """Everything one forward pass predicts; a branch switched off is ``None``."""
+
+    depth: DepthPrediction | None
+    pose: PosePrediction | None
+
+    @property
+    def depth_m(self) -> Tensor | None:
+        """``[B, 1, H, W]`` metres, or None (DAPM(P))."""
+        return None if self.depth is None else self.depth.depth_m
+
+    @property
+    def pose_physical(self) -> Tensor | None:
+        """``[B, 4]`` (height m, pitch deg, roll deg, fov deg), or None (DAPM(D))."""
+        return None if self.pose is None else self.pose.pose
+
+    @property
+    def sky_prob(self) -> Tensor | None:
+        """``[B, 1, H, W]`` probability of "beyond max depth", or None without a sky stage."""
+        if self.depth is None or self.depth.sky_logits is None:
+            return None
+        return torch.sigmoid(self.depth.sky_logits)
 
 
 class DAPMNet(nn.Module):
     """Depth estimation for Any Perspectives Model: encoder, depth and pose decoders, IGD, PQB.
 
-    Every ablation of the paper is a switch: ``depth_bins=()`` (no D-PQB), ``pose_bins=()`` (no
-    P-PQB), ``use_igd_feature`` (IGD into the depth bins; the IGD loss is a :class:`DAPMLoss` switch),
-    ``use_pose=False`` (DAPM(D), depth only), ``use_depth=False`` (DAPM(P), pose only).
-
-    Args:
-        backbone, pretrained, weights_path: see :class:`Encoder`.
-        use_depth, use_pose: build the depth / pose branches.
-        depth_bins: per-pixel bins per stage; ``(2, 16, 64)``: sky map, 16 and 64 classes.
-        pose_bins: per-component bins per stage; ``(16, 64)``.
-        use_igd_feature: feed the IGD of the (blended) pose into every depth bins block.
-        igd_model, depth_kind, max_depth: passed to ``ideal_ground_depth``; ``depth_kind`` must be the
-            data set's.
-        decoder_channels: FPN width. head_channels: width of the bins blocks and the depth head.
-        igd_channels: IGD feature width.
-        head_stride: resolution of the bins heads relative to the image: 4 (default, cheap, with a
-            learned convex upsampling to full resolution) or 1 (paper-faithful, full resolution).
-        igd_feature_grad: let the depth losses reach the pose branch through the IGD feature
-            (default False: the IGD feature sees a detached pose).
-        pose_ranges: normalisation ranges (UAPD's).
+    Only the modules a configuration uses are built (every parameter gets a gradient, as DDP
+    requires). The depth is refined by a head at ``head_stride`` when there are depth bins stages or
+    the IGD feature; with neither, the decoder's depth is the output.
 
     Example:
-        >>> net = DAPMNet("resnet18")
+        >>> net = DAPMNet(DAPMConfig(backbone="resnet18"))
         >>> out = net(torch.rand(1, 3, 96, 128))
-        >>> out.depth_m.shape, out.pose.shape
+        >>> out.depth_m.shape, out.pose_physical.shape
         (torch.Size([1, 1, 96, 128]), torch.Size([1, 4]))
     """
 
-    def __init__(self, backbone: str = "resnet50", *, pretrained: bool = False, weights_path: str | None = None,
-                 use_depth: bool = True, use_pose: bool = True, depth_bins: Sequence[int] = (2, 16, 64),
-                 pose_bins: Sequence[int] = (16, 64), use_igd_feature: bool = True, igd_model: IGDModel = "pinhole",
-                 depth_kind: DepthKind = "range", max_depth: float = MAX_DEPTH_M, decoder_channels: int = 96,
-                 head_channels: int = 32, igd_channels: int = 16, head_stride: int = 4, dropout: float = 0.1,
-                 pose_hidden: int = 256, igd_feature_grad: bool = False,
-                 pose_ranges: Mapping[str, tuple[float, float]] = POSE_RANGES) -> None:
+    def __init__(self, config: DAPMConfig | None = None) -> None:
         super().__init__()
-        if not (use_depth or use_pose):
-            raise ValueError("DAPMNet needs use_depth or use_pose (or both)")
-        if use_igd_feature and not (use_depth and use_pose):
-            raise ValueError("use_igd_feature needs both branches: the IGD comes from the predicted pose and "
-                             "feeds the depth bins (set use_igd_feature=False for DAPM(D) / DAPM(P))")
-        if head_stride not in (1, 2, 4, 8):
-            raise ValueError(f"head_stride must be 1, 2, 4 or 8, got {head_stride}")
-        self.use_depth, self.use_pose, self.use_igd_feature = use_depth, use_pose, use_igd_feature
-        self.depth_bins, self.pose_bins = tuple(depth_bins), tuple(pose_bins)
-        self.igd_model, self.depth_kind, self.max_depth = igd_model, depth_kind, max_depth
-        self.head_stride, self.igd_feature_grad = head_stride, igd_feature_grad
-        self.pose_ranges = dict(pose_ranges)
-        self.encoder = Encoder(backbone, pretrained=pretrained, weights_path=weights_path)
+        self.config = config = config or DAPMConfig()
+        self.encoder = Encoder(config.backbone, pretrained=config.pretrained, weights_path=config.weights_path)
         channels = self.encoder.channels
         self.register_buffer("pixel_mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("pixel_std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
-        if use_depth:
-            self.depth_decoder = DepthDecoder(channels[-3:], decoder_channels, dropout)
-            self.to_head = conv_bn_relu(decoder_channels, head_channels, kernel_size=1)
-            self.igd_feature = IGDFeature(igd_channels) if use_igd_feature else None
-            self.depth_pqb = (DepthPQB(head_channels, igd_channels if use_igd_feature else 0, self.depth_bins,
-                                       head_channels) if self.depth_bins else None)
-            self.upsample = ConvexUpsample(head_channels, head_stride) if head_stride > 1 else None
-        if use_pose:
-            self.pose_decoder = PoseDecoder(channels, hidden=pose_hidden, depth_grid=8 if use_depth else 0)
-            self.pose_pqb = PosePQB(pose_hidden, self.pose_bins, pose_hidden) if self.pose_bins else None
+        self.depth_decoder = self.to_head = self.igd_feature = self.depth_pqb = self.upsample = None
+        self.pose_decoder = self.pose_pqb = None
+        if config.use_depth:
+            self.depth_decoder = DepthDecoder(channels[-3:], config.decoder_channels, config.dropout)
+            if self.refines_depth:
+                igd_channels = config.igd_channels if config.use_igd_feature else 0
+                self.to_head = conv_bn_relu(config.decoder_channels, config.head_channels, kernel_size=1)
+                self.igd_feature = IGDFeature(config.igd_channels) if config.use_igd_feature else None
+                self.depth_pqb = DepthPQB(config.head_channels, igd_channels, config.depth_bins, config.head_channels)
+                self.upsample = (ConvexUpsample(config.head_channels, config.head_stride)
+                                 if config.head_stride > 1 else None)
+        if config.use_pose:
+            self.pose_decoder = PoseDecoder(channels, hidden=config.pose_hidden,
+                                            depth_grid=8 if config.use_depth else 0)
+            if config.pose_bins:
+                self.pose_pqb = PosePQB(config.pose_hidden, config.pose_bins, config.pose_hidden)
 
-    def forward(self, image: Tensor, pose_norm_true: Tensor | None = None, predicted_share: float = 1.0) -> DAPMOutput:
+    @property
+    def refines_depth(self) -> bool:
+        """Whether a depth head refines the initial depth (depth bins stages or the IGD feature)."""
+        return self.config.use_depth and (bool(self.config.depth_bins) or self.config.use_igd_feature)
+
+    def forward(self, image: Tensor, teacher_forcing: TeacherForcing | None = None) -> DAPMOutput:
         """Predict depth and pose.
 
         Args:
             image: ``[B, 3, H, W]`` RGB in [0, 1] (any H, W).
-            pose_norm_true: ``[B, 4]`` normalised true pose, for the IGD teacher forcing in training
-                (rows with NaN, images without a pose, use the prediction).
-            predicted_share: weight of the predicted pose in the IGD input,
-                ``w * predicted + (1 - w) * true``; 1 (predictions only) when no true pose is given.
+            teacher_forcing: in training, the true pose and the predicted share the IGD feature sees;
+                None: the predicted pose alone.
         """
         if image.ndim != 4 or image.shape[1] != 3:
             raise ValueError(f"image must be [B, 3, H, W], got {tuple(image.shape)}")
         size = (image.shape[-2], image.shape[-1])
         features = self.encoder((image - self.pixel_mean) / self.pixel_std)
-        out = DAPMOutput()
         depth_feature = depth_coarse = None
-        if self.use_depth:
+        if self.depth_decoder is not None:
             depth_feature, depth_coarse = self.depth_decoder(features[-3:])
-            out.depth_init_norm = F.interpolate(depth_coarse, size=size, mode="bilinear", align_corners=False)
-        if self.use_pose:
-            pose_feature, out.pose_init_norm = self.pose_decoder(
-                features, None if depth_coarse is None else depth_coarse.detach())
-            out.pose_norm = out.pose_init_norm
-            if self.pose_pqb is not None:
-                pose_logit, out.pose_bin_logits = self.pose_pqb(pose_feature, out.pose_init_norm)
-                out.pose_norm = torch.sigmoid(pose_logit)
-            out.pose = denormalize_pose(out.pose_norm, self.pose_ranges)
-        if self.use_depth:
-            assert depth_feature is not None and depth_coarse is not None and out.depth_init_norm is not None
-            self._refine_depth(out, depth_feature, depth_coarse, size, pose_norm_true, predicted_share)
-        return out
+        pose = None
+        if self.pose_decoder is not None:
+            pose = self._pose(features, None if depth_coarse is None else depth_coarse.detach())
+        depth = None
+        if depth_feature is not None and depth_coarse is not None:
+            depth = self._depth(depth_feature, depth_coarse, size, pose, teacher_forcing)
+        return DAPMOutput(depth, pose)
 
-    def _refine_depth(self, out: DAPMOutput, depth_feature: Tensor, depth_coarse: Tensor, size: tuple[int, int],
-                      pose_norm_true: Tensor | None, predicted_share: float) -> None:
-        head_size = (max(1, -(-size[0] // self.head_stride)), max(1, -(-size[1] // self.head_stride)))
+    def _pose(self, features: list[Tensor], depth_coarse: Tensor | None) -> PosePrediction:
+        assert self.pose_decoder is not None
+        pose_feature, pose_init = self.pose_decoder(features, depth_coarse)
+        pose_norm, bin_logits = pose_init, ()
+        if self.pose_pqb is not None:
+            pose_logit, logits = self.pose_pqb(pose_feature, pose_init)
+            pose_norm, bin_logits = torch.sigmoid(pose_logit), tuple(logits)
+        return PosePrediction(pose_norm, pose_init, self.config.igd.denormalize(pose_norm), bin_logits,
+                              self.pose_pqb is not None)
+
+    def _depth(self, depth_feature: Tensor, depth_coarse: Tensor, size: tuple[int, int],
+               pose: PosePrediction | None, teacher_forcing: TeacherForcing | None) -> DepthPrediction:
+        igd = self.config.igd
+        depth_init = F.interpolate(depth_coarse, size=size, mode="bilinear", align_corners=False)
+        if self.depth_pqb is None or self.to_head is None:
+            return DepthPrediction(depth_init, depth_init, decode_log_depth(depth_init, igd.max_depth), None, (),
+                                   None, False)
+        stride = self.config.head_stride
+        head_size = (max(1, -(-size[0] // stride)), max(1, -(-size[1] // stride)))
         feature = self.to_head(F.interpolate(depth_feature, size=head_size, mode="bilinear", align_corners=False))
         init_head = F.interpolate(depth_coarse, size=head_size, mode="bilinear", align_corners=False)
-        igd_feature = None
-        if self.igd_feature is not None:
-            assert out.pose_norm is not None
-            pose = out.pose_norm if self.igd_feature_grad else out.pose_norm.detach()
-            if pose_norm_true is not None and predicted_share < 1.0:  # teacher forcing
-                known = torch.isfinite(pose_norm_true).all(dim=1, keepdim=True)  # images without a pose keep theirs
-                true = torch.where(known, pose_norm_true, pose)
-                pose = predicted_share * pose + (1.0 - predicted_share) * true
-            out.igd_norm = igd_norm_from_pose(pose, head_size, model=self.igd_model, depth_kind=self.depth_kind,
-                                              max_depth=self.max_depth, pose_ranges=self.pose_ranges)
-            igd_feature = self.igd_feature(out.igd_norm)
-        if self.depth_pqb is None:
-            out.depth_norm = out.depth_init_norm
-        else:
-            refined_logit, sky_logit, out.depth_bin_logits = self.depth_pqb(feature, init_head, igd_feature)
-            refined = torch.sigmoid(refined_logit)
-            if self.upsample is not None:
-                refined = self.upsample(refined, feature, size)
-            elif refined.shape[-2:] != size:
-                refined = F.interpolate(refined, size=size, mode="bilinear", align_corners=False)
-            out.depth_norm = refined
-            if sky_logit is not None:
-                out.sky_logits = F.interpolate(sky_logit, size=size, mode="bilinear", align_corners=False)
-        depth_m = decode_log_depth(out.depth_norm, self.max_depth)
-        if out.sky_logits is not None:
-            depth_m = torch.where(out.sky_logits > 0, torch.full_like(depth_m, self.max_depth), depth_m)
-        out.depth_m = depth_m
+        igd_norm = igd_feature = None
+        if self.igd_feature is not None and pose is not None:
+            pose_norm = pose.pose_norm if self.config.igd_feature_grad else pose.pose_norm.detach()
+            if teacher_forcing is not None:
+                pose_norm = teacher_forcing.blend(pose_norm)
+            igd_norm = igd.depth_norm(pose_norm, head_size)
+            igd_feature = self.igd_feature(igd_norm)
+        refined_logit, sky_logit, bin_logits = self.depth_pqb(feature, init_head, igd_feature)
+        refined = torch.sigmoid(refined_logit)
+        if self.upsample is not None:
+            refined = self.upsample(refined, feature, size)
+        elif refined.shape[-2:] != size:
+            refined = F.interpolate(refined, size=size, mode="bilinear", align_corners=False)
+        sky_logits = (None if sky_logit is None
+                      else F.interpolate(sky_logit, size=size, mode="bilinear", align_corners=False))
+        depth_m = decode_log_depth(refined, igd.max_depth)
+        if sky_logits is not None:
+            depth_m = torch.where(sky_logits > 0, torch.full_like(depth_m, igd.max_depth), depth_m)
+        return DepthPrediction(refined, depth_init, depth_m, sky_logits, tuple(bin_logits), igd_norm, True)

@@ -3,11 +3,19 @@ import pytest
 import torch
 
 from dapm_lightning.data.synthetic import render_scene, sample_pose, sample_scene
-from dapm_lightning.geometry import MAX_DEPTH_M, POSE_RANGES, normalize_pose
-from dapm_lightning.losses import DAPMLoss
-from dapm_lightning.models import DAPMNet, DAPMOutput
+from dapm_lightning.geometry import MAX_DEPTH_M, POSE_RANGES, IGDSpec, normalize_pose
+from dapm_lightning.models import DAPMConfig, DAPMNet, DAPMOutput, TeacherForcing
+from dapm_lightning.training.loss import DAPMLoss, LossConfig
 
 BACKBONE = "resnet18"
+
+
+def make_net(**settings) -> DAPMNet:
+    return DAPMNet(DAPMConfig(backbone=BACKBONE, **settings))
+
+
+def forced(pose_norm, share):
+    return TeacherForcing(pose_norm, share)
 ABLATIONS = {
     "full": {},
     "no_pqb": dict(depth_bins=(), pose_bins=()),
@@ -17,7 +25,7 @@ ABLATIONS = {
     "bins_2_16_16": dict(depth_bins=(2, 16, 16), pose_bins=(16, 16)),
     "bins_2_64_64": dict(depth_bins=(2, 64, 64), pose_bins=(64, 64)),
     "bins_2": dict(depth_bins=(2,), pose_bins=(16,)),
-    "paper_igd": dict(igd_model="paper", depth_kind="planar"),
+    "paper_igd": dict(igd=IGDSpec(model="paper", depth_kind="planar")),
     "paper_faithful_heads": dict(head_stride=1, head_channels=16),
     "dapm_d": dict(use_pose=False, use_igd_feature=False),
     "dapm_p": dict(use_depth=False, use_igd_feature=False),
@@ -35,38 +43,40 @@ def targets_for(batch: int, size: tuple[int, int]) -> dict:
 
 @pytest.mark.parametrize("size", [(96, 128), (37, 53)])
 def test_shapes_and_ranges_batch_one(size):
-    out = DAPMNet(BACKBONE).eval()(torch.rand(1, 3, *size))
+    out = make_net().eval()(torch.rand(1, 3, *size))
     assert isinstance(out, DAPMOutput)
     for name in ("depth_norm", "depth_init_norm", "sky_logits", "depth_m"):
-        assert getattr(out, name).shape == (1, 1, *size), name
-    assert 0 <= out.depth_norm.min() and out.depth_norm.max() <= 1
+        assert getattr(out.depth, name).shape == (1, 1, *size), name
+    assert 0 <= out.depth.depth_norm.min() and out.depth.depth_norm.max() <= 1
     assert 0 < out.depth_m.min() and out.depth_m.max() <= MAX_DEPTH_M
-    assert out.pose.shape == (1, 4) and ((out.pose_norm > 0) & (out.pose_norm < 1)).all()
-    assert [t.shape[1] for t in out.depth_bin_logits] == [16, 64]
-    assert [t.shape[1:] for t in out.pose_bin_logits] == [(4, 16), (4, 64)]
+    assert out.pose_physical.shape == (1, 4) and ((out.pose.pose_norm > 0) & (out.pose.pose_norm < 1)).all()
+    assert [t.shape[1] for t in out.depth.bin_logits] == [16, 64]
+    assert [t.shape[1:] for t in out.pose.bin_logits] == [(4, 16), (4, 64)]
 
 
 @pytest.mark.parametrize("name", sorted(ABLATIONS))
 def test_every_ablation_runs_forward_and_backward(name):
-    net = DAPMNet(BACKBONE, **ABLATIONS[name])
-    loss = DAPMLoss(use_igd_loss=net.use_pose and name != "no_igd_feature")
+    net = make_net(**ABLATIONS[name])
+    config = net.config
+    loss = DAPMLoss(LossConfig(use_igd_loss=name != "no_igd_feature"), config.igd)
     out = net(torch.rand(2, 3, 48, 64))
     terms = loss(out, targets_for(2, (48, 64)))
     assert torch.isfinite(terms["total"])
     terms["total"].backward()
-    assert all(p.grad is not None for p in net.encoder.parameters() if p.requires_grad)
-    assert ("depth" in terms) == (net.use_depth and bool(net.depth_bins))
-    assert ("pq" in terms) == (net.use_pose and bool(net.pose_bins))
-    assert (out.depth_m is None) == (not net.use_depth) and (out.pose is None) == (not net.use_pose)
+    unused = [n for n, p in net.named_parameters() if p.requires_grad and p.grad is None]
+    assert not unused, f"built but not used (DDP refuses these): {unused[:5]}"
+    assert ("depth" in terms) == (config.use_depth and (bool(config.depth_bins) or config.use_igd_feature))
+    assert ("pq" in terms) == (config.use_pose and bool(config.pose_bins))
+    assert (out.depth_m is None) == (not config.use_depth) and (out.pose is None) == (not config.use_pose)
 
 
 def test_invalid_switches_are_refused():
     with pytest.raises(ValueError, match="use_igd_feature"):
-        DAPMNet(BACKBONE, use_pose=False)
+        make_net(use_pose=False)
     with pytest.raises(ValueError, match="sky map"):
-        DAPMNet(BACKBONE, depth_bins=(16, 2))
+        make_net(depth_bins=(16, 2))
     with pytest.raises(ValueError, match="image must be"):
-        DAPMNet(BACKBONE)(torch.rand(3, 32, 32))
+        make_net()(torch.rand(3, 32, 32))
 
 
 def _grads(module, loss):
@@ -77,8 +87,8 @@ def _grads(module, loss):
 
 def test_gradients_reach_only_where_they_should():
     torch.manual_seed(0)
-    net = DAPMNet(BACKBONE)
-    terms = DAPMLoss()(net(torch.rand(2, 3, 48, 64), normalize_pose(torch.tensor([[50.0, -30, 5, 60]] * 2)), 0.5),
+    net = make_net()
+    terms = DAPMLoss()(net(torch.rand(2, 3, 48, 64), forced(normalize_pose(torch.tensor([[50.0, -30, 5, 60]] * 2)), 0.5)),
                        targets_for(2, (48, 64)))
     for key in ("depth", "init_depth", "dq", "pose", "init_pose", "pq", "pd"):
         g = _grads(net, terms[key])
@@ -93,19 +103,19 @@ def test_gradients_reach_only_where_they_should():
 
 
 def test_teacher_forcing_blends_the_igd_input():
-    net = DAPMNet(BACKBONE).eval()
+    net = make_net().eval()
     image = torch.rand(1, 3, 48, 64)
     true = normalize_pose(torch.tensor([[30.0, -90.0, 0.0, 60.0]]))
-    forced = net(image, true, predicted_share=0.0)
-    own = net(image, true, predicted_share=1.0)
-    from dapm_lightning.models.igd_branch import igd_norm_from_pose
-    torch.testing.assert_close(forced.igd_norm, igd_norm_from_pose(true, forced.igd_norm.shape[-2:]))
-    torch.testing.assert_close(own.igd_norm, igd_norm_from_pose(own.pose_norm, own.igd_norm.shape[-2:]))
-    assert not torch.allclose(forced.depth_norm, own.depth_norm)
+    teacher = net(image, forced(true, 0.0)).depth
+    own = net(image, forced(true, 1.0))
+    igd = net.config.igd
+    torch.testing.assert_close(teacher.igd_norm, igd.depth_norm(true, teacher.igd_norm.shape[-2:]))
+    torch.testing.assert_close(own.depth.igd_norm, igd.depth_norm(own.pose.pose_norm, own.depth.igd_norm.shape[-2:]))
+    assert not torch.allclose(teacher.depth_norm, own.depth.depth_norm)
 
 
 def test_loss_is_finite_on_edge_batches():
-    net = DAPMNet(BACKBONE)
+    net = make_net()
     loss = DAPMLoss()
     size = (32, 48)
     all_sky = targets_for(2, size)
@@ -140,12 +150,12 @@ def test_tiny_model_overfits_synthetic_images():
         poses.append(torch.tensor(pose, dtype=torch.float32))
     image, depth, pose = torch.stack(images), torch.stack(depths), torch.stack(poses)
     targets = dict(depth=depth, sky=depth >= MAX_DEPTH_M, valid=torch.ones_like(depth, dtype=torch.bool), pose=pose)
-    net = DAPMNet(BACKBONE, decoder_channels=32, head_channels=16, pose_hidden=64)
+    net = make_net(decoder_channels=32, head_channels=16, pose_hidden=64)
     loss = DAPMLoss()
     optimizer = torch.optim.AdamW(net.parameters(), lr=2e-3)
     history = []
     for _ in range(60):
-        terms = loss(net(image, normalize_pose(pose), 0.5), targets)
+        terms = loss(net(image, forced(normalize_pose(pose), 0.5)), targets)
         optimizer.zero_grad()
         terms["total"].backward()
         optimizer.step()
@@ -155,8 +165,8 @@ def test_tiny_model_overfits_synthetic_images():
 
 def test_pose_ranges_are_configurable():
     ranges = dict(POSE_RANGES, height=(0.0, 500.0))
-    out = DAPMNet(BACKBONE, pose_ranges=ranges).eval()(torch.rand(1, 3, 32, 32))
-    assert 0 <= out.pose[0, 0] <= 500
+    out = make_net(igd=IGDSpec(pose_ranges=ranges)).eval()(torch.rand(1, 3, 32, 32))
+    assert 0 <= out.pose_physical[0, 0] <= 500
 
 
 @pytest.mark.parametrize("pose", [
@@ -164,10 +174,10 @@ def test_pose_ranges_are_configurable():
     [1e-4, -90.0, 0.0, 60.0], [250.0, 45.0, 120.0, 1e-3], [50.0, -40.0, 0.0, 179.999],  # beyond them
 ])
 def test_loss_and_gradients_finite_for_extreme_true_poses(pose):
-    net = DAPMNet(BACKBONE)
+    net = make_net()
     targets = targets_for(2, (32, 48))
     targets["pose"] = torch.tensor([pose, pose])
-    out = net(torch.rand(2, 3, 32, 48), normalize_pose(targets["pose"]), 0.3)
+    out = net(torch.rand(2, 3, 32, 48), forced(normalize_pose(targets["pose"]), 0.3))
     terms = DAPMLoss()(out, targets)
     assert all(torch.isfinite(v) for v in terms.values())
     terms["total"].backward()

@@ -6,7 +6,7 @@ Usage: python tests/training/ddp_run.py OUT.json SUBCOMMAND [CLI args...]
 import json
 import sys
 
-from dapm_lightning.lightning_cli import run_lightning_cli
+from dapm_lightning.training.lightning_cli import run_lightning_cli
 
 if __name__ == "__main__":
     out_path, args = sys.argv[1], sys.argv[2:]

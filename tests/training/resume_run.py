@@ -10,7 +10,7 @@ from pathlib import Path
 import lightning as L
 import torch
 
-from dapm_lightning.lightning_cli import run_lightning_cli
+from dapm_lightning.training.lightning_cli import run_lightning_cli
 
 
 class PauseAt(L.Callback):

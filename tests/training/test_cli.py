@@ -10,14 +10,15 @@ import yaml
 
 from dapm_lightning.cli import main
 from dapm_lightning.data.datamodules import DAPMDataModule, PotsdamDataModule
-from dapm_lightning.lightning_cli import DAPMCLI, run_lightning_cli
-from dapm_lightning.module import DAPMModule
+from dapm_lightning.training.lightning_cli import DAPMCLI, run_lightning_cli
+from dapm_lightning.training.module import DAPMModule
+from dapm_lightning.training.viewpoints import ViewpointBreakdown
 
-CONFIGS = Path(__file__).resolve().parents[2] / "configs"
+from tests.conftest import CONFIGS, QUICKSTART
 PAPER = CONFIGS / "paper" / "uapd_dapm.yaml"
 CPU = ["--trainer.accelerator", "cpu", "--trainer.devices", "1", "--trainer.strategy", "auto",
-       "--trainer.sync_batchnorm", "false", "--trainer.precision", "32-true", "--model.backbone", "resnet18",
-       "--model.pretrained", "false", "--data.init_args.batch_size", "2", "--data.init_args.num_workers", "0",
+       "--trainer.sync_batchnorm", "false", "--trainer.precision", "32-true", "--model.net.backbone", "resnet18",
+       "--model.net.pretrained", "false", "--data.init_args.batch_size", "2", "--data.init_args.num_workers", "0",
        "--data.init_args.pin_memory", "false", "--data.init_args.persistent_workers", "false"]
 
 
@@ -33,9 +34,15 @@ def test_every_ablation_trains_a_step(ablation, tiny_uapd, tmp_path, monkeypatch
                    monkeypatch)
     assert cli.trainer.global_step == 1
     overrides = yaml.safe_load((CONFIGS / "ablations" / ablation).read_text())["model"]
-    for key, value in overrides.items():
-        got = cli.model.hparams[key]
-        assert (list(got) if isinstance(got, tuple) else got) == value, key
+
+    def check(expected, got, where):
+        for key, value in expected.items():
+            if isinstance(value, dict):
+                check(value, got[key], f"{where}.{key}")
+            else:
+                assert got[key] == value, f"{where}.{key}"
+
+    check(overrides, cli.model.hparams, "model")
 
 
 @pytest.mark.parametrize("config", ["uapd_dapm.yaml", "uapd_dapm_d.yaml", "uapd_dapm_p.yaml"])
@@ -49,7 +56,7 @@ def test_potsdam_config_trains_depth_only(tiny_potsdam, tmp_path, monkeypatch):
     cli = fast_fit(["--config", str(CONFIGS / "paper" / "potsdam_dapm_d.yaml"), "--data.init_args.crop_size", "32"],
                    tiny_potsdam, tmp_path, monkeypatch)
     assert cli.trainer.global_step == 1
-    assert not cli.model.hparams["use_pose"]
+    assert not cli.model.hparams["net"]["use_pose"]
     dm = PotsdamDataModule(root=str(tiny_potsdam), crop_size=32)
     dm.setup("fit")
     assert len(dm.datasets["train"]) + len(dm.datasets["val"]) == 12
@@ -58,10 +65,9 @@ def test_potsdam_config_trains_depth_only(tiny_potsdam, tmp_path, monkeypatch):
 
 def test_quickstart_config_fit_test_and_outputs(tiny_uapd, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
-    common = ["--config", str(CONFIGS / "quickstart.yaml"), "--data.class_path",
+    common = ["--config", str(QUICKSTART), "--data.class_path",
               "dapm_lightning.data.datamodules.UAPDDataModule", "--data.init_args.root", str(tiny_uapd),
-              "--data.init_args.batch_size", "2", "--data.init_args.num_workers", "0",
-              "--model.output_dir", str(tmp_path / "out")]
+              "--data.init_args.batch_size", "2", "--data.init_args.num_workers", "0"]
     fit = run_lightning_cli(["fit", *common, "--trainer.max_epochs", "1", "--trainer.limit_train_batches", "2"])
     ckpt = Path(fit.trainer.checkpoint_callback.last_model_path)
     assert ckpt.is_file()
@@ -70,18 +76,20 @@ def test_quickstart_config_fit_test_and_outputs(tiny_uapd, tmp_path, monkeypatch
     for key in ("test_depth_d1", "test_depth_abs_rel", "test_depthlog_d1", "test_pose_roll_median",
                 "test_pose_fov_auc5", "test_loss_pd"):
         assert key in metrics, key
-    table = test.model.viewpoint_table
+    breakdown = next(c for c in test.trainer.callbacks if isinstance(c, ViewpointBreakdown))
+    table = breakdown.table
     assert {r["component"] for r in table} == {"height", "pitch", "roll", "fov"}
     assert sum(r["count"] for r in table if r["component"] == "roll") == 3  # each val image counted once per component
     csvs = [p.read_text() for p in (tmp_path / "outputs" / "quickstart" / "csv").rglob("metrics.csv")]
     assert any("test_view_pitch_bin0_d1" in text for text in csvs)
-    assert (tmp_path / "out" / "viewpoints.png").is_file()
-    assert list((tmp_path / "out" / "panels").glob("test_step*.png"))
+    assert breakdown.figure is not None and breakdown.figure.is_file()
+    assert Path(test.trainer.log_dir) in breakdown.figure.parents  # each test run writes into its own log folder
+    assert list(Path(test.trainer.log_dir).glob("panels/test_step*.png"))
 
 
 def test_checkpoint_roundtrip_identical_predictions(tiny_uapd, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
-    cli = run_lightning_cli(["fit", "--config", str(CONFIGS / "quickstart.yaml"), "--data.class_path",
+    cli = run_lightning_cli(["fit", "--config", str(QUICKSTART), "--data.class_path",
                              "dapm_lightning.data.datamodules.UAPDDataModule", "--data.init_args.root", str(tiny_uapd),
                              "--data.init_args.batch_size", "2", "--data.init_args.num_workers", "0",
                              "--trainer.max_steps", "2", "--trainer.limit_val_batches", "0"])
@@ -93,8 +101,8 @@ def test_checkpoint_roundtrip_identical_predictions(tiny_uapd, tmp_path, monkeyp
     with torch.no_grad():
         a, b = model(image), loaded(image)
     torch.testing.assert_close(a.depth_m, b.depth_m, rtol=0, atol=0)
-    torch.testing.assert_close(a.pose, b.pose, rtol=0, atol=0)
-    assert loaded.hparams["backbone"] == "resnet18"
+    torch.testing.assert_close(a.pose_physical, b.pose_physical, rtol=0, atol=0)
+    assert loaded.hparams["net"]["backbone"] == "resnet18" and loaded.net_config == model.net_config
 
 
 @pytest.mark.parametrize("path", sorted(str(p.relative_to(CONFIGS)) for p in CONFIGS.rglob("*.yaml")))
@@ -102,7 +110,7 @@ def test_every_config_parses(path):
     stack = [] if path.startswith("paper") or path == "quickstart.yaml" else ["--config", str(PAPER)]
     cli = DAPMCLI(DAPMModule, DAPMDataModule, subclass_mode_data=True, run=False, auto_configure_optimizers=False,
                   args=[*stack, "--config", str(CONFIGS / path), "--trainer.accelerator", "cpu",
-                        "--trainer.devices", "1", "--trainer.strategy", "auto", "--model.pretrained", "false"])
+                        "--trainer.devices", "1", "--trainer.strategy", "auto", "--model.net.pretrained", "false"])
     assert isinstance(cli.model, DAPMModule)
     assert isinstance(cli.datamodule, DAPMDataModule)
 
@@ -110,7 +118,7 @@ def test_every_config_parses(path):
 def test_help_and_synth_subprocess():
     out = subprocess.run([sys.executable, "-m", "dapm_lightning", "fit", "--help"], capture_output=True, text=True,
                          check=True).stdout
-    assert "--model.depth_bins" in out and "--trainer.devices" in out
+    assert "--model.net.depth_bins" in out and "--trainer.devices" in out
     synth = subprocess.run([sys.executable, "-m", "dapm_lightning", "synth", "--help"], capture_output=True,
                            text=True, check=True).stdout
     assert "--out" in synth

@@ -10,7 +10,7 @@ import pytest
 from dapm_lightning.data.synthetic import generate_uapd
 
 HERE = Path(__file__).resolve().parent
-QUICKSTART = HERE.parents[1] / "configs" / "quickstart.yaml"
+QUICKSTART = HERE.parents[1] / "dapm_lightning" / "configs" / "quickstart.yaml"
 
 
 def run(tmp_path, name, *args):

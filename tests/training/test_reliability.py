@@ -15,13 +15,13 @@ import yaml
 
 from dapm_lightning.data import DatasetError, UAPDDataset
 from dapm_lightning.data.synthetic import generate_uapd
-from dapm_lightning.lightning_cli import run_lightning_cli
-from dapm_lightning.reliability import SafeCheckpointIO
+from dapm_lightning.training.lightning_cli import run_lightning_cli
+from dapm_lightning.training.checkpointing import SafeCheckpointIO
 
 HERE = Path(__file__).resolve().parent
-QUICKSTART = HERE.parents[1] / "configs" / "quickstart.yaml"
-TINY = ["--model.backbone", "mobilenetv3_small_050", "--model.decoder_channels", "16", "--model.head_channels", "8",
-        "--model.pose_hidden", "32", "--data.init_args.batch_size", "2", "--data.init_args.num_workers", "0",
+QUICKSTART = HERE.parents[1] / "dapm_lightning" / "configs" / "quickstart.yaml"
+TINY = ["--model.net.backbone", "mobilenetv3_small_050", "--model.net.decoder_channels", "16", "--model.net.head_channels", "8",
+        "--model.net.pose_hidden", "32", "--data.init_args.batch_size", "2", "--data.init_args.num_workers", "0",
         "--trainer.limit_val_batches", "0", "--trainer.deterministic", "true", "--trainer.max_steps", "8",
         "--trainer.enable_progress_bar", "false"]
 
@@ -35,7 +35,7 @@ def job_config(tmp_path, name):
     """Callbacks of a resumable job: save on SIGTERM, a checkpoint every step (last.ckpt)."""
     path = tmp_path / f"{name}.yaml"
     path.write_text(yaml.safe_dump({"trainer": {"logger": False, "callbacks": [
-        {"class_path": "dapm_lightning.reliability.CheckpointOnSigterm"},
+        {"class_path": "dapm_lightning.training.checkpointing.CheckpointOnSigterm"},
         {"class_path": "lightning.pytorch.callbacks.ModelCheckpoint",
          "init_args": {"dirpath": str(tmp_path / name), "every_n_train_steps": 1, "save_last": True,
                        "monitor": "step", "mode": "max", "save_top_k": 1}}]}}))
@@ -121,11 +121,11 @@ def test_truncated_and_foreign_checkpoints_are_clear(checkpoint, tmp_path, tiny_
     monkeypatch.chdir(tmp_path)
     with pytest.raises(RuntimeError, match="truncated.ckpt: not a readable checkpoint"):
         run_lightning_cli(["validate", "--config", str(QUICKSTART), "--ckpt_path", str(truncated)])
-    with pytest.raises(ValueError, match=r"depth_bins: checkpoint \[2, 16, 64\], this run \[2, 16, 16\]"):
+    with pytest.raises(ValueError, match=r"model.net.depth_bins: checkpoint \(2, 16, 64\), this run \(2, 16, 16\)(.|\n)*Fix:"):
         run_lightning_cli(["fit", "--config", str(QUICKSTART), "--data.class_path",
                            "dapm_lightning.data.datamodules.UAPDDataModule", "--data.init_args.root", str(tiny_uapd),
                            "--data.init_args.batch_size", "2", "--data.init_args.num_workers", "0",
-                           "--model.depth_bins", "[2, 16, 16]", "--trainer.max_steps", "1",
+                           "--model.net.depth_bins", "[2, 16, 16]", "--trainer.max_steps", "1",
                            "--ckpt_path", str(checkpoint)])
 
 

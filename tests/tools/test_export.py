@@ -3,13 +3,13 @@ import pytest
 import torch
 
 from dapm_lightning.cli import main
-from dapm_lightning.export import export_onnx
-from dapm_lightning.models import DAPMNet
+from dapm_lightning.tools.export import export_onnx
+from dapm_lightning.models import DAPMConfig, DAPMNet
 
 
 def test_onnx_matches_pytorch(tmp_path):
     torch.manual_seed(0)
-    net = DAPMNet("resnet18").eval()
+    net = DAPMNet(DAPMConfig(backbone="resnet18")).eval()
     net.depth_pqb.blocks[0].body[-1].bias.data.fill_(-4.0)  # mostly ground, so depth is not all sky
     diffs = export_onnx(net, str(tmp_path / "m.onnx"), (64, 96), checks=2)
     for diff in diffs:
@@ -29,4 +29,4 @@ def test_cli_export(checkpoint, tmp_path, capsys):
 
 def test_depth_only_model_is_refused(tmp_path):
     with pytest.raises(ValueError, match="full DAPM"):
-        export_onnx(DAPMNet("resnet18", use_pose=False, use_igd_feature=False).eval(), tmp_path / "m.onnx", (32, 32))
+        export_onnx(DAPMNet(DAPMConfig(backbone="resnet18", use_pose=False, use_igd_feature=False)).eval(), tmp_path / "m.onnx", (32, 32))

@@ -1,10 +1,11 @@
+from dapm_lightning.models import DAPMConfig
 from types import SimpleNamespace
 
 import pytest
 import torch
 
-from dapm_lightning.callbacks import IGDTeacherForcing
-from dapm_lightning.module import DAPMModule, warmup_cosine
+from dapm_lightning.training.callbacks import IGDTeacherForcing
+from dapm_lightning.training.module import DAPMModule, warmup_cosine
 
 
 def test_teacher_forcing_schedule_start_middle_end():
@@ -21,15 +22,15 @@ def test_teacher_forcing_schedule_start_middle_end():
 
 
 def test_callback_sets_share_and_eval_ignores_it(monkeypatch):
-    module = DAPMModule(backbone="resnet18")
+    module = DAPMModule(DAPMConfig(backbone="resnet18"))
     module.log = lambda *a, **k: None
     trainer = SimpleNamespace(global_step=30, estimated_stepping_batches=120)
     IGDTeacherForcing().on_train_batch_start(trainer, module, None, 0)
-    assert module.predicted_share == pytest.approx(0.25)
+    assert module.igd_predicted_share == pytest.approx(0.25)
     seen = []
     real_forward = module.net.forward
-    monkeypatch.setattr(module.net, "forward", lambda image, true=None, share=1.0: seen.append((true, share))
-                        or real_forward(image, true, share))
+    monkeypatch.setattr(module.net, "forward", lambda image, forcing=None: seen.append(forcing)
+                        or real_forward(image, forcing))
     module.log_dict = lambda *a, **k: None
     batch = dict(image=torch.rand(2, 3, 32, 32), depth=torch.full((2, 1, 32, 32), 50.0),
                  sky=torch.zeros(2, 1, 32, 32, dtype=torch.bool), valid=torch.ones(2, 1, 32, 32, dtype=torch.bool),
@@ -37,8 +38,9 @@ def test_callback_sets_share_and_eval_ignores_it(monkeypatch):
     module._shared_step(batch, "train")
     module.eval()
     module._shared_step(batch, "val")
-    assert seen[0][1] == pytest.approx(0.25) and seen[0][0] is not None
-    assert seen[1] == (None, 1.0)  # validation: predictions only
+    assert seen[0].predicted_share == pytest.approx(0.25)
+    torch.testing.assert_close(seen[0].pose_norm_true, module.net_config.igd.normalize(batch["pose"]))
+    assert seen[1] is None  # validation: predictions only
 
 
 def test_warmup_then_cosine():

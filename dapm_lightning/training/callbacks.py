@@ -1,4 +1,4 @@
-"""Callbacks that depend on training progress: IGD teacher forcing and picture panels."""
+"""Callbacks that depend on training progress: the IGD teacher-forcing share and picture panels."""
 
 from __future__ import annotations
 
@@ -9,40 +9,46 @@ import cv2
 import lightning as L
 import torch
 
-from dapm_lightning.geometry.constants import MAX_DEPTH_M
-from dapm_lightning.visualize import depth_panel
+from dapm_lightning.models.teacher_forcing import predicted_share_at
+from dapm_lightning.training.module import DAPMModule
+from dapm_lightning.training.visualize import depth_panel
 
 
 class IGDTeacherForcing(L.Callback):
-    """Sets the predicted share ``w`` of the IGD input ``w * predicted + (1 - w) * true`` pose.
+    """Passes the IGD teacher-forcing share of :func:`~dapm_lightning.models.teacher_forcing.predicted_share_at`
+    to :attr:`DAPMModule.igd_predicted_share` before every training batch.
 
-    ``w`` rises linearly from ``start_share`` at ``start_fraction`` of the training steps to
-    ``end_share`` at ``end_fraction`` (paper: from true poses to predictions only by the end of
-    training). Validation, test and predict always use predictions only (the module ignores ``w`` there).
-    Logged as ``train_igd_predicted_share``.
+    The predicted share ``w`` of the IGD input ``w * predicted + (1 - w) * true`` pose rises linearly from
+    ``start_share`` at ``start_fraction`` of the training steps to ``end_share`` at ``end_fraction``
+    (paper: from true poses to predictions only by the end of training). Logged as
+    ``train_igd_predicted_share``.
     """
 
     def __init__(self, start_share: float = 0.0, end_share: float = 1.0, start_fraction: float = 0.0,
                  end_fraction: float = 1.0) -> None:
-        if not 0.0 <= start_fraction < end_fraction:
-            raise ValueError(f"need 0 <= start_fraction < end_fraction, got {start_fraction}, {end_fraction}")
-        self.start_share, self.end_share = start_share, end_share
-        self.start_fraction, self.end_fraction = start_fraction, end_fraction
+        predicted_share_at(0.0, start_fraction=start_fraction, end_fraction=end_fraction)  # checks the fractions
+        self.schedule = dict(start_share=start_share, end_share=end_share, start_fraction=start_fraction,
+                             end_fraction=end_fraction)
 
     def share(self, step: int, total_steps: int) -> float:
         """The predicted share at ``step`` of ``total_steps``."""
-        progress = step / max(1, total_steps)
-        t = min(1.0, max(0.0, (progress - self.start_fraction) / (self.end_fraction - self.start_fraction)))
-        return self.start_share + (self.end_share - self.start_share) * t
+        return predicted_share_at(step / max(1, total_steps), **self.schedule)
 
     def on_train_batch_start(self, trainer: L.Trainer, pl_module: L.LightningModule, batch: Any,
                              batch_idx: int) -> None:
-        share = self.share(trainer.global_step, int(trainer.estimated_stepping_batches))
-        pl_module.predicted_share = share  # type: ignore[assignment]
-        pl_module.log("train_igd_predicted_share", share, on_step=True, on_epoch=False, batch_size=1)
+        module = _dapm_module(pl_module)
+        module.igd_predicted_share = self.share(trainer.global_step, int(trainer.estimated_stepping_batches))
+        module.log("train_igd_predicted_share", module.igd_predicted_share, on_step=True, on_epoch=False,
+                   batch_size=1)
 
     def on_train_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        pl_module.predicted_share = 1.0  # type: ignore[assignment]
+        _dapm_module(pl_module).igd_predicted_share = 1.0
+
+
+def _dapm_module(pl_module: L.LightningModule) -> DAPMModule:
+    if not isinstance(pl_module, DAPMModule):
+        raise TypeError(f"IGDTeacherForcing drives a DAPMModule, got {type(pl_module).__name__}")
+    return pl_module
 
 
 class DepthPanelLogger(L.Callback):
@@ -65,13 +71,13 @@ class DepthPanelLogger(L.Callback):
             out = pl_module(image)
         pl_module.train(was_training)
         panel = depth_panel(image, batch["depth"][: self.max_images], out, self.max_images,
-                            pl_module.hparams.get("max_depth", MAX_DEPTH_M))
+                            _dapm_module(pl_module).net_config.igd)
         step = trainer.global_step
         experiment = getattr(trainer.logger, "experiment", None)
         if hasattr(experiment, "add_image"):
             experiment.add_image(f"panels/{tag}", panel, step, dataformats="HWC")
         if trainer.is_global_zero:
-            folder = Path(self.output_dir or pl_module.hparams.get("output_dir") or trainer.log_dir or ".") / "panels"
+            folder = Path(self.output_dir or trainer.log_dir or ".") / "panels"
             folder.mkdir(parents=True, exist_ok=True)
             path = folder / f"{tag}_step{step:06d}.png"
             cv2.imwrite(str(path), cv2.cvtColor(panel, cv2.COLOR_RGB2BGR))

@@ -7,10 +7,10 @@ import pytest
 import torch
 from PIL import Image
 
-from dapm_lightning.lightning_cli import run_lightning_cli
-from dapm_lightning.predict import DEPTH16_SCALE, DAPMPredictor, ImageFolderDataset, network_size, to_rgb8
+from dapm_lightning.training.lightning_cli import run_lightning_cli
+from dapm_lightning.tools.predict import DEPTH16_SCALE, DAPMPredictor, ImageFolderDataset, network_size, to_rgb8
 
-CONFIGS = Path(__file__).resolve().parents[2] / "configs"
+from tests.conftest import CONFIGS, QUICKSTART
 
 
 @pytest.fixture()
@@ -39,7 +39,7 @@ def test_any_input_kind_is_handled_or_refused(image_folder):
 
 def test_cli_predict_writes_depth_files_and_poses(checkpoint, image_folder, tmp_path):
     out = tmp_path / "pred"
-    run_lightning_cli(["predict", "--config", str(CONFIGS / "quickstart.yaml"), "--config",
+    run_lightning_cli(["predict", "--config", str(QUICKSTART), "--config",
                        str(CONFIGS / "predict.yaml"), "--ckpt_path", str(checkpoint),
                        "--data.init_args.folder", str(image_folder), "--data.init_args.image_width", "64",
                        "--trainer.callbacks.output_dir", str(out)])

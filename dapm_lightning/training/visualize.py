@@ -7,10 +7,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from dapm_lightning.geometry.constants import MAX_DEPTH_M
+from dapm_lightning.geometry.constants import MAX_DEPTH_M, MIN_DEPTH_M
 from dapm_lightning.geometry.depth_codec import encode_log_depth
+from dapm_lightning.geometry.igd import IGDSpec
 from dapm_lightning.models.dapm import DAPMOutput
-from dapm_lightning.geometry.igd import ideal_ground_depth
 
 
 def colorize_depth(depth_m: Tensor, max_depth: float = MAX_DEPTH_M) -> np.ndarray:
@@ -21,8 +21,8 @@ def colorize_depth(depth_m: Tensor, max_depth: float = MAX_DEPTH_M) -> np.ndarra
 
 def colorize_error(pred_m: Tensor, true_m: Tensor, max_depth: float = MAX_DEPTH_M) -> np.ndarray:
     """Absolute relative error, 0 (black) to >= 50 % (white); invalid and sky pixels blue."""
-    valid = (true_m > 1e-3) & (true_m < max_depth)
-    rel = ((pred_m - true_m).abs() / true_m.clamp(min=1e-3)).clamp(0, 0.5) / 0.5
+    valid = (true_m > MIN_DEPTH_M) & (true_m < max_depth)
+    rel = ((pred_m - true_m).abs() / true_m.clamp(min=MIN_DEPTH_M)).clamp(0, 0.5) / 0.5
     grey = (rel * 255).byte().cpu().numpy()
     rgb = cv2.cvtColor(cv2.applyColorMap(grey, cv2.COLORMAP_INFERNO), cv2.COLOR_BGR2RGB)
     rgb[~valid.cpu().numpy()] = (40, 60, 140)
@@ -30,21 +30,24 @@ def colorize_error(pred_m: Tensor, true_m: Tensor, max_depth: float = MAX_DEPTH_
 
 
 def depth_panel(image: Tensor, depth_true: Tensor | None, out: DAPMOutput, max_images: int = 4,
-                max_depth: float = MAX_DEPTH_M, min_tile: int = 128) -> np.ndarray:
+                igd: IGDSpec | None = None, min_tile: int = 128) -> np.ndarray:
     """Stack rows ``RGB | true depth | predicted depth | IGD(predicted pose) | error`` for up to ``max_images``.
 
     Args:
         image: ``[B, 3, H, W]`` in [0, 1] or uint8. depth_true: ``[B, 1, H, W]`` metres or None.
         out: predictions for the same batch.
+        igd: the model's IGD specification (for the IGD column and the depth limit).
 
     Returns:
         ``[rows * H, columns * W, 3]`` uint8 RGB.
     """
     rows = []
     size = (image.shape[-2], image.shape[-1])
+    igd = igd or IGDSpec()
+    max_depth = igd.max_depth
     igd_m = None
-    if out.pose is not None:
-        igd_m = ideal_ground_depth(out.pose.detach().float(), size, max_depth=max_depth)  # [B, 1, H, W] metres
+    if out.pose_physical is not None:
+        igd_m = igd.depth(out.pose_physical.detach().float(), size)  # [B, 1, H, W] metres
     for b in range(min(max_images, image.shape[0])):
         rgb = image[b].float()
         rgb = rgb / 255 if image.dtype == torch.uint8 else rgb

@@ -25,7 +25,7 @@ from torch.utils.data import DataLoader, Dataset
 from dapm_lightning.data.datamodules import DAPMDataModule
 from dapm_lightning.geometry.constants import MAX_DEPTH_M, POSE_KEYS
 from dapm_lightning.geometry.depth_codec import decode_log_depth, encode_log_depth
-from dapm_lightning.visualize import colorize_depth
+from dapm_lightning.training.visualize import colorize_depth
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
 DEPTH16_SCALE = 64.0
@@ -191,7 +191,7 @@ class PredictionWriter(BasePredictionWriter):
     def write_on_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, prediction: Any,
                            batch_indices: Sequence[int] | None, batch: Any, batch_idx: int,
                            dataloader_idx: int = 0) -> None:
-        max_depth = pl_module.hparams.get("max_depth", MAX_DEPTH_M)
+        max_depth = _max_depth(pl_module)
         sizes = batch.get("orig_size")
         for k, name in enumerate(prediction["name"]):
             size = sizes[k].tolist() if sizes is not None else None
@@ -212,6 +212,11 @@ class PredictionWriter(BasePredictionWriter):
             write_poses(self.output_dir, self.rows, suffix)
 
 
+def _max_depth(module: L.LightningModule) -> float:
+    config = getattr(module, "net_config", None)
+    return float(config.igd.max_depth) if config is not None else MAX_DEPTH_M
+
+
 class DAPMPredictor:
     """Python API: load a checkpoint once, then call it on numpy / PIL images.
 
@@ -224,12 +229,12 @@ class DAPMPredictor:
     def __init__(self, module: L.LightningModule, image_width: int | None = 512, device: str = "cpu") -> None:
         self.module = module.eval().to(device)
         self.image_width, self.device = image_width, device
-        self.max_depth = float(module.hparams.get("max_depth", MAX_DEPTH_M))
+        self.max_depth = _max_depth(module)
 
     @classmethod
     def from_checkpoint(cls, path: str | Path, image_width: int | None = 512, device: str = "cpu") -> DAPMPredictor:
         """Load a DAPMModule checkpoint (tensors only: ``weights_only=True``)."""
-        from dapm_lightning.module import DAPMModule
+        from dapm_lightning.training.module import DAPMModule
 
         return cls(DAPMModule.load_from_checkpoint(str(path), map_location=device, weights_only=True),
                    image_width, device)
@@ -245,5 +250,6 @@ class DAPMPredictor:
             depth_t = resize_depth(out.depth_m[0].float().cpu(), rgb.shape[:2], self.max_depth)
             depth = depth_t[0].numpy()
             sky = depth >= self.max_depth
-        pose = ({k: float(v) for k, v in zip(POSE_KEYS, out.pose[0].cpu())} if out.pose is not None else None)
+        pose = (None if out.pose_physical is None
+                else {k: float(v) for k, v in zip(POSE_KEYS, out.pose_physical[0].cpu())})
         return Prediction(depth, sky, pose)

@@ -22,9 +22,9 @@ class ExportWrapper(nn.Module):
 
     def forward(self, image: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         out = self.net(image)
-        if out.depth_m is None or out.pose is None or out.sky_logits is None:
+        if out.depth_m is None or out.pose_physical is None or out.sky_prob is None:
             raise ValueError("ONNX export needs a model with depth, sky map and pose (full DAPM)")
-        return out.depth_m, torch.sigmoid(out.sky_logits), out.pose
+        return out.depth_m, out.sky_prob, out.pose_physical
 
 
 def export_onnx(net: nn.Module, path: str | Path, size: tuple[int, int], *, checks: int = 3,
@@ -67,7 +67,7 @@ def export_main(argv: Sequence[str]) -> None:
     parser.add_argument("--width", type=int, default=512)
     parser.add_argument("--checks", type=int, default=3, help="random inputs compared with PyTorch")
     args = parser.parse_args(list(argv))
-    from dapm_lightning.module import DAPMModule
+    from dapm_lightning.training.module import DAPMModule
 
     module = DAPMModule.load_from_checkpoint(str(args.ckpt_path), map_location="cpu", weights_only=True)
     out = args.out or args.ckpt_path.with_suffix(".onnx")

@@ -16,7 +16,7 @@ import torch
 
 from dapm_lightning.data.uapd import UAPDDataset
 from dapm_lightning.geometry.igd import ideal_ground_depth
-from dapm_lightning.lightning_cli import run_lightning_cli
+from dapm_lightning.training.lightning_cli import run_lightning_cli
 from dapm_lightning.metrics import DepthMetrics, PoseMetrics
 
 DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "quickstart.yaml"
@@ -79,7 +79,6 @@ def main(argv: list[str] | None = None) -> int:
             {"class_path": "lightning.pytorch.loggers.TensorBoardLogger",
              "init_args": {"save_dir": str(out), "name": "tensorboard"}},
             {"class_path": "lightning.pytorch.loggers.CSVLogger", "init_args": {"save_dir": str(out), "name": "csv"}}]},
-        "model": {"output_dir": str(out)},
         "data": {"init_args": {"root": str(data_root)}}}, indent=2))
     common = ["--config", str(args.config), "--config", str(overrides)]
     if args.train_size:
@@ -97,7 +96,8 @@ def main(argv: list[str] | None = None) -> int:
     print("[3/3] baselines on the same validation images")
     base = baselines(data_root)
     table, failures = report(model, base)
-    panels = sorted((out / "panels").glob("*.png"))
+    panels = sorted(out.rglob("panels/*.png"))
+    figures = sorted(out.rglob("viewpoints.png"))
     summary = {"model": model, "baselines": base, "checkpoint": best, "minutes": (time.time() - start) / 60,
                "beats_baselines": not failures, "not_beaten": failures,
                "depth_log_space": {k[len("test_depthlog_"):]: v for k, v in metrics.items()
@@ -111,10 +111,13 @@ def main(argv: list[str] | None = None) -> int:
                   if not failures else f"NOT beaten: {', '.join(failures)}"))
     print(f"\nOutputs in {out}:")
     print("  metrics.json       all figures above (and the paper's 8-bit log-space depth metrics)")
-    print("  viewpoints.png     d1 and pose error per bin of pitch, height, roll, FoV")
-    print(f"  panels/            {len(panels)} picture(s): "
+    for figure in figures[-1:]:
+        print(f"  {figure.relative_to(out)}  d1 and pose error per bin of pitch, height, roll, FoV")
+    folders = sorted({str(p.parent.relative_to(out)) for p in panels})
+    print(f"  {', '.join(folders) or 'panels'}: {len(panels)} picture(s): "
           "RGB | true depth | predicted | IGD of predicted pose | error")
-    print("  tensorboard/, csv/ logs of the fit and test runs; checkpoints in tensorboard/version_0/checkpoints")
+    print("  tensorboard/, csv/ logs of the fit (version_0) and test (version_1) runs; checkpoints in "
+          "tensorboard/version_0/checkpoints")
     print(f"Took {(time.time() - start) / 60:.1f} min.")
     return 0 if not failures else 1
 

@@ -7,7 +7,7 @@ import pytest
 from dapm_lightning.cli import main
 from dapm_lightning.data import parse_uapd_filename
 from dapm_lightning.data.synthetic import generate_uapd
-from dapm_lightning.doctor import doctor_main
+from dapm_lightning.tools.doctor import doctor_main
 
 
 @pytest.fixture(scope="module")

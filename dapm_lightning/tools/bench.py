@@ -17,7 +17,7 @@ from typing import Any
 import torch
 from torch.utils.flop_counter import FlopCounterMode
 
-from dapm_lightning.models import DAPMNet
+from dapm_lightning.models import DAPMConfig, DAPMNet
 
 CONFIGS: dict[str, dict[str, Any]] = {
     "default": {},
@@ -42,7 +42,7 @@ def _median_latency(fn: Any, x: torch.Tensor, repeats: int) -> float:
 def measure(config: str, backbone: str, size: int, repeats: int, device: str) -> dict[str, Any]:
     """Measure one configuration in this process."""
     torch.set_grad_enabled(False)
-    net = DAPMNet(backbone, **CONFIGS[config]).eval().to(device)
+    net = DAPMNet(DAPMConfig(backbone=backbone, **CONFIGS[config])).eval().to(device)
     x = torch.rand(1, 3, size, size, device=device)
 
     def encoder(im: torch.Tensor) -> list[torch.Tensor]:

@@ -1,23 +1,21 @@
-"""Depth and pose metrics as ``torchmetrics.Metric`` subclasses (design.md §5), correct under DDP."""
+"""Depth metrics as a ``torchmetrics.Metric`` (design.md §5): the toolbox protocol, per image, in metres."""
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
 from typing import Literal
 
 import torch
 from torch import Tensor
 from torchmetrics import Metric
-from torchmetrics.utilities import dim_zero_cat
 
-from dapm_lightning.geometry.constants import MAX_DEPTH_M, POSE_KEYS
+from dapm_lightning.geometry.constants import MAX_DEPTH_M, MIN_DEPTH_M
 from dapm_lightning.geometry.depth_codec import encode_log_depth
 
 DEPTH_METRIC_NAMES = ("d1", "d2", "d3", "abs_rel", "sq_rel", "rmse", "rmse_log", "log10", "silog")
 
 
-def per_image_depth_metrics(pred: Tensor, target: Tensor, *, min_depth: float = 1e-3,
+def per_image_depth_metrics(pred: Tensor, target: Tensor, *, min_depth: float = MIN_DEPTH_M,
                             max_depth: float = MAX_DEPTH_M, space: Literal["metric", "uapd_log"] = "metric"
                             ) -> dict[str, Tensor]:
     """Toolbox depth metrics of each image over its valid pixels.
@@ -83,7 +81,7 @@ class DepthMetrics(Metric):
     full_state_update = False
     higher_is_better = None
 
-    def __init__(self, min_depth: float = 1e-3, max_depth: float = MAX_DEPTH_M,
+    def __init__(self, min_depth: float = MIN_DEPTH_M, max_depth: float = MAX_DEPTH_M,
                  space: Literal["metric", "uapd_log"] = "metric", **kwargs: object) -> None:
         super().__init__(**kwargs)  # type: ignore[arg-type]
         self.min_depth, self.max_depth, self.space = min_depth, max_depth, space
@@ -103,61 +101,3 @@ class DepthMetrics(Metric):
     def compute(self) -> dict[str, Tensor]:
         return {name: (getattr(self, f"sum_{name}") / self.images).float() if self.images > 0
                 else torch.tensor(math.nan) for name in DEPTH_METRIC_NAMES}
-
-
-def auc_of_recall(errors: Tensor, threshold: float) -> Tensor:
-    """Area under the recall-vs-error curve up to ``threshold``, divided by it (GeoCalib's ``compute_auc``)."""
-    errors = torch.sort(errors.double()).values
-    count = errors.numel()
-    if count == 0:
-        return torch.tensor(math.nan)
-    recall = torch.arange(1, count + 1, dtype=torch.float64) / count
-    errors = torch.cat([torch.zeros(1, dtype=torch.float64), errors.cpu()])
-    recall = torch.cat([torch.zeros(1, dtype=torch.float64), recall])
-    last = int(torch.searchsorted(errors, torch.tensor(threshold, dtype=torch.float64)))
-    curve_recall = torch.cat([recall[:last], recall[last - 1:last]])
-    curve_error = torch.cat([errors[:last], torch.tensor([threshold], dtype=torch.float64)])
-    return torch.trapezoid(curve_recall, curve_error) / threshold
-
-
-class PoseMetrics(Metric):
-    """Per component (height m; pitch, roll, fov deg): median absolute error and AUC@thresholds.
-
-    Keys ``<component>_median`` and ``<component>_auc<t>`` (e.g. ``roll_auc5``). All errors are kept
-    (``cat`` state), so the median and AUC under DDP are those of the whole set.
-
-    Args:
-        thresholds: AUC thresholds (degrees, metres for height).
-        min_error: errors at or below it count as perfect (0), as GeoCalib's evaluation passes
-            ``min_error=1``; off by default.
-    """
-
-    full_state_update = False
-    higher_is_better = None
-
-    def __init__(self, thresholds: Sequence[float] = (1.0, 5.0, 10.0), min_error: float | None = None,
-                 **kwargs: object) -> None:
-        super().__init__(**kwargs)  # type: ignore[arg-type]
-        self.thresholds, self.min_error = tuple(thresholds), min_error
-        self.add_state("errors", default=[], dist_reduce_fx="cat")
-
-    def update(self, pred: Tensor, target: Tensor) -> None:
-        """``pred``, ``target``: ``[B, 4]`` (height m, pitch deg, roll deg, fov deg)."""
-        if pred.shape != target.shape or pred.shape[-1:] != (4,):
-            raise ValueError(f"pred {tuple(pred.shape)} and target {tuple(target.shape)} must both be [B, 4]")
-        self.errors.append((pred.detach().double() - target.double()).abs())
-
-    def compute(self) -> dict[str, Tensor]:
-        errors = self.errors  # a list of [B, 4] before a DDP sync, one tensor after
-        if isinstance(errors, list):
-            errors = dim_zero_cat(errors) if errors else torch.zeros(0, 4, dtype=torch.float64)
-        result: dict[str, Tensor] = {}
-        for k, key in enumerate(POSE_KEYS):
-            component = errors[:, k]
-            if self.min_error is not None:
-                component = torch.where(component <= self.min_error, torch.zeros_like(component), component)
-            result[f"{key}_median"] = (torch.quantile(component, 0.5) if component.numel()
-                                       else torch.tensor(math.nan)).float()
-            for t in self.thresholds:
-                result[f"{key}_auc{t:g}"] = auc_of_recall(component, t).float()
-        return result

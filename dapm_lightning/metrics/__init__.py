@@ -1,0 +1,6 @@
+"""Depth and pose metrics as ``torchmetrics.Metric`` subclasses (design.md §5), correct under DDP."""
+
+from dapm_lightning.metrics.depth import DEPTH_METRIC_NAMES, DepthMetrics, per_image_depth_metrics
+from dapm_lightning.metrics.pose import PoseMetrics, auc_of_recall
+
+__all__ = ["DEPTH_METRIC_NAMES", "DepthMetrics", "PoseMetrics", "auc_of_recall", "per_image_depth_metrics"]

@@ -1,0 +1,100 @@
+"""DAPMConfig: every setting of the network, written once; the architecture check derives from it."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, field, fields
+from typing import Any
+
+from dapm_lightning.geometry.igd import IGDSpec
+
+
+def _architecture(default: Any) -> Any:
+    """A field that changes the weights' shapes: a checkpoint must agree on it to be loaded."""
+    return field(default=default, metadata={"architecture": True})
+
+
+@dataclass(frozen=True)
+class DAPMConfig:
+    """Settings of :class:`~dapm_lightning.models.dapm.DAPMNet`; in configs under ``model.net``.
+
+    Every ablation of the paper is a switch: ``depth_bins=()`` (no D-PQB), ``pose_bins=()`` (no P-PQB),
+    ``use_igd_feature`` (the IGD of the predicted pose as a depth feature; the IGD *loss* is a loss
+    setting), ``use_pose=False`` (DAPM(D)), ``use_depth=False`` (DAPM(P)).
+
+    Args:
+        backbone: timm model name (``resnet50`` in the paper, ``resnet18`` for CPU runs).
+        pretrained: load ImageNet weights for the backbone (from the hub, or ``weights_path``).
+        weights_path: local backbone weights file (``.safetensors``/``.pth``) for machines without internet.
+        use_depth: build the depth branch.
+        use_pose: build the pose branch.
+        depth_bins: per-pixel bins per D-PQB stage; ``(2, 16, 64)``: sky map, 16 and 64 classes.
+        pose_bins: per-component bins per P-PQB stage; ``(16, 64)``.
+        use_igd_feature: feed the IGD of the (teacher-forced) predicted pose to the depth refinement.
+        igd: the IGD specification (model, depth kind, max depth, pose ranges), shared with the loss.
+        decoder_channels: FPN width.
+        head_channels: width of the depth bins blocks and the depth head.
+        igd_channels: width of the IGD feature.
+        head_stride: resolution of the depth refinement relative to the image: 4 (cheap, learned convex
+            upsampling to full resolution) or 1 (full resolution, as the paper); 2 and 8 also work.
+        dropout: spatial dropout on the FPN laterals.
+        pose_hidden: width of the pose decoder's MLP and of the pose bins stages.
+        igd_feature_grad: let the depth losses reach the pose branch through the IGD feature
+            (default False: the IGD feature sees a detached pose).
+    """
+
+    backbone: str = _architecture("resnet50")
+    pretrained: bool = False
+    weights_path: str | None = None
+    use_depth: bool = _architecture(True)
+    use_pose: bool = _architecture(True)
+    depth_bins: tuple[int, ...] = _architecture((2, 16, 64))
+    pose_bins: tuple[int, ...] = _architecture((16, 64))
+    use_igd_feature: bool = _architecture(True)
+    igd: IGDSpec = field(default_factory=IGDSpec)
+    decoder_channels: int = _architecture(96)
+    head_channels: int = _architecture(32)
+    igd_channels: int = _architecture(16)
+    head_stride: int = _architecture(4)
+    dropout: float = 0.1
+    pose_hidden: int = _architecture(256)
+    igd_feature_grad: bool = False
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "depth_bins", tuple(int(n) for n in self.depth_bins))
+        object.__setattr__(self, "pose_bins", tuple(int(n) for n in self.pose_bins))
+        if isinstance(self.igd, Mapping):
+            object.__setattr__(self, "igd", IGDSpec(**self.igd))
+        if not (self.use_depth or self.use_pose):
+            raise ValueError("DAPMConfig needs use_depth or use_pose (or both)")
+        if self.use_igd_feature and not (self.use_depth and self.use_pose):
+            raise ValueError("use_igd_feature needs both branches: the IGD comes from the predicted pose and feeds "
+                             "the depth refinement (set use_igd_feature: false for DAPM(D) / DAPM(P))")
+        if self.head_stride not in (1, 2, 4, 8):
+            raise ValueError(f"head_stride must be 1, 2, 4 or 8, got {self.head_stride}")
+
+    @classmethod
+    def architecture_fields(cls) -> tuple[str, ...]:
+        """Names of the settings that change the weights' shapes."""
+        return tuple(f.name for f in fields(cls) if f.metadata.get("architecture"))
+
+    @classmethod
+    def from_dict(cls, values: Mapping[str, Any]) -> DAPMConfig:
+        """Build from a plain mapping (a checkpoint's hyper-parameters); unknown keys are an error."""
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(values) - known)
+        if unknown:
+            raise ValueError(f"unknown network setting(s) {unknown}; known: {sorted(known)}")
+        return cls(**dict(values))
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain values only (lists, dicts, numbers), safe in a ``weights_only`` checkpoint."""
+        values = asdict(self)
+        values["depth_bins"], values["pose_bins"] = list(self.depth_bins), list(self.pose_bins)
+        values["igd"]["pose_ranges"] = {k: list(v) for k, v in self.igd.pose_ranges.items()}
+        return values
+
+    def architecture_differences(self, other: DAPMConfig) -> list[str]:
+        """``"name: A vs B"`` for every architecture setting where ``self`` and ``other`` differ."""
+        return [f"{name}: {getattr(self, name)!r} vs {getattr(other, name)!r}"
+                for name in self.architecture_fields() if getattr(self, name) != getattr(other, name)]

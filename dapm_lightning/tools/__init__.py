@@ -1,0 +1,1 @@
+"""Stand-alone tools built on the training core: prediction, export, data-set doctor, benchmarks, quickstart, CARLA."""

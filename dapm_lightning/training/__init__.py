@@ -1,0 +1,1 @@
+"""Lightning layer: the LightningModule, the loss, callbacks, teacher forcing, checkpointing, viewpoint analysis."""

@@ -1,0 +1,46 @@
+"""LightningCLI for ``dapm-lightning {fit,validate,test,predict}``."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+from lightning.pytorch.cli import LightningCLI
+
+from dapm_lightning.data.datamodules import DAPMDataModule
+from dapm_lightning.models.config import DAPMConfig
+from dapm_lightning.training.checkpointing import SafeCheckpointIO, check_architecture
+from dapm_lightning.training.module import DAPMModule
+
+TRAINER_DEFAULTS = {"plugins": [{"class_path": "dapm_lightning.training.checkpointing.SafeCheckpointIO"}]}
+"""Checkpoints load with ``weights_only=True`` and a clear error for damaged files."""
+
+
+class DAPMCLI(LightningCLI):
+    """LightningCLI with DAPM's module and any :class:`DAPMDataModule` subclass (``--data.class_path``).
+
+    With ``--ckpt_path``, the checkpoint is read safely (``weights_only``; a damaged file is named).
+    ``validate``, ``test`` and ``predict`` then build the checkpoint's own model (its saved settings
+    override the configuration's). ``fit`` resumes only into the same architecture: what differs is
+    listed with the fix, instead of a shape error deep inside ``load_state_dict`` or a silent switch
+    to the checkpoint's settings.
+    """
+
+    def _parse_ckpt_path(self) -> None:
+        subcommand = self.config.get("subcommand")
+        ckpt_path = self.config[subcommand].get("ckpt_path") if subcommand else None
+        if ckpt_path and Path(ckpt_path).is_file():
+            checkpoint = SafeCheckpointIO().load_checkpoint(ckpt_path, map_location="cpu")  # names a damaged file
+            saved = checkpoint.get("hyper_parameters", {}).get("net")
+            net = self.config[subcommand].get("model", {}).get("net")
+            if subcommand == "fit" and saved is not None and net is not None:
+                current = DAPMConfig.from_dict(net.as_dict() if hasattr(net, "as_dict") else dict(net))
+                check_architecture(saved, current, str(ckpt_path))
+        super()._parse_ckpt_path()
+
+
+def run_lightning_cli(args: Sequence[str] | None = None, run: bool = True) -> DAPMCLI:
+    """Parse ``args`` (``fit --config FILE ...``) and run the subcommand."""
+    return DAPMCLI(DAPMModule, DAPMDataModule, subclass_mode_data=True, seed_everything_default=0,
+                   save_config_kwargs={"overwrite": True}, args=list(args) if args is not None else None, run=run,
+                   auto_configure_optimizers=False, trainer_defaults=TRAINER_DEFAULTS)

@@ -1,0 +1,224 @@
+"""DAPMModule: the LightningModule around :class:`DAPMNet` and :class:`DAPMLoss`."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass
+from typing import Any, Literal
+
+import lightning as L
+import torch
+from lightning.pytorch.utilities import rank_zero_warn
+from torch import Tensor
+
+from dapm_lightning.data.sample import depth_masks
+from dapm_lightning.metrics import DepthMetrics, PoseMetrics
+from dapm_lightning.models.config import DAPMConfig
+from dapm_lightning.models.dapm import DAPMNet, DAPMOutput
+from dapm_lightning.models.teacher_forcing import TeacherForcing
+from dapm_lightning.training.checkpointing import check_architecture, rng_states, set_rng_states
+from dapm_lightning.training.loss import DAPMLoss, LossConfig
+
+Stage = Literal["train", "val", "test"]
+
+
+def warmup_cosine(step: int, total_steps: int, warmup_fraction: float, min_lr_ratio: float) -> float:
+    """LR factor: linear warm-up over ``warmup_fraction`` of the steps, then cosine annealing to ``min_lr_ratio``."""
+    warmup = max(1, int(round(total_steps * warmup_fraction)))
+    if step < warmup:
+        return (step + 1) / warmup
+    progress = min(1.0, (step - warmup) / max(1, total_steps - warmup))
+    return min_lr_ratio + (1.0 - min_lr_ratio) * 0.5 * (1.0 + math.cos(math.pi * progress))
+
+
+@dataclass(frozen=True)
+class OptimizerConfig:
+    """AdamW with linear warm-up then cosine annealing; in configs under ``model.optimizer``.
+
+    Args:
+        lr: peak learning rate (paper: 1e-4).
+        weight_decay: AdamW weight decay (paper: 0.01).
+        betas: AdamW betas (paper: 0.9, 0.999).
+        warmup_fraction: share of the steps with a linear warm-up (paper: 0.3).
+        min_lr_ratio: final learning rate as a share of ``lr``.
+    """
+
+    lr: float = 1e-4
+    weight_decay: float = 0.01
+    betas: tuple[float, float] = (0.9, 0.999)
+    warmup_fraction: float = 0.3
+    min_lr_ratio: float = 0.0
+
+
+def _as_config(value: Any, kind: type[Any]) -> Any:
+    """A settings dataclass from itself, a mapping (checkpoint hyper-parameters) or None (defaults)."""
+    if value is None:
+        return kind()
+    if isinstance(value, kind):
+        return value
+    if isinstance(value, Mapping):
+        return kind.from_dict(value) if hasattr(kind, "from_dict") else kind(**value)
+    raise TypeError(f"expected {kind.__name__} or a mapping, got {type(value).__name__}")
+
+
+class DAPMModule(L.LightningModule):
+    """Train, validate, test and predict DAPM and its ablations; every loss term and metric logged by name.
+
+    Args:
+        net: the network's settings (:class:`~dapm_lightning.models.config.DAPMConfig`), ``model.net`` in configs.
+        loss: the loss' weights and switches (:class:`~dapm_lightning.training.loss.LossConfig`), ``model.loss``.
+        optimizer: AdamW and its schedule (:class:`OptimizerConfig`), ``model.optimizer``.
+        log_space_metrics: also log the depth metrics in the paper's 8-bit log space (``<stage>_depthlog_*``).
+        pose_auc_min_error: pose errors at or below it count as perfect in the AUC (GeoCalib passes 1).
+        skip_nonfinite_loss: skip a training step whose loss is NaN or Inf (with a warning and
+            ``train_nonfinite_steps``) instead of corrupting the weights.
+
+    :attr:`igd_predicted_share` (the IGD teacher-forcing weight) is set by
+    :class:`~dapm_lightning.training.callbacks.IGDTeacherForcing` during training; validation, test and
+    predict always use the predicted pose alone. Checkpoints carry the RNG states, and loading one trained
+    with another architecture fails with a message listing what differs.
+
+    Logged keys: ``<stage>_loss_<term>``, ``<stage>_depth_<metric>`` (metres),
+    ``<stage>_depthlog_<metric>`` (paper's 8-bit log space), ``<stage>_pose_<component>_<stat>``.
+    """
+
+    igd_predicted_share: float
+    """Weight of the predicted pose in the IGD input during training (1: predictions only)."""
+
+    def __init__(self, net: DAPMConfig = DAPMConfig(), loss: LossConfig = LossConfig(),  # noqa: B008 (frozen)
+                 optimizer: OptimizerConfig = OptimizerConfig(), log_space_metrics: bool = True,  # noqa: B008
+                 pose_auc_min_error: float | None = None, skip_nonfinite_loss: bool = True) -> None:
+        super().__init__()
+        # settings arrive as dataclasses (CLI, Python) or as plain mappings (a checkpoint's hyper-parameters)
+        self.net_config: DAPMConfig = _as_config(net, DAPMConfig)
+        self.loss_config: LossConfig = _as_config(loss, LossConfig)
+        self.optimizer_config: OptimizerConfig = _as_config(optimizer, OptimizerConfig)
+        self.save_hyperparameters({  # plain values: checkpoints load with weights_only=True
+            "net": self.net_config.to_dict(), "loss": {**asdict(self.loss_config),
+                                                        "weights": dict(self.loss_config.weights)},
+            "optimizer": {**asdict(self.optimizer_config), "betas": list(self.optimizer_config.betas)},
+            "log_space_metrics": log_space_metrics, "pose_auc_min_error": pose_auc_min_error,
+            "skip_nonfinite_loss": skip_nonfinite_loss})
+        self.net = DAPMNet(self.net_config)
+        igd = self.net_config.igd
+        self.criterion = DAPMLoss(self.loss_config, igd)
+        self.igd_predicted_share = 1.0
+        self.skip_nonfinite_loss = skip_nonfinite_loss
+        self.metrics = torch.nn.ModuleDict()
+        for stage in ("val", "test"):
+            if self.net_config.use_depth:
+                self.metrics[f"{stage}_depth"] = DepthMetrics(max_depth=igd.max_depth)
+                if log_space_metrics:
+                    self.metrics[f"{stage}_depthlog"] = DepthMetrics(max_depth=igd.max_depth, space="uapd_log")
+            if self.net_config.use_pose:
+                self.metrics[f"{stage}_pose"] = PoseMetrics(min_error=pose_auc_min_error)
+        self.nonfinite_steps = 0
+
+    def setup(self, stage: str) -> None:
+        datamodule = getattr(self._trainer, "datamodule", None) if self._trainer is not None else None
+        data_kind = getattr(datamodule, "depth_kind", None)
+        model_kind = self.net_config.igd.depth_kind
+        if data_kind is not None and data_kind != model_kind and self.net_config.use_pose:
+            raise ValueError(f"the data holds {data_kind} depth but the model's IGD computes {model_kind} depth: set "
+                             f"model.net.igd.depth_kind: {data_kind} (or fix data.init_args.depth_kind)")
+
+    def forward(self, image: Tensor) -> DAPMOutput:
+        """``image [B, 3, H, W]`` (uint8 or float in [0, 1]) -> :class:`DAPMOutput` (predictions only)."""
+        return self.net(self._image(image))
+
+    @staticmethod
+    def _image(image: Tensor) -> Tensor:
+        return image.float().div(255.0) if image.dtype == torch.uint8 else image
+
+    def _shared_step(self, batch: dict[str, Any], stage: Stage) -> tuple[Tensor, DAPMOutput]:
+        image = self._image(batch["image"])
+        teacher_forcing = None
+        if stage == "train" and self.igd_predicted_share < 1.0:
+            teacher_forcing = TeacherForcing(self.net_config.igd.normalize(batch["pose"]), self.igd_predicted_share)
+        out = self.net(image, teacher_forcing)
+        sky, valid = depth_masks(batch["depth"], self.net_config.igd.max_depth)
+        terms = self.criterion(out, {**batch, "sky": sky, "valid": valid})
+        batch_size = image.shape[0]
+        on_step = stage == "train"
+        named = {f"{stage}_loss_{k}": v.detach() for k, v in terms.items() if k != "total"}
+        # sync_dist: epoch-level values are the mean over all processes (one value every rank agrees on)
+        self.log_dict(named, batch_size=batch_size, on_step=on_step, on_epoch=True, sync_dist=True)
+        self.log(f"{stage}_loss", terms["total"].detach(), batch_size=batch_size, prog_bar=True,
+                 on_step=on_step, on_epoch=True, sync_dist=True)
+        if stage != "train":
+            self._update_metrics(out, batch, stage)
+        return terms["total"], out
+
+    def _update_metrics(self, out: DAPMOutput, batch: dict[str, Any], stage: str) -> None:
+        if out.depth_m is not None:
+            self.metrics[f"{stage}_depth"].update(out.depth_m, batch["depth"])
+            if f"{stage}_depthlog" in self.metrics:
+                self.metrics[f"{stage}_depthlog"].update(out.depth_m, batch["depth"])
+        has_pose = batch["has_pose"]
+        if out.pose_physical is not None and has_pose.any():
+            self.metrics[f"{stage}_pose"].update(out.pose_physical[has_pose], batch["pose"][has_pose])
+
+    def _log_metrics(self, stage: str) -> None:
+        for name, metric in self.metrics.items():
+            if name.startswith(stage + "_") and metric.update_called:
+                self.log_dict({f"{name}_{k}": v for k, v in metric.compute().items()})
+                metric.reset()
+
+    def training_step(self, batch: dict[str, Any], batch_idx: int) -> Tensor | None:
+        loss, _ = self._shared_step(batch, "train")
+        if torch.isfinite(loss) or not self.skip_nonfinite_loss:
+            return loss
+        self.nonfinite_steps += 1
+        names = ", ".join(batch.get("name", [])[:8])
+        rank_zero_warn(f"non-finite training loss at step {self.global_step} (batch {batch_idx}: {names}); "
+                       f"step skipped, weights unchanged ({self.nonfinite_steps} so far)")
+        self.log("train_nonfinite_steps", float(self.nonfinite_steps), on_step=True, on_epoch=False, batch_size=1)
+        if self.trainer.world_size > 1:  # every process must run backward under DDP: a zero-gradient step
+            return sum((p.sum() * 0.0 for p in self.parameters() if p.requires_grad), torch.zeros(()))
+        return None  # Lightning skips backward and the optimiser step
+
+    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        checkpoint["dapm_rng_states"] = rng_states()
+
+    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        saved = checkpoint.get("hyper_parameters", {}).get("net")
+        if saved is not None:
+            check_architecture(saved, self.net_config, "the checkpoint")
+        if self._trainer is not None and "dapm_rng_states" in checkpoint:
+            set_rng_states(checkpoint["dapm_rng_states"])  # a resumed run draws what the uninterrupted one would
+
+    def validation_step(self, batch: dict[str, Any], batch_idx: int) -> DAPMOutput:
+        return self._shared_step(batch, "val")[1]
+
+    def test_step(self, batch: dict[str, Any], batch_idx: int) -> DAPMOutput:
+        return self._shared_step(batch, "test")[1]
+
+    def on_validation_epoch_end(self) -> None:
+        self._log_metrics("val")
+
+    def on_test_epoch_end(self) -> None:
+        self._log_metrics("test")
+
+    def predict_step(self, batch: dict[str, Any], batch_idx: int) -> dict[str, Any]:
+        out = self(batch["image"])
+        result: dict[str, Any] = {"name": batch.get("name")}
+        if out.depth_m is not None:
+            result["depth_m"] = out.depth_m
+            if out.sky_prob is not None:
+                result["sky_prob"] = out.sky_prob
+        if out.pose_physical is not None:
+            result["pose"] = out.pose_physical
+        return result
+
+    def configure_optimizers(self) -> dict[str, Any]:
+        config = self.optimizer_config
+        optimizer = torch.optim.AdamW(self.parameters(), lr=config.lr, betas=config.betas,
+                                      weight_decay=config.weight_decay)
+        total = max(1, int(self.trainer.estimated_stepping_batches))
+        scheduler = torch.optim.lr_scheduler.LambdaLR(
+            optimizer, lambda step: warmup_cosine(step, total, config.warmup_fraction, config.min_lr_ratio))
+        return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": "step"}}
+
+
+__all__ = ["DAPMModule", "OptimizerConfig", "warmup_cosine"]
