@@ -1,0 +1,152 @@
+"""Writing synthetic UAPD-format data sets: per-image seeding, worker processes, shards, ``synth.json``."""
+
+from __future__ import annotations
+
+import json
+import multiprocessing
+import os
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import torch
+
+from dapm_lightning.data.synthetic.render import render_scene
+from dapm_lightning.data.synthetic.scene import Scene, normalize_families, sample_scene
+from dapm_lightning.geometry.constants import MAX_DEPTH_M, POSE_KEYS, POSE_RANGES
+from dapm_lightning.geometry.depth_codec import depth_to_grey
+
+GENERATOR_VERSION = 2
+"""Bumped whenever the same settings would render different pictures (so caches re-render)."""
+_SPLIT_IDS = {"train": 0, "val": 1, "test": 2}
+_THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+def sample_pose(rng: np.random.Generator, ranges: dict[str, tuple[float, float]] = POSE_RANGES) -> np.ndarray:
+    """A pose uniform in the given ranges, rounded to 2 decimals (as written in the file name)."""
+    return np.array([round(float(rng.uniform(*ranges[key])), 2) for key in POSE_KEYS])
+
+
+def image_seed(seed: int, split: str, index: int) -> np.random.Generator:
+    """The random generator of one image: depends on (seed, split, index) only, not on worker count or shard."""
+    return np.random.default_rng([seed, _SPLIT_IDS.get(split, 9), index])
+
+
+def uapd_name(index: int, pose: np.ndarray, scene: Scene) -> str:
+    """UAPD-style file name carrying the pose (x, y, yaw as metadata, the family as a loose token)."""
+    height, pitch, roll, fov = (float(v) for v in pose)
+    x, y = scene.camera_xy
+    return (f"synth_{index:06d}_{scene.family}_x_{x:.2f}_y_{y:.2f}_z_{height:.2f}_pitch_{pitch:.2f}_roll_{roll:.2f}"
+            f"_yaw_{scene.yaw_deg:.2f}_fov_{fov:.2f}.png")
+
+
+def render_sample(seed: int, split: str, index: int, size: tuple[int, int],
+                  families: dict[str, float] | None = None, effects: bool = True
+                  ) -> tuple[str, np.ndarray, np.ndarray, np.ndarray]:
+    """``(name, rgb uint8, depth grey uint8, hit map)`` of one image of a data set."""
+    rng = image_seed(seed, split, index)
+    pose = sample_pose(rng)
+    scene = sample_scene(rng, families=families)
+    rgb, depth_m, hit = render_scene(pose, size, scene, effects=effects)
+    grey = depth_to_grey(np.where(np.isfinite(depth_m), depth_m, MAX_DEPTH_M))
+    return uapd_name(index, pose, scene), rgb, grey, hit
+
+
+def _render_one(job: tuple[Path, str, int, int, tuple[int, int], dict[str, float], bool]) -> str:
+    out, split, index, seed, size, families, effects = job
+    torch.set_num_threads(1)
+    name, rgb, grey, _ = render_sample(seed, split, index, size, families, effects)
+    cv2.imwrite(str(out / split / "rgb" / name), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+    cv2.imwrite(str(out / split / "depth" / name), grey)
+    return name
+
+
+def settings(*, train: int, val: int, size: int | tuple[int, int], seed: int,
+             families: dict[str, float] | str | None = None, effects: bool = True) -> dict[str, Any]:
+    """What ``synth.json`` records; two data sets with equal settings hold the same bytes."""
+    hw = [size, size] if isinstance(size, int) else [int(s) for s in size]
+    return {"train": int(train), "val": int(val), "size": hw, "seed": int(seed),
+            "families": normalize_families(families), "effects": bool(effects), "depth_kind": "range",
+            "max_depth": MAX_DEPTH_M, "generator": "dapm_lightning.data.synthetic", "version": GENERATOR_VERSION}
+
+
+def is_current(root: str | Path, **kwargs: Any) -> bool:
+    """Whether ``root/synth.json`` records exactly these settings (see :func:`settings`)."""
+    info = Path(root) / "synth.json"
+    if not info.is_file():
+        return False
+    try:
+        return json.loads(info.read_text()) == json.loads(json.dumps(settings(**kwargs)))
+    except (json.JSONDecodeError, OSError):
+        return False
+
+
+def shard_range(count: int, shard: tuple[int, int]) -> range:
+    """Indices of shard ``k`` of ``n`` (0-based) among ``count`` jobs: contiguous, sizes differing by at most 1."""
+    k, n = shard
+    if n < 1 or not 0 <= k < n:
+        raise ValueError(f"shard must be K/N with 0 <= K < N, got {k}/{n}")
+    return range(count * k // n, count * (k + 1) // n)
+
+
+def generate_uapd(out: str | Path, *, train: int = 200, val: int = 50, size: int | tuple[int, int] = 128,
+                  seed: int = 0, workers: int | None = None, families: dict[str, float] | str | None = None,
+                  effects: bool = True, shard: tuple[int, int] = (0, 1)) -> Path:
+    """Write a synthetic UAPD-format data set ``out/{train,val}/{rgb,depth}/NAME.png``.
+
+    Args:
+        out: root folder (created).
+        train, val: image counts per split.
+        size: ``S`` for ``S x S`` or ``(H, W)``.
+        seed: same seed, same bytes, whatever the number of workers or shards.
+        workers: processes (default: the CPU count, at most 8).
+        families: weights of the scene families (``{"downtown": 2, "forest": 1}`` or ``"downtown=2,forest=1"``;
+            default: every family equally).
+        effects: camera processing (exposure, blur, noise, JPEG artefacts).
+        shard: ``(k, n)``: render only the k-th (0-based) of n contiguous parts of the image list, for
+            array jobs; the union of all shards is byte-identical to one run.
+
+    Returns:
+        ``out``; it also holds ``synth.json`` with the settings (:func:`settings`). A folder holding a
+        data set of other settings is emptied of its images first (refused for a shard).
+    """
+    out = Path(out)
+    hw = (size, size) if isinstance(size, int) else (int(size[0]), int(size[1]))
+    info = settings(train=train, val=val, size=hw, seed=seed, families=families, effects=effects)
+    weights = info["families"]
+    stale = (out / "synth.json").is_file() and not is_current(out, train=train, val=val, size=hw, seed=seed,
+                                                               families=families, effects=effects)
+    if stale and shard[1] > 1:
+        raise ValueError(f"{out} holds a data set rendered with other settings ({out / 'synth.json'}); "
+                         "remove it or choose another folder before rendering shards into it")
+    if stale:
+        for split in ("train", "val"):
+            for sub in ("rgb", "depth"):
+                for path in (out / split / sub).glob("synth_*.png"):
+                    path.unlink()
+    jobs = []
+    for split, count in (("train", train), ("val", val)):
+        for sub in ("rgb", "depth"):
+            (out / split / sub).mkdir(parents=True, exist_ok=True)
+        jobs += [(out, split, i, seed, hw, weights, effects) for i in range(count)]
+    jobs = [jobs[i] for i in shard_range(len(jobs), shard)]
+    workers = workers or min(os.cpu_count() or 1, 8)
+    if workers > 1 and len(jobs) > 1:
+        saved = {k: os.environ.get(k) for k in _THREAD_VARS}
+        os.environ.update({k: "1" for k in _THREAD_VARS})  # one thread per worker process: no oversubscription
+        try:
+            with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+                list(pool.map(_render_one, jobs, chunksize=max(1, min(16, len(jobs) // (workers * 4)))))
+        finally:
+            for key, value in saved.items():
+                if value is None:
+                    os.environ.pop(key, None)
+                else:
+                    os.environ[key] = value
+    else:
+        for job in jobs:
+            _render_one(job)
+    (out / "synth.json").write_text(json.dumps(info, indent=2) + "\n")  # last: a crashed run is not "current"
+    return out
