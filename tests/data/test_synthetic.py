@@ -2,14 +2,33 @@ import hashlib
 import json
 import subprocess
 import sys
+from collections import Counter
 
 import numpy as np
 import pytest
 import torch
 
-from dapm_lightning.data import UAPDDataset
-from dapm_lightning.data.synthetic import GROUND, generate_uapd, render_scene, sample_scene
-from dapm_lightning.geometry import depth_to_grey, ideal_ground_depth
+from dapm_lightning.data import UAPDDataset, parse_uapd_filename
+from dapm_lightning.data.synthetic import (
+    FAMILIES,
+    GROUND,
+    PERSON,
+    SKY,
+    VEHICLE,
+    WATER,
+    generate_uapd,
+    image_seed,
+    is_current,
+    normalize_families,
+    render_scene,
+    sample_pose,
+    sample_scene,
+    shard_range,
+)
+from dapm_lightning.data.synthetic.scene import BUILDING, M_CAR, draw_family
+from dapm_lightning.geometry import MAX_DEPTH_M, depth_to_grey, ideal_ground_depth
+from dapm_lightning.tools.doctor import diagnose_split
+from dapm_lightning.tools.synth import synth_main
 
 
 def digest(root):
@@ -26,33 +45,131 @@ def test_same_seed_same_bytes_any_worker_count(tmp_path):
     c = generate_uapd(tmp_path / "c", train=4, val=2, size=(20, 28), seed=4, workers=1)
     assert digest(a) == digest(b)
     assert digest(a) != digest(c)
-    assert json.loads((a / "synth.json").read_text())["depth_kind"] == "range"
+    info = json.loads((a / "synth.json").read_text())
+    assert info["depth_kind"] == "range" and {"train", "val", "size", "seed", "families"} <= set(info)
     assert len(UAPDDataset(a, "train")) == 4 and len(UAPDDataset(a, "val")) == 2
 
 
-@pytest.mark.parametrize("pose", [(35.0, -70.0, 12.0, 60.0), (80.0, -20.0, -25.0, 110.0), (12.0, 2.0, 5.0, 40.0)])
-def test_ground_pixels_match_ideal_ground_depth(pose):
-    size = (48, 64)
-    rgb, range_m, hit = render_scene(np.array(pose), size, sample_scene(np.random.default_rng(5)))
-    ground = hit == GROUND
-    assert ground.mean() > 0.05
-    igd = ideal_ground_depth(torch.tensor([pose], dtype=torch.float64), size, max_depth=1e9)[0, 0].numpy()
-    np.testing.assert_allclose(range_m[ground], igd[ground], rtol=1e-6)
-    # and in the written 8-bit encoding
-    np.testing.assert_array_equal(depth_to_grey(range_m)[ground], depth_to_grey(igd)[ground])
-    # buildings and trees stand above the ground: never farther than the ground behind them
-    assert (range_m[~ground & np.isfinite(range_m)] <= igd[~ground & np.isfinite(range_m)] + 1e-6).all()
+def test_two_shards_equal_one_run(tmp_path):
+    whole = generate_uapd(tmp_path / "whole", train=5, val=2, size=(24, 32), seed=8, workers=1)
+    for k in range(2):
+        synth_main(["--out", str(tmp_path / "parts"), "--train", "5", "--val", "2", "--size", "24", "32",
+                    "--seed", "8", "--workers", "1", "--shard", f"{k}/2"])
+    assert len(list((tmp_path / "parts").rglob("*.png"))) == 14
+    assert digest(whole) == digest(tmp_path / "parts")
+    assert (whole / "synth.json").read_bytes() == (tmp_path / "parts" / "synth.json").read_bytes()
+    assert [list(shard_range(7, (k, 3))) for k in range(3)] == [[0, 1], [2, 3], [4, 5, 6]]
+
+
+def test_changed_settings_rerender_and_are_recorded(tmp_path):
+    out = generate_uapd(tmp_path / "d", train=3, val=1, size=16, seed=1, workers=1)
+    assert is_current(out, train=3, val=1, size=16, seed=1)
+    assert not is_current(out, train=3, val=1, size=16, seed=1, families="forest")
+    generate_uapd(out, train=2, val=1, size=16, seed=1, workers=1, families="forest=1")
+    names = sorted(p.name for p in (out / "train" / "rgb").iterdir())
+    assert len(names) == 2 and all("_forest_" in n for n in names)  # the stale third image is gone
+    info = json.loads((out / "synth.json").read_text())
+    assert info["families"] == {"forest": 1.0} and info["train"] == 2
+    with pytest.raises(ValueError, match="other settings"):  # shards never delete another run's files
+        generate_uapd(out, train=2, val=1, size=16, seed=2, workers=1, shard=(0, 2))
+
+
+def test_family_weights_are_followed():
+    assert normalize_families("downtown=3,forest=1") == {"downtown": 0.75, "forest": 0.25}
+    assert set(normalize_families(None)) == set(FAMILIES)
+    with pytest.raises(ValueError, match="unknown"):
+        normalize_families("moon=1")
+    with pytest.raises(ValueError):
+        normalize_families({"forest": 0.0})
+    rng = np.random.default_rng(0)
+    counts = Counter(draw_family(rng, {"downtown": 3, "water": 1, "forest": 0}) for _ in range(4000))
+    assert set(counts) == {"downtown", "water"}
+    assert abs(counts["downtown"] / 4000 - 0.75) < 0.03
+
+
+@pytest.mark.parametrize("family", FAMILIES)
+def test_every_family_passes_the_doctor(family, tmp_path):
+    root = generate_uapd(tmp_path / family, train=5, val=0, size=(40, 56), seed=11, workers=1, families={family: 1})
+    report = diagnose_split(root, "train", "range")
+    assert report["count"] == 5 and not report["errors"] and not report["flagged"]
+    assert all(parse_uapd_filename(n)["tokens"][-1] == family for n in UAPDDataset(root, "train").names)
+
+
+@pytest.mark.parametrize("family", FAMILIES)
+def test_ground_and_water_pixels_are_the_ideal_ground_depth(family):
+    size = (40, 56)
+    checked = 0
+    for index in range(4):
+        rng = image_seed(5, "train", index)
+        pose = sample_pose(rng)
+        rgb, range_m, hit = render_scene(pose, size, sample_scene(rng, family))
+        assert rgb.shape == (*size, 3) and rgb.dtype == np.uint8 and hit.shape == size
+        flat = (hit == GROUND) | (hit == WATER)
+        igd = ideal_ground_depth(torch.from_numpy(np.array([pose], np.float64)), size, max_depth=1e9)[0, 0].numpy()
+        np.testing.assert_allclose(range_m[flat], igd[flat], rtol=1e-6)
+        np.testing.assert_array_equal(depth_to_grey(range_m)[flat], depth_to_grey(igd)[flat])
+        seen = np.isfinite(range_m)
+        assert (seen == (hit != SKY)).all()
+        # objects stand on the ground: never farther than the ground behind them
+        assert (range_m[seen & ~flat] <= igd[seen & ~flat] * (1 + 1e-5)).all()
+        checked += int(flat.sum())
+    assert checked > 0
+
+
+def test_ground_reaches_the_horizon_beyond_max_depth():
+    pose = np.array([60.0, -2.0, 0.0, 90.0])
+    rng = np.random.default_rng(3)
+    rgb, range_m, hit = render_scene(pose, (64, 64), sample_scene(rng, "farmland"))
+    far_ground = (hit == GROUND) & (range_m > MAX_DEPTH_M)
+    assert far_ground.sum() > 20  # ground, not sky, beyond 1000 m ...
+    assert (depth_to_grey(range_m)[far_ground] == 255).all()  # ... written as grey 255
+    sky_rows = np.flatnonzero((hit == SKY).all(1))
+    assert len(sky_rows) and sky_rows.max() < np.flatnonzero((hit == GROUND).any(1)).min()
+
+
+def test_objects_have_real_sizes():
+    rng = np.random.default_rng(0)
+    downtown = sample_scene(rng, "downtown").objects
+    size = downtown.hi - downtown.lo
+    towers = (downtown.cls == BUILDING) & (downtown.lo[:, 2] == 0) & (size[:, :2].min(1) > 8)
+    assert downtown.hi[towers, 2].min() >= 20 * 0.45 and downtown.hi[:, 2].max() <= 150 + 4.01
+    cars = downtown.mat == M_CAR
+    length = size[cars, :2].max(1)
+    assert cars.sum() > 20 and length.min() >= 4.2 and np.median(length) < 5.0 and length.max() <= 12.0
+    people = downtown.cls == PERSON
+    assert people.sum() > 5 and ((size[people, 2] >= 1.6) & (size[people, 2] <= 1.9)).all()
+    assert (downtown.cls == VEHICLE).sum() >= cars.sum()
 
 
 def test_horizon_tilt_follows_roll():
-    scene = sample_scene(np.random.default_rng(0))
+    scene = sample_scene(np.random.default_rng(0), "farmland")
     _, left_tilt, _ = render_scene(np.array([50.0, 0.0, 20.0, 90.0]), (64, 64), scene)
     sky_left, sky_right = np.isinf(left_tilt[:, 0]).sum(), np.isinf(left_tilt[:, -1]).sum()
     assert sky_right < sky_left  # positive roll: right end of the horizon up
 
 
-def test_cli_synth(tmp_path):
+def test_512_pixels():
+    rng = image_seed(0, "train", 1)
+    pose = sample_pose(rng)
+    rgb, range_m, hit = render_scene(pose, (512, 512), sample_scene(rng, "suburb"))
+    assert rgb.shape == (512, 512, 3) and range_m.shape == hit.shape == (512, 512)
+
+
+def test_cli_synth(tmp_path, capsys):
     out = tmp_path / "s"
-    subprocess.run([sys.executable, "-m", "dapm_lightning", "synth", "--out", str(out), "--train", "2",
-                    "--val", "1", "--size", "16", "--seed", "1", "--workers", "1"], check=True)
+    synth_main(["--out", str(out), "--train", "2", "--val", "1", "--size", "16", "--seed", "1", "--workers", "1",
+                "--families", "suburb,water=2"])
+    assert "wrote 2 train + 1 val images" in capsys.readouterr().out
     assert len(UAPDDataset(out, "train")) == 2
+    assert json.loads((out / "synth.json").read_text())["families"] == {"suburb": 1 / 3, "water": 2 / 3}
+    for bad, message in ((["--shard", "2/2"], "0 <= K < N"), (["--families", "moon=1"], "unknown scene family")):
+        with pytest.raises(SystemExit) as info:
+            synth_main(["--out", str(out), *bad])
+        assert info.value.code == 2 and message in capsys.readouterr().err
+
+
+def test_module_runs_as_a_script(tmp_path):
+    out = tmp_path / "s"
+    subprocess.run([sys.executable, "-m", "dapm_lightning.tools.synth", "--out", str(out), "--train", "1",
+                    "--val", "0", "--size", "8", "--workers", "1"], check=True)
+    assert len(list((out / "train" / "rgb").iterdir())) == 1

@@ -10,12 +10,31 @@ byte-identical for a seed whatever the worker count or sharding. See docs/synthe
 """
 
 from dapm_lightning.data.synthetic.generate import (
-    GENERATOR_VERSION, generate_uapd, image_seed, is_current, render_sample, sample_pose, settings, shard_range,
-    uapd_name)
+    GENERATOR_VERSION,
+    generate_uapd,
+    image_seed,
+    is_current,
+    render_sample,
+    sample_pose,
+    settings,
+    shard_range,
+    uapd_name,
+)
 from dapm_lightning.data.synthetic.render import render_scene
 from dapm_lightning.data.synthetic.scene import (
-    BUILDING, CLASS_NAMES, FAMILIES, GROUND, PERSON, SKY, TREE, VEHICLE, WATER, Scene, normalize_families,
-    sample_scene)
+    BUILDING,
+    CLASS_NAMES,
+    FAMILIES,
+    GROUND,
+    PERSON,
+    SKY,
+    TREE,
+    VEHICLE,
+    WATER,
+    Scene,
+    normalize_families,
+    sample_scene,
+)
 
 __all__ = ["BUILDING", "CLASS_NAMES", "FAMILIES", "GENERATOR_VERSION", "GROUND", "PERSON", "SKY", "TREE", "VEHICLE",
            "WATER", "Scene", "generate_uapd", "image_seed", "is_current", "normalize_families", "render_sample",

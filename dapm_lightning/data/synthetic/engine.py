@@ -18,7 +18,7 @@ from embreex.mesh_construction import TriangleMesh
 
 from dapm_lightning.data.synthetic.scene import BLOB, BOX, CONE, GABLE_X, GABLE_Y, Objects
 
-LOD_PIXELS = 0.3
+LOD_PIXELS = 0.5
 """Objects whose angular radius is below this share of a pixel are not meshed."""
 SHADOW_MARGIN_DEG = 20.0
 """The culling frustum is this much wider than the picture on each side (shadows from outside the frame)."""
@@ -124,11 +124,41 @@ def clear_of_camera(objects: Objects, origin: np.ndarray) -> np.ndarray:
     return ~((np.hypot(dx, dy) < 8.0) & (objects.hi[:, 2] > origin[2] - 3.0))
 
 
-class RayCaster:
-    """Embree scene of one camera's visible objects (camera-centred coordinates)."""
+def facing(objects: Objects, verts: np.ndarray, faces: np.ndarray, owner: np.ndarray, origin: np.ndarray,
+           sun: np.ndarray | None) -> np.ndarray:
+    """Triangles that face the camera or the sun (outward normals; every shape here is convex).
 
-    def __init__(self, objects: Objects, origin: np.ndarray) -> None:
+    The nearest hit of a camera ray on a convex object is on a face turned towards the camera, and a
+    shadow ray towards the sun leaves an object through a face turned towards the sun, so the other
+    faces change neither the picture nor the shadows (about 40 % fewer triangles to hand to Embree).
+    """
+    a, b, c = verts[faces[:, 0]], verts[faces[:, 1]], verts[faces[:, 2]]
+    normal = np.cross(b - a, c - a)
+    centre = (objects.lo[owner] + objects.hi[owner]) / 2
+    flip = (((a + b + c) / 3 - centre) * normal).sum(1) < 0
+    normal[flip] *= -1
+    keep = ((origin - a) * normal).sum(1) > 0
+    if sun is not None and sun[2] > 0:
+        keep |= normal @ sun > 0
+    return keep
+
+
+class RayCaster:
+    """Embree scene of one camera's visible objects (camera-centred coordinates).
+
+    With ``sun`` given, only the triangles facing the camera or the sun are meshed (:func:`facing`);
+    :meth:`occluded` must then be asked towards that sun only.
+    """
+
+    def __init__(self, objects: Objects, origin: np.ndarray, sun: np.ndarray | None = None) -> None:
         verts, faces, self.owner = triangulate(objects)
+        if len(faces):
+            keep = facing(objects, verts, faces, self.owner, origin, sun)
+            faces, self.owner = faces[keep], self.owner[keep]
+            used = np.zeros(len(verts), bool)
+            used[faces.ravel()] = True
+            remap = np.cumsum(used) - 1
+            verts, faces = verts[used], remap[faces].astype(np.int32)
         self.empty = len(faces) == 0
         if not self.empty:
             self.scene = rtcore_scene.EmbreeScene()

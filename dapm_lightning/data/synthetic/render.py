@@ -59,7 +59,7 @@ def render_scene(pose: np.ndarray, size: tuple[int, int], scene: Scene, max_dept
     forward, right, down = camera_frame(pose, scene.yaw_deg)
     objects = scene.objects.select(clear_of_camera(scene.objects, origin))
     objects = objects.select(visible(objects, origin, forward, right, down, float(pose[3]), size))
-    caster = RayCaster(objects, origin)
+    caster = RayCaster(objects, origin, scene.sun)
     t_obj, row, n_obj = caster.intersect(dirs)
     # the ground plane, exactly as geometry.ideal_ground_depth: range = height / (-d_z) for a unit ray
     downward = -dirs[:, 2]

@@ -1,4 +1,4 @@
-"""Scene families: random worlds in metres, as objects (boxes, gabled houses, trees, vehicles, people) on a ground layout.
+"""Scene families: random worlds in metres, objects (boxes, gabled houses, trees, vehicles, people) on a ground layout.
 
 Every family is sampled by vectorised numpy from one ``numpy.random.Generator``, so a scene depends
 on the generator state only. The ground is an infinite plane at ``z = 0`` (it reaches the horizon);
@@ -173,7 +173,8 @@ def _grid(rng: np.random.Generator, cam: tuple[float, float], bx: tuple[float, f
             "seed": int(rng.integers(1 << 30)), **{k: shares.get(k, 0.0) for k in ("plaza", "park", "parking", "yard")}}
 
 
-def _on_road(x: np.ndarray, y: np.ndarray, grid: dict[str, Any]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _on_road(x: np.ndarray, y: np.ndarray,
+             grid: dict[str, Any]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Offsets from the nearest road centre lines (along x and y) and whether a point is on a road."""
     gx = np.mod(x - grid["ox"], grid["bx"])
     gy = np.mod(y - grid["oy"], grid["by"])
@@ -304,13 +305,13 @@ def _downtown(rng: np.random.Generator, cam: tuple[float, float], out: _Collecto
     floor_h = rng.uniform(3.2, 4.2, m)
     window = rng.uniform(0.35, 0.8, m)
     mat = np.where(glass, M_GLASS, M_FACADE)
+    # setbacks: some buildings end in a narrower tower (the top stays within 20-150 m)
+    s = (rng.random(m) < 0.45) & (hi_x - lo_x > 16) & (hi_y - lo_y > 16)
+    inset = rng.uniform(0.15, 0.3, m)[:, None] * np.minimum(hi_x - lo_x, hi_y - lo_y)[:, None]
+    top = height
+    height = np.where(s, height * rng.uniform(0.45, 0.85, m), height)
     out.add(BOX, np.stack([lo_x, lo_y, np.zeros(m)], -1), np.stack([hi_x, hi_y, height], -1), BUILDING, mat,
             np.clip(color, 0, 1), roof, floor_h=floor_h, window=window)
-    # setbacks: a narrower tower on top of some buildings
-    step = (rng.random(m) < 0.45) & (hi_x - lo_x > 16) & (hi_y - lo_y > 16)
-    inset = rng.uniform(0.15, 0.3, m)[:, None] * np.minimum(hi_x - lo_x, hi_y - lo_y)[:, None]
-    top = height * (1 + rng.uniform(0.15, 0.6, m))
-    s = step
     out.add(BOX, np.stack([lo_x + inset[:, 0], lo_y + inset[:, 0], height], -1)[s],
             np.stack([hi_x - inset[:, 0], hi_y - inset[:, 0], top], -1)[s], BUILDING, mat[s],
             np.clip(color[s], 0, 1), roof[s], floor_h=floor_h[s], window=window[s])
@@ -330,7 +331,8 @@ def _downtown(rng: np.random.Generator, cam: tuple[float, float], out: _Collecto
     fits = (room_x > 0) & (room_y > 0)
     cx = roof_lo_x[owner] + 1 + rng.random(k) * np.maximum(room_x, 0)
     cy = roof_lo_y[owner] + 1 + rng.random(k) * np.maximum(room_y, 0)
-    out.add(BOX, np.stack([cx, cy, roof_z[owner]], -1)[fits], np.stack([cx + ux, cy + uy, roof_z[owner] + uz], -1)[fits],
+    out.add(BOX, np.stack([cx, cy, roof_z[owner]], -1)[fits],
+            np.stack([cx + ux, cy + uy, roof_z[owner] + uz], -1)[fits],
             BUILDING, M_UNIT, np.array([0.6, 0.6, 0.6]))
     _lot_fill(out, rng, b, cam, trees_per_park=10)
     _road_traffic(out, rng, grid, cam, reach=350, count=900, people=500)
@@ -539,7 +541,7 @@ def _forest(rng: np.random.Generator, cam: tuple[float, float], out: _Collector)
         return (np.abs(across) < road["width"] / 2 + margin) | (value_noise(x, y, 160.0, seed) > clearing)
 
     spacing = float(rng.uniform(5.5, 8.0))
-    reach = 260.0
+    reach = 200.0
     axis = np.arange(-reach, reach, spacing)
     gx, gy = np.meshgrid(axis, axis)
     gx = gx.ravel() + cam[0] + rng.uniform(-spacing / 2, spacing / 2, gx.size)
@@ -547,20 +549,21 @@ def _forest(rng: np.random.Generator, cam: tuple[float, float], out: _Collector)
     near = np.hypot(gx - cam[0], gy - cam[1]) < reach
     keep = near & ~open_ground(gx, gy, 2.0)
     _trees(out, rng, gx[keep], gy[keep], (2.2, 4.0), conifer_share=conifer, base=(2.0, 5.0))
-    # beyond: canopy as wide cones standing on the ground (crowns merge at a distance)
-    far_spacing = 22.0
-    axis = np.arange(-1100, 1100, far_spacing)
-    fx, fy = np.meshgrid(axis, axis)
-    fx = fx.ravel() + cam[0] + rng.uniform(-5, 5, fx.size)
-    fy = fy.ravel() + cam[1] + rng.uniform(-5, 5, fy.size)
-    dist = np.hypot(fx - cam[0], fy - cam[1])
-    keep = (dist >= reach) & (dist < 1100) & ~open_ground(fx, fy, 10.0)
-    k = int(keep.sum())
-    r = rng.uniform(12, 15, k)
-    top = rng.uniform(16, 26, k)
-    green = np.stack([rng.uniform(0.1, 0.2, k), rng.uniform(0.24, 0.36, k), rng.uniform(0.07, 0.14, k)], -1)
-    out.add(CONE, np.stack([fx[keep] - r, fy[keep] - r, np.zeros(k)], -1),
-            np.stack([fx[keep] + r, fy[keep] + r, top], -1), TREE, M_CONIFER, green)
+    # beyond: canopy as wide cones standing on the ground (crowns merge at a distance), coarser farther out
+    for spacing, inner, outer, radius, top in ((22.0, reach, 520.0, (12, 15), (16, 26)),
+                                               (44.0, 520.0, 1100.0, (24, 29), (18, 28))):
+        axis = np.arange(-outer, outer, spacing)
+        fx, fy = np.meshgrid(axis, axis)
+        fx = fx.ravel() + cam[0] + rng.uniform(-spacing / 4, spacing / 4, fx.size)
+        fy = fy.ravel() + cam[1] + rng.uniform(-spacing / 4, spacing / 4, fy.size)
+        dist = np.hypot(fx - cam[0], fy - cam[1])
+        keep = (dist >= inner) & (dist < outer) & ~open_ground(fx, fy, 10.0)
+        k = int(keep.sum())
+        r = rng.uniform(*radius, k)
+        tops = rng.uniform(*top, k)
+        green = np.stack([rng.uniform(0.1, 0.2, k), rng.uniform(0.24, 0.36, k), rng.uniform(0.07, 0.14, k)], -1)
+        out.add(CONE, np.stack([fx[keep] - r, fy[keep] - r, np.zeros(k)], -1),
+                np.stack([fx[keep] + r, fy[keep] + r, tops], -1), TREE, M_CONIFER, green)
     return {"land": "forest", "road": road, "clearing": {"seed": seed, "level": clearing}}
 
 
@@ -649,14 +652,19 @@ def normalize_families(families: dict[str, float] | str | None) -> dict[str, flo
     return {name: weights.get(name, 0.0) / total for name in FAMILIES if weights.get(name, 0.0) > 0}
 
 
+def draw_family(rng: np.random.Generator, families: dict[str, float] | str | None = None) -> str:
+    """A family drawn with the given weights (one uniform number from ``rng``)."""
+    weights = normalize_families(families)
+    names = list(weights)
+    edges = np.cumsum([weights[n] for n in names])
+    return names[min(int(np.searchsorted(edges, rng.random() * edges[-1], side="right")), len(names) - 1)]
+
+
 def sample_scene(rng: np.random.Generator, family: str | None = None,
                  families: dict[str, float] | str | None = None) -> Scene:
     """One random scene: of ``family``, or of a family drawn with the weights ``families`` (default: all equal)."""
     if family is None:
-        weights = normalize_families(families)
-        names = list(weights)
-        family = names[int(np.searchsorted(np.cumsum([weights[n] for n in names]), rng.random() * (1 - 1e-12),
-                                           side="right"))]
+        family = draw_family(rng, families)
     elif family not in FAMILIES:
         raise ValueError(f"unknown scene family {family!r}; choose from {FAMILIES}")
     cam = (float(rng.uniform(-400, 400)), float(rng.uniform(-400, 400)))

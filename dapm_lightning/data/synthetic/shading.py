@@ -15,8 +15,27 @@ import numpy as np
 
 from dapm_lightning.data.synthetic.noise import fade, fbm, ihash, value_noise
 from dapm_lightning.data.synthetic.scene import (
-    BLOB, LOT_BUILT, LOT_PARK, LOT_PARKING, LOT_PLAZA, LOT_YARD, M_BOAT, M_CAR, M_CONIFER, M_CONTAINER, M_FACADE,
-    M_GLASS, M_HALL, M_HOUSE, M_PERSON, M_TREE, M_UNIT, Objects, _road_distance, lot_type, water_mask)
+    BLOB,
+    LOT_BUILT,
+    LOT_PARKING,
+    LOT_PLAZA,
+    LOT_YARD,
+    M_BOAT,
+    M_CAR,
+    M_CONIFER,
+    M_CONTAINER,
+    M_FACADE,
+    M_GLASS,
+    M_HALL,
+    M_HOUSE,
+    M_PERSON,
+    M_TREE,
+    M_UNIT,
+    Objects,
+    _road_distance,
+    lot_type,
+    water_mask,
+)
 
 _ASPHALT = np.array([0.27, 0.27, 0.28])
 _PAINT = np.array([0.88, 0.88, 0.84])
@@ -79,8 +98,8 @@ def ground_color(x: np.ndarray, y: np.ndarray, fp: np.ndarray, layout: dict[str,
         cx = np.where(gx > bx / 2, gx - bx, gx)  # offset from the road centre line
         cy = np.where(gy > by / 2, gy - by, gy)
         town = np.hypot(x - grid["cx"], y - grid["cy"]) < grid["radius"]
-        kind = lot_type(np.floor((x - grid["ox"]) / bx).astype(np.int64), np.floor((y - grid["oy"]) / by).astype(np.int64),
-                        grid)
+        kind = lot_type(np.floor((x - grid["ox"]) / bx).astype(np.int64),
+                        np.floor((y - grid["oy"]) / by).astype(np.int64), grid)
         lot = {LOT_BUILT: _CONCRETE if grid["built_ground"] == "concrete" else None, LOT_PLAZA: _PAVING,
                LOT_PARKING: _ASPHALT * 1.1, LOT_YARD: _CONCRETE * 1.05}
         lot_color = _grass(x, y, fp, look, seed + 1)
@@ -240,7 +259,8 @@ def camera_effects(rgb: np.ndarray, look: dict[str, Any], rng: np.random.Generat
     image = image + rng.normal(0.0, look["noise"], image.shape)
     out = np.clip(image * 255.0 + 0.5, 0, 255).astype(np.uint8)
     if look["jpeg"]:
-        ok, buffer = cv2.imencode(".jpg", np.ascontiguousarray(out[..., ::-1]), [cv2.IMWRITE_JPEG_QUALITY, look["jpeg"]])
+        ok, buffer = cv2.imencode(".jpg", np.ascontiguousarray(out[..., ::-1]),
+                                  [cv2.IMWRITE_JPEG_QUALITY, look["jpeg"]])
         if ok:
             out = np.ascontiguousarray(cv2.imdecode(buffer, cv2.IMREAD_COLOR)[..., ::-1])
     return out

@@ -1,0 +1,85 @@
+"""``dapm-lightning synth``: render a synthetic UAPD-format data set, whole or one shard of it."""
+
+from __future__ import annotations
+
+import argparse
+import re
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+from dapm_lightning.data.synthetic import FAMILIES, generate_uapd, normalize_families, shard_range
+
+
+def parse_shard(text: str) -> tuple[int, int]:
+    """``"K/N"`` (0-based K, as ``$SLURM_ARRAY_TASK_ID`` with ``--array=0-(N-1)``) to ``(K, N)``."""
+    match = re.fullmatch(r"\s*(\d+)\s*/\s*(\d+)\s*", text)
+    if not match:
+        raise argparse.ArgumentTypeError(f"--shard takes K/N (e.g. 3/16), got {text!r}")
+    k, n = int(match.group(1)), int(match.group(2))
+    if n < 1 or k >= n:
+        raise argparse.ArgumentTypeError(f"--shard K/N needs 0 <= K < N, got {text!r}")
+    return k, n
+
+
+def parse_families(text: str) -> dict[str, float]:
+    """``"downtown=2,suburb=1"`` (a name alone weighs 1) to normalised weights."""
+    try:
+        return normalize_families(text)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of ``dapm-lightning synth``."""
+    parser = argparse.ArgumentParser(
+        prog="dapm-lightning synth",
+        description="Render a synthetic data set in UAPD layout and naming: OUT/{train,val}/{rgb,depth}/NAME.png "
+                    "(depth: range in metres, 8-bit log encoded, grey 255 = at or beyond 1000 m). Scene families: "
+                    f"{', '.join(FAMILIES)}. The settings go to OUT/synth.json; rendering into a folder made "
+                    "with other settings first removes its images. See docs/synthetic.md.")
+    parser.add_argument("--out", type=Path, required=True, help="output root folder")
+    parser.add_argument("--train", type=int, default=200, help="training images (default 200)")
+    parser.add_argument("--val", type=int, default=50, help="validation images (default 50)")
+    parser.add_argument("--size", type=int, nargs="+", default=[128], metavar="S",
+                        help="S for SxS images, or H W (default 128)")
+    parser.add_argument("--seed", type=int, default=0, help="same seed, same bytes (default 0)")
+    parser.add_argument("--workers", type=int, default=None, help="processes (default: CPU count, max 8)")
+    parser.add_argument("--families", type=parse_families, default=None, metavar="NAME=W,...",
+                        help="weights of the scene families, e.g. 'downtown=2,suburb=1,water=0.5' "
+                             "(families left out are not rendered; default: all equally)")
+    parser.add_argument("--shard", type=parse_shard, default=(0, 1), metavar="K/N",
+                        help="render only part K of N (0-based) of the image list, e.g. $SLURM_ARRAY_TASK_ID/16; "
+                             "all N parts together are byte-identical to one run")
+    parser.add_argument("--no-effects", dest="effects", action="store_false",
+                        help="no camera processing (exposure, white balance, blur, noise, JPEG artefacts)")
+    return parser
+
+
+def synth_main(argv: Sequence[str]) -> None:
+    """Entry point of ``dapm-lightning synth``."""
+    parser = build_parser()
+    args = parser.parse_args(list(argv))
+    if len(args.size) not in (1, 2) or min(args.size) < 1:
+        parser.error(f"--size takes S or H W (positive), got {args.size}")
+    if args.train < 0 or args.val < 0:
+        parser.error("--train and --val must be >= 0")
+    size = args.size[0] if len(args.size) == 1 else (args.size[0], args.size[1])
+    part = shard_range(args.train + args.val, args.shard)
+    start = time.perf_counter()
+    try:
+        out = generate_uapd(args.out, train=args.train, val=args.val, size=size, seed=args.seed,
+                            workers=args.workers, families=args.families, effects=args.effects, shard=args.shard)
+    except ValueError as error:
+        parser.error(str(error))
+    seconds = time.perf_counter() - start
+    what = (f"images {part.start}..{part.stop - 1} (shard {args.shard[0]}/{args.shard[1]}) of "
+            if args.shard[1] > 1 else "")
+    print(f"wrote {what}{args.train} train + {args.val} val images to {out} "
+          f"({len(part) / max(seconds, 1e-9):.1f} images/s)")
+
+
+if __name__ == "__main__":
+    import sys
+
+    synth_main(sys.argv[1:])
