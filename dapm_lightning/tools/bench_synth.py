@@ -189,6 +189,39 @@ def transfer(args: argparse.Namespace) -> dict[str, Any]:
     return summary
 
 
+def figure(args: argparse.Namespace) -> dict[str, Any]:
+    """Two samples of every family (RGB, log depth of the first, RGB of the second) as one PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    from dapm_lightning.data.synthetic import image_seed, render_scene, sample_pose, sample_scene
+
+    fig, axes = plt.subplots(3, len(FAMILIES), figsize=(2.1 * len(FAMILIES), 6.9), constrained_layout=True)
+    for k, family in enumerate(FAMILIES):
+        for row, index in ((0, 2 * k), (2, 2 * k + 1)):
+            rng = image_seed(args.seed, "figure", index)
+            pose = sample_pose(rng)
+            rgb, range_m, _ = render_scene(pose, (args.size, args.size), sample_scene(rng, family))
+            axes[row, k].imshow(rgb)
+            axes[row, k].set_title(f"{family if row == 0 else ''}\nh {pose[0]:.0f} m, pitch {pose[1]:.0f}, "
+                                   f"roll {pose[2]:.0f}, fov {pose[3]:.0f}", fontsize=7)
+            if row == 0:
+                depth = np.minimum(np.where(np.isfinite(range_m), range_m, 1000.0), 1000.0)
+                axes[1, k].imshow(np.log2(depth + 1) / np.log2(1001), cmap="gray", vmin=0, vmax=1)
+        for ax in axes[:, k]:
+            ax.axis("off")
+    fig.suptitle("dapm-lightning synth: two samples per scene family (RGB; log depth of the first as "
+                 "written, white = 1000 m or more)", fontsize=9)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(args.out, dpi=args.dpi)
+    plt.close(fig)
+    print(f"wrote {args.out}")
+    return {"figure": str(args.out)}
+
+
 def main(argv: Sequence[str] | None = None) -> None:
     """Entry point: ``speed`` or ``transfer``."""
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -210,6 +243,12 @@ def main(argv: Sequence[str] | None = None) -> None:
     p.add_argument("--workers", type=int, default=None)
     p.add_argument("--skip-training", action="store_true", help="baselines only (checks the pipeline quickly)")
     p.set_defaults(func=transfer)
+    p = sub.add_parser("figure", help="a picture of every family (docs/figures/synthetic_samples.png)")
+    p.add_argument("--out", type=Path, default=Path("docs/figures/synthetic_samples.png"))
+    p.add_argument("--size", type=int, default=128)
+    p.add_argument("--seed", type=int, default=3)
+    p.add_argument("--dpi", type=int, default=80)
+    p.set_defaults(func=figure)
     args = parser.parse_args(argv)
     if args.command == "transfer" and set(args.held_out) == set(FAMILIES):
         parser.error("leave at least one family to train on")

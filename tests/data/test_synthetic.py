@@ -168,8 +168,16 @@ def test_cli_synth(tmp_path, capsys):
         assert info.value.code == 2 and message in capsys.readouterr().err
 
 
-def test_module_runs_as_a_script(tmp_path):
-    out = tmp_path / "s"
-    subprocess.run([sys.executable, "-m", "dapm_lightning.tools.synth", "--out", str(out), "--train", "1",
-                    "--val", "0", "--size", "8", "--workers", "1"], check=True)
-    assert len(list((out / "train" / "rgb").iterdir())) == 1
+def test_slurm_array_script_renders_the_shards(tmp_path):
+    import os
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[2] / "scripts" / "synth_slurm.sh"
+    env = {**os.environ, "OUT": str(tmp_path / "array"), "TRAIN": "3", "VAL": "1", "SIZE": "12", "SEED": "5",
+           "FAMILIES": "suburb=1,forest=1", "PYTHON": sys.executable, "SLURM_ARRAY_TASK_COUNT": "2",
+           "SLURM_ARRAY_TASK_MIN": "0", "SLURM_CPUS_PER_TASK": "1"}
+    for task in ("0", "1"):
+        subprocess.run(["bash", str(script)], env={**env, "SLURM_ARRAY_TASK_ID": task}, check=True)
+    whole = generate_uapd(tmp_path / "whole", train=3, val=1, size=12, seed=5, workers=1,
+                          families="suburb=1,forest=1")
+    assert digest(whole) == digest(tmp_path / "array") and len(list(whole.rglob("*.png"))) == 8

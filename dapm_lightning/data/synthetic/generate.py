@@ -148,5 +148,8 @@ def generate_uapd(out: str | Path, *, train: int = 200, val: int = 50, size: int
     else:
         for job in jobs:
             _render_one(job)
-    (out / "synth.json").write_text(json.dumps(info, indent=2) + "\n")  # last: a crashed run is not "current"
+    # last, so that a crashed run is not "current"; atomically, as shards of an array job finish side by side
+    partial = out / f".synth.json.{os.getpid()}"
+    partial.write_text(json.dumps(info, indent=2) + "\n")
+    os.replace(partial, out / "synth.json")
     return out
