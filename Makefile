@@ -16,7 +16,7 @@ $(STAMP): pyproject.toml constraints.txt
 install: $(STAMP)
 
 demo: $(STAMP)
-	$(BIN)/python -m dapm_lightning.quickstart --out $(OUT)
+	$(BIN)/python -m dapm_lightning.tools.quickstart --out $(OUT)
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
@@ -25,10 +25,11 @@ test-all: $(STAMP)
 	$(BIN)/python -m pytest -q -m ""
 
 bench: $(STAMP)
-	$(BIN)/python -m dapm_lightning.bench
+	$(BIN)/python -m dapm_lightning.tools.bench
 
 lint: $(STAMP)
 	$(BIN)/ruff check dapm_lightning tests
+	$(BIN)/mypy
 
 clean:
 	rm -rf $(VENV) outputs .pytest_cache

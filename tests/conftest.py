@@ -9,10 +9,9 @@ import cv2
 import numpy as np
 import pytest
 
-from dapm_lightning.training.lightning_cli import run_lightning_cli
-
 from dapm_lightning.data.synthetic import generate_uapd, render_scene, sample_scene
 from dapm_lightning.geometry import MAX_DEPTH_M, depth_to_grey
+from dapm_lightning.training.lightning_cli import run_lightning_cli
 
 TINY_HW = (24, 40)  # non-square, so an H/W swap fails
 

@@ -118,4 +118,5 @@ class PotsdamDataset(torch.utils.data.Dataset[Sample]):
         if not np.isfinite(height).all():
             raise ValueError(f"{self.crops / 'height' / name}.npy: {int((~np.isfinite(height)).sum())} "
                              "non-finite height value(s) (NaN or Inf) in this crop")
-        return make_sample(rgb, np.minimum(height, MAX_DEPTH_M - MIN_DEPTH_M), None, name, {}, image_dtype=self.image_dtype)
+        depth_m = np.minimum(height, MAX_DEPTH_M - MIN_DEPTH_M)
+        return make_sample(rgb, depth_m, None, name, {}, image_dtype=self.image_dtype)

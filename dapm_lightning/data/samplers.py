@@ -63,7 +63,7 @@ class EpochShuffleSampler(DistributedSampler[SampleKey]):
         return iter([(self.epoch, index) for index in order[self.rank::self.num_replicas]])
 
     def __len__(self) -> int:
-        """Keys per process in a whole epoch (a resumed epoch yields fewer; Lightning counts on from where it stopped)."""
+        """Keys per process in a whole epoch (a resumed epoch yields fewer; Lightning counts on from where it was)."""
         if self.drop_last:
             return self.length // self.num_replicas
         return len(range(self.rank, self.length, self.num_replicas))

@@ -32,7 +32,8 @@ def depth_to_grey(depth_m: np.ndarray, max_depth: float = MAX_DEPTH_M) -> np.nda
     """Metres to UAPD's 8-bit grey ``floor(255 * encode_log_depth(d))`` (uint8; 255 = at or beyond max_depth)."""
     clamped = np.clip(np.nan_to_num(depth_m, nan=0.0, posinf=max_depth), 0.0, max_depth)
     scaled = SKY_GREY * np.log2(clamped + 1.0) / math.log2(max_depth + 1.0)
-    return np.floor(scaled + 1e-9).astype(np.uint8)
+    grey: np.ndarray = np.floor(scaled + 1e-9).astype(np.uint8)
+    return grey
 
 
 def grey_to_depth(grey: np.ndarray, max_depth: float = MAX_DEPTH_M) -> np.ndarray:

@@ -80,10 +80,11 @@ class DepthMetrics(Metric):
 
     full_state_update = False
     higher_is_better = None
+    images: Tensor
 
     def __init__(self, min_depth: float = MIN_DEPTH_M, max_depth: float = MAX_DEPTH_M,
                  space: Literal["metric", "uapd_log"] = "metric", **kwargs: object) -> None:
-        super().__init__(**kwargs)  # type: ignore[arg-type]
+        super().__init__(**kwargs)
         self.min_depth, self.max_depth, self.space = min_depth, max_depth, space
         for name in DEPTH_METRIC_NAMES:
             self.add_state(f"sum_{name}", default=torch.tensor(0.0, dtype=torch.float64), dist_reduce_fx="sum")

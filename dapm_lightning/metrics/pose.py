@@ -12,6 +12,7 @@ from torchmetrics.utilities import dim_zero_cat
 
 from dapm_lightning.geometry.constants import POSE_KEYS
 
+
 def auc_of_recall(errors: Tensor, threshold: float) -> Tensor:
     """Area under the recall-vs-error curve up to ``threshold``, divided by it (GeoCalib's ``compute_auc``)."""
     errors = torch.sort(errors.double()).values
@@ -41,10 +42,11 @@ class PoseMetrics(Metric):
 
     full_state_update = False
     higher_is_better = None
+    errors: list[Tensor] | Tensor  # a list of [B, 4] before a DDP sync, one tensor after
 
     def __init__(self, thresholds: Sequence[float] = (1.0, 5.0, 10.0), min_error: float | None = None,
                  **kwargs: object) -> None:
-        super().__init__(**kwargs)  # type: ignore[arg-type]
+        super().__init__(**kwargs)
         self.thresholds, self.min_error = tuple(thresholds), min_error
         self.add_state("errors", default=[], dist_reduce_fx="cat")
 
@@ -52,10 +54,11 @@ class PoseMetrics(Metric):
         """``pred``, ``target``: ``[B, 4]`` (height m, pitch deg, roll deg, fov deg)."""
         if pred.shape != target.shape or pred.shape[-1:] != (4,):
             raise ValueError(f"pred {tuple(pred.shape)} and target {tuple(target.shape)} must both be [B, 4]")
+        assert isinstance(self.errors, list)
         self.errors.append((pred.detach().double() - target.double()).abs())
 
     def compute(self) -> dict[str, Tensor]:
-        errors = self.errors  # a list of [B, 4] before a DDP sync, one tensor after
+        errors = self.errors
         if isinstance(errors, list):
             errors = dim_zero_cat(errors) if errors else torch.zeros(0, 4, dtype=torch.float64)
         result: dict[str, Tensor] = {}

@@ -42,8 +42,11 @@ class DepthPrediction(NamedTuple):
 
 
 class PosePrediction(NamedTuple):
-    """Pose branch output: ``pose_norm``/``pose_init_norm`` ``[B, 4]`` in [0, 1], ``pose`` ``[B, 4]``
-    physical (m, deg, deg, deg), ``bin_logits`` ``[B, 4, n]`` per bins stage, ``refined`` as for depth."""
+    """Pose branch output.
+
+    ``pose_norm``/``pose_init_norm`` ``[B, 4]`` in [0, 1], ``pose`` ``[B, 4]`` physical (m, deg, deg, deg),
+    ``bin_logits`` ``[B, 4, n]`` per bins stage, ``refined`` as for depth.
+    """
 
     pose_norm: Tensor
     pose_init_norm: Tensor

@@ -16,8 +16,8 @@ import torch
 
 from dapm_lightning.data.uapd import UAPDDataset
 from dapm_lightning.geometry.igd import ideal_ground_depth
-from dapm_lightning.training.lightning_cli import run_lightning_cli
 from dapm_lightning.metrics import DepthMetrics, PoseMetrics
+from dapm_lightning.training.lightning_cli import run_lightning_cli
 
 DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "quickstart.yaml"
 ROWS = [("depth", "d1", "higher"), ("depth", "abs_rel", "lower"), ("depth", "rmse", "lower"),

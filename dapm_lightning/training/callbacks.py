@@ -15,8 +15,9 @@ from dapm_lightning.training.visualize import depth_panel
 
 
 class IGDTeacherForcing(L.Callback):
-    """Passes the IGD teacher-forcing share of :func:`~dapm_lightning.models.teacher_forcing.predicted_share_at`
-    to :attr:`DAPMModule.igd_predicted_share` before every training batch.
+    """Sets :attr:`DAPMModule.igd_predicted_share` before every training batch (the IGD teacher forcing).
+
+    The schedule is :func:`~dapm_lightning.models.teacher_forcing.predicted_share_at`.
 
     The predicted share ``w`` of the IGD input ``w * predicted + (1 - w) * true`` pose rises linearly from
     ``start_share`` at ``start_fraction`` of the training steps to ``end_share`` at ``end_fraction``
@@ -37,7 +38,7 @@ class IGDTeacherForcing(L.Callback):
     def on_train_batch_start(self, trainer: L.Trainer, pl_module: L.LightningModule, batch: Any,
                              batch_idx: int) -> None:
         module = _dapm_module(pl_module)
-        module.igd_predicted_share = self.share(trainer.global_step, int(trainer.estimated_stepping_batches))
+        module.igd_predicted_share = self.share(trainer.global_step, module.planned_steps)
         module.log("train_igd_predicted_share", module.igd_predicted_share, on_step=True, on_epoch=False,
                    batch_size=1)
 

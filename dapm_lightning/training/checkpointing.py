@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import random
 from collections.abc import Callable, Mapping
 from pathlib import Path
@@ -12,8 +13,10 @@ import numpy as np
 import torch
 from lightning.fabric.plugins.io.torch_io import TorchCheckpointIO
 from lightning.pytorch.utilities.exceptions import SIGTERMException
+from torch import Tensor
 
 from dapm_lightning.models.config import DAPMConfig
+
 
 class SafeCheckpointIO(TorchCheckpointIO):
     """Lightning's checkpoint I/O with safe loading.
@@ -67,6 +70,31 @@ def rng_states() -> dict[str, Any]:
                               "numpy_pos": int(numpy_state[2]), "torch": torch.get_rng_state()}
     if torch.cuda.is_available() and torch.cuda.is_initialized():
         states["cuda"] = torch.cuda.get_rng_state_all()
+    return states
+
+
+def pack_rng_states(states: Mapping[str, Any]) -> dict[str, Tensor]:
+    """:func:`rng_states` as fixed-shape tensors, so that every process's can be gathered into one checkpoint."""
+    version, internal, gauss = states["python"]
+    packed = {"python": torch.tensor([version, *internal], dtype=torch.int64),
+              "python_gauss": torch.tensor([math.nan if gauss is None else gauss], dtype=torch.float64),
+              "numpy_keys": states["numpy_keys"], "numpy_pos": torch.tensor([states["numpy_pos"]]),
+              "torch": states["torch"]}
+    if "cuda" in states:
+        packed["cuda"] = states["cuda"][torch.cuda.current_device()]
+    return packed
+
+
+def unpack_rng_states(packed: Mapping[str, Tensor]) -> dict[str, Any]:
+    """Inverse of :func:`pack_rng_states` (the GPU state becomes that of the current device)."""
+    python = packed["python"].tolist()
+    gauss = float(packed["python_gauss"][0])
+    states: dict[str, Any] = {"python": (python[0], tuple(python[1:]), None if math.isnan(gauss) else gauss),
+                              "numpy_keys": packed["numpy_keys"], "numpy_pos": int(packed["numpy_pos"][0]),
+                              "torch": packed["torch"]}
+    if "cuda" in packed and torch.cuda.is_available():
+        states["cuda"] = [torch.cuda.get_rng_state(d) for d in range(torch.cuda.device_count())]
+        states["cuda"][torch.cuda.current_device()] = packed["cuda"]
     return states
 
 

@@ -17,7 +17,8 @@ from dapm_lightning.metrics import DepthMetrics, PoseMetrics
 from dapm_lightning.models.config import DAPMConfig
 from dapm_lightning.models.dapm import DAPMNet, DAPMOutput
 from dapm_lightning.models.teacher_forcing import TeacherForcing
-from dapm_lightning.training.checkpointing import check_architecture, rng_states, set_rng_states
+from dapm_lightning.training.checkpointing import (check_architecture, pack_rng_states, rng_states,
+                                                   set_rng_states, unpack_rng_states)
 from dapm_lightning.training.loss import DAPMLoss, LossConfig
 
 Stage = Literal["train", "val", "test"]
@@ -42,6 +43,9 @@ class OptimizerConfig:
         betas: AdamW betas (paper: 0.9, 0.999).
         warmup_fraction: share of the steps with a linear warm-up (paper: 0.3).
         min_lr_ratio: final learning rate as a share of ``lr``.
+        schedule_steps: planned training length in optimiser steps, for the warm-up/cosine schedule and
+            the IGD teacher forcing; None: the trainer's (``max_steps``, or epochs x batches). Fix it when a
+            job may be stopped by ``max_steps`` and continued, so no step depends on where the job stopped.
     """
 
     lr: float = 1e-4
@@ -49,6 +53,7 @@ class OptimizerConfig:
     betas: tuple[float, float] = (0.9, 0.999)
     warmup_fraction: float = 0.3
     min_lr_ratio: float = 0.0
+    schedule_steps: int | None = None
 
 
 def _as_config(value: Any, kind: type[Any]) -> Any:
@@ -162,7 +167,9 @@ class DAPMModule(L.LightningModule):
     def _log_metrics(self, stage: str) -> None:
         for name, metric in self.metrics.items():
             if name.startswith(stage + "_") and metric.update_called:
-                self.log_dict({f"{name}_{k}": v for k, v in metric.compute().items()})
+                # compute() already reduced over processes; every rank holds the same value, so the mean that
+                # sync_dist takes is that value (and Lightning does not warn about unsynced epoch-level logs)
+                self.log_dict({f"{name}_{k}": v for k, v in metric.compute().items()}, sync_dist=True)
                 metric.reset()
 
     def training_step(self, batch: dict[str, Any], batch_idx: int) -> Tensor | None:
@@ -179,13 +186,26 @@ class DAPMModule(L.LightningModule):
         return None  # Lightning skips backward and the optimiser step
 
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        checkpoint["dapm_rng_states"] = rng_states()
+        # every process saves (Lightning calls this hook on all ranks, rank 0 writes): under DDP the RNG
+        # states of all ranks are gathered, so that each resumes its own dropout and augmentation draws
+        if self._trainer is not None and self.trainer.world_size > 1:
+            packed = pack_rng_states(rng_states())
+            checkpoint["dapm_rng_states_per_rank"] = {k: self.all_gather(v).cpu() for k, v in packed.items()}
+        else:
+            checkpoint["dapm_rng_states"] = rng_states()
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         saved = checkpoint.get("hyper_parameters", {}).get("net")
         if saved is not None:
             check_architecture(saved, self.net_config, "the checkpoint")
-        if self._trainer is not None and "dapm_rng_states" in checkpoint:
+        if self._trainer is None:
+            return
+        per_rank = checkpoint.get("dapm_rng_states_per_rank")
+        if per_rank is not None:  # saved under DDP: [world size, ...] per state
+            saved_ranks = per_rank["torch"].shape[0]
+            rank = self.trainer.global_rank % saved_ranks  # same process count: each rank its own states
+            set_rng_states(unpack_rng_states({k: v[rank] for k, v in per_rank.items()}))
+        elif "dapm_rng_states" in checkpoint:
             set_rng_states(checkpoint["dapm_rng_states"])  # a resumed run draws what the uninterrupted one would
 
     def validation_step(self, batch: dict[str, Any], batch_idx: int) -> DAPMOutput:
@@ -211,11 +231,17 @@ class DAPMModule(L.LightningModule):
             result["pose"] = out.pose_physical
         return result
 
+    @property
+    def planned_steps(self) -> int:
+        """Training length the schedules follow: ``optimizer.schedule_steps``, else the trainer's estimate."""
+        planned = self.optimizer_config.schedule_steps or self.trainer.estimated_stepping_batches
+        return max(1, int(planned))
+
     def configure_optimizers(self) -> dict[str, Any]:
         config = self.optimizer_config
         optimizer = torch.optim.AdamW(self.parameters(), lr=config.lr, betas=config.betas,
                                       weight_decay=config.weight_decay)
-        total = max(1, int(self.trainer.estimated_stepping_batches))
+        total = self.planned_steps
         scheduler = torch.optim.lr_scheduler.LambdaLR(
             optimizer, lambda step: warmup_cosine(step, total, config.warmup_fraction, config.min_lr_ratio))
         return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": "step"}}

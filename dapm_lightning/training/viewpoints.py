@@ -108,7 +108,8 @@ class ViewpointBreakdown(L.Callback):
             return
         self.table = viewpoint_table(records.cpu(), self.bins)
         if trainer.is_global_zero:
-            values = {f"test_view_{r['component']}_bin{r['bin']}_{k}": r[k] for r in self.table for k in ("d1", "error")}
+            values = {f"test_view_{r['component']}_bin{r['bin']}_{k}": r[k]
+                      for r in self.table for k in ("d1", "error")}
             for logger in trainer.loggers:  # to the loggers only: the console table stays readable
                 logger.log_metrics(values, step=trainer.global_step)
             folder = Path(self.output_dir or trainer.log_dir or ".")

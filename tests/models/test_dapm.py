@@ -88,8 +88,8 @@ def _grads(module, loss):
 def test_gradients_reach_only_where_they_should():
     torch.manual_seed(0)
     net = make_net()
-    terms = DAPMLoss()(net(torch.rand(2, 3, 48, 64), forced(normalize_pose(torch.tensor([[50.0, -30, 5, 60]] * 2)), 0.5)),
-                       targets_for(2, (48, 64)))
+    true = normalize_pose(torch.tensor([[50.0, -30, 5, 60]] * 2))
+    terms = DAPMLoss()(net(torch.rand(2, 3, 48, 64), forced(true, 0.5)), targets_for(2, (48, 64)))
     for key in ("depth", "init_depth", "dq", "pose", "init_pose", "pq", "pd"):
         g = _grads(net, terms[key])
         assert any(v for n, v in g.items() if n.startswith("encoder.")), key

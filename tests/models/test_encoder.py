@@ -31,7 +31,13 @@ def test_stages_and_strides():
 
 def test_public_names_of_the_design_contract():
     from dapm_lightning.data import UAPDDataset, parse_uapd_filename  # noqa: F401
-    from dapm_lightning.geometry import (POSE_RANGES, decode_log_depth, denormalize_pose,  # noqa: F401
-                                         encode_log_depth, ideal_ground_depth, normalize_pose)
+    from dapm_lightning.geometry import (  # noqa: F401
+        POSE_RANGES,
+        decode_log_depth,
+        denormalize_pose,
+        encode_log_depth,
+        ideal_ground_depth,
+        normalize_pose,
+    )
     from dapm_lightning.metrics import DepthMetrics, PoseMetrics  # noqa: F401
     assert POSE_RANGES["pitch"] == (-100.0, 10.0)

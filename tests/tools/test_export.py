@@ -3,8 +3,8 @@ import pytest
 import torch
 
 from dapm_lightning.cli import main
-from dapm_lightning.tools.export import export_onnx
 from dapm_lightning.models import DAPMConfig, DAPMNet
+from dapm_lightning.tools.export import export_onnx
 
 
 def test_onnx_matches_pytorch(tmp_path):
@@ -29,4 +29,5 @@ def test_cli_export(checkpoint, tmp_path, capsys):
 
 def test_depth_only_model_is_refused(tmp_path):
     with pytest.raises(ValueError, match="full DAPM"):
-        export_onnx(DAPMNet(DAPMConfig(backbone="resnet18", use_pose=False, use_igd_feature=False)).eval(), tmp_path / "m.onnx", (32, 32))
+        export_onnx(DAPMNet(DAPMConfig(backbone="resnet18", use_pose=False, use_igd_feature=False)).eval(),
+                    tmp_path / "m.onnx", (32, 32))

@@ -1,5 +1,4 @@
 import json
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -7,9 +6,8 @@ import pytest
 import torch
 from PIL import Image
 
-from dapm_lightning.training.lightning_cli import run_lightning_cli
 from dapm_lightning.tools.predict import DEPTH16_SCALE, DAPMPredictor, ImageFolderDataset, network_size, to_rgb8
-
+from dapm_lightning.training.lightning_cli import run_lightning_cli
 from tests.conftest import CONFIGS, QUICKSTART
 
 

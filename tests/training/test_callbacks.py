@@ -1,11 +1,11 @@
-from dapm_lightning.models import DAPMConfig
 from types import SimpleNamespace
 
 import pytest
 import torch
 
+from dapm_lightning.models import DAPMConfig
 from dapm_lightning.training.callbacks import IGDTeacherForcing
-from dapm_lightning.training.module import DAPMModule, warmup_cosine
+from dapm_lightning.training.module import DAPMModule, OptimizerConfig, warmup_cosine
 
 
 def test_teacher_forcing_schedule_start_middle_end():
@@ -22,7 +22,7 @@ def test_teacher_forcing_schedule_start_middle_end():
 
 
 def test_callback_sets_share_and_eval_ignores_it(monkeypatch):
-    module = DAPMModule(DAPMConfig(backbone="resnet18"))
+    module = DAPMModule(DAPMConfig(backbone="resnet18"), optimizer=OptimizerConfig(schedule_steps=120))
     module.log = lambda *a, **k: None
     trainer = SimpleNamespace(global_step=30, estimated_stepping_batches=120)
     IGDTeacherForcing().on_train_batch_start(trainer, module, None, 0)

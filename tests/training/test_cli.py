@@ -10,11 +10,12 @@ import yaml
 
 from dapm_lightning.cli import main
 from dapm_lightning.data.datamodules import DAPMDataModule, PotsdamDataModule
+from dapm_lightning.models import TeacherForcing
 from dapm_lightning.training.lightning_cli import DAPMCLI, run_lightning_cli
 from dapm_lightning.training.module import DAPMModule
 from dapm_lightning.training.viewpoints import ViewpointBreakdown
-
 from tests.conftest import CONFIGS, QUICKSTART
+
 PAPER = CONFIGS / "paper" / "uapd_dapm.yaml"
 CPU = ["--trainer.accelerator", "cpu", "--trainer.devices", "1", "--trainer.strategy", "auto",
        "--trainer.sync_batchnorm", "false", "--trainer.precision", "32-true", "--model.net.backbone", "resnet18",
@@ -127,3 +128,24 @@ def test_help_and_synth_subprocess():
 def test_main_dispatches_synth(tmp_path):
     main(["synth", "--out", str(tmp_path / "s"), "--train", "1", "--val", "1", "--size", "12", "16", "--workers", "1"])
     assert len(list((tmp_path / "s" / "train" / "rgb").glob("*.png"))) == 1
+
+
+STACKS = [[CONFIGS / "paper" / p.name] for p in sorted((CONFIGS / "paper").glob("*.yaml"))] + [
+    [PAPER, CONFIGS / "ablations" / p.name] for p in sorted((CONFIGS / "ablations").glob("*.yaml"))]
+
+
+@pytest.mark.parametrize("stack", STACKS, ids=lambda s: s[-1].stem)
+def test_the_igd_feature_reaches_the_depth_wherever_it_is_on(stack):
+    args = [a for path in stack for a in ("--config", str(path))]
+    cli = DAPMCLI(DAPMModule, DAPMDataModule, subclass_mode_data=True, run=False, auto_configure_optimizers=False,
+                  args=[*args, "--trainer.accelerator", "cpu", "--trainer.devices", "1", "--trainer.strategy", "auto",
+                        "--model.net.pretrained", "false"])
+    net = cli.model.net.eval()
+    if not net.config.use_igd_feature:
+        return
+    torch.manual_seed(0)
+    image = torch.rand(1, 3, 64, 64)
+    with torch.no_grad():
+        low, high = (net(image, TeacherForcing(net.config.igd.normalize(torch.tensor([pose])), 0.0)).depth_m
+                     for pose in ([20.0, -90.0, 0.0, 60.0], [90.0, -20.0, 10.0, 100.0]))
+    assert not torch.equal(low, high), "the depth ignores the IGD it is given"

@@ -15,12 +15,13 @@ import yaml
 
 from dapm_lightning.data import DatasetError, UAPDDataset
 from dapm_lightning.data.synthetic import generate_uapd
-from dapm_lightning.training.lightning_cli import run_lightning_cli
 from dapm_lightning.training.checkpointing import SafeCheckpointIO
+from dapm_lightning.training.lightning_cli import run_lightning_cli
 
 HERE = Path(__file__).resolve().parent
 QUICKSTART = HERE.parents[1] / "dapm_lightning" / "configs" / "quickstart.yaml"
-TINY = ["--model.net.backbone", "mobilenetv3_small_050", "--model.net.decoder_channels", "16", "--model.net.head_channels", "8",
+TINY = ["--model.net.backbone", "mobilenetv3_small_050", "--model.net.decoder_channels", "16",
+        "--model.net.head_channels", "8",
         "--model.net.pose_hidden", "32", "--data.init_args.batch_size", "2", "--data.init_args.num_workers", "0",
         "--trainer.limit_val_batches", "0", "--trainer.deterministic", "true", "--trainer.max_steps", "8",
         "--trainer.enable_progress_bar", "false"]
@@ -121,7 +122,8 @@ def test_truncated_and_foreign_checkpoints_are_clear(checkpoint, tmp_path, tiny_
     monkeypatch.chdir(tmp_path)
     with pytest.raises(RuntimeError, match="truncated.ckpt: not a readable checkpoint"):
         run_lightning_cli(["validate", "--config", str(QUICKSTART), "--ckpt_path", str(truncated)])
-    with pytest.raises(ValueError, match=r"model.net.depth_bins: checkpoint \(2, 16, 64\), this run \(2, 16, 16\)(.|\n)*Fix:"):
+    expected = r"model.net.depth_bins: checkpoint \(2, 16, 64\), this run \(2, 16, 16\)(.|\n)*Fix:"
+    with pytest.raises(ValueError, match=expected):
         run_lightning_cli(["fit", "--config", str(QUICKSTART), "--data.class_path",
                            "dapm_lightning.data.datamodules.UAPDDataModule", "--data.init_args.root", str(tiny_uapd),
                            "--data.init_args.batch_size", "2", "--data.init_args.num_workers", "0",
@@ -172,3 +174,44 @@ def test_bad_files_at_scale_are_all_listed_and_skippable(tmp_path, monkeypatch):
                              "dapm_lightning.data.datamodules.UAPDDataModule", "--data.init_args.root", str(root),
                              "--data.init_args.on_bad_file", "skip", *TINY, "--trainer.fast_dev_run", "2"])
     assert cli.trainer.global_step == 2
+
+
+DDP = ["--trainer.accelerator", "cpu", "--trainer.devices", "2", "--trainer.strategy", "ddp",
+       "--data.init_args.num_workers", "1", "--data.init_args.persistent_workers", "true",
+       "--model.optimizer.schedule_steps", "10", "--trainer.max_steps", "10"]
+
+
+@pytest.fixture(scope="module")
+def data16(tmp_path_factory):
+    return generate_uapd(tmp_path_factory.mktemp("rel16") / "d", train=16, val=2, size=(24, 32), seed=6, workers=1)
+
+
+def test_two_process_ddp_resumes_mid_epoch_exactly(data16, tmp_path):
+    """2 processes, persistent workers, 4 steps per epoch: stopped by max_steps (step 6) and by SIGTERM (step 3),
+    each resumed from last.ckpt to step 10, equal the uninterrupted run bit for bit."""
+    code, out = finish(start(tmp_path, "straight", data16, extra=DDP), timeout=400)
+    assert code == 0, out[-3000:]
+    reference = weights(tmp_path / "straight.pt")
+    assert reference["global_step"] == 10
+
+    code, out = finish(start(tmp_path, "stopped", data16, extra=[*DDP, "--trainer.max_steps", "6"]), timeout=400)
+    assert code == 0, out[-3000:]
+    assert torch.load(tmp_path / "stopped" / "last.ckpt", weights_only=True)["global_step"] == 6
+
+    terminated = start(tmp_path, "termed", data16, extra=DDP, pause=3)
+    wait_for(tmp_path / "termed.marker", terminated)
+    terminated.send_signal(signal.SIGTERM)
+    code, out = finish(terminated, timeout=400)
+    saved = torch.load(tmp_path / "termed" / "last.ckpt", weights_only=True)
+    assert saved["global_step"] == 3, out[-3000:]
+    position = next(v for k, v in saved.items() if k.endswith("DataModule"))
+    assert position == {"epoch": 0, "samples_seen": 3 * 2 * 2}  # global: 3 batches of 2 on each of 2 processes
+
+    for name in ("stopped", "termed"):
+        code, out = finish(start(tmp_path, name, data16,
+                                 extra=[*DDP, "--ckpt_path", str(tmp_path / name / "last.ckpt")]), timeout=400)
+        assert code == 0, out[-3000:]
+        resumed = weights(tmp_path / f"{name}.pt")
+        assert resumed["global_step"] == 10
+        for key, value in reference["state_dict"].items():
+            assert torch.equal(value, resumed["state_dict"][key]), f"{name}: {key} differs"

@@ -1,0 +1,47 @@
+import pytest
+
+from dapm_lightning.data.samplers import EpochShuffleSampler
+
+
+def keys(sampler):
+    return list(sampler)
+
+
+def test_order_is_a_function_of_seed_and_epoch_and_carries_the_epoch():
+    a, b = EpochShuffleSampler(10, seed=3), EpochShuffleSampler(10, seed=3)
+    a.set_epoch(1), b.set_epoch(1)
+    assert keys(a) == keys(b) and {epoch for epoch, _ in keys(a)} == {1}
+    assert sorted(i for _, i in keys(a)) == list(range(10))
+    b.set_epoch(2)
+    assert [i for _, i in keys(a)] != [i for _, i in keys(b)]
+
+
+@pytest.mark.parametrize("length", [10, 11])
+def test_processes_partition_the_one_global_order(length):
+    single = EpochShuffleSampler(length, seed=1)
+    ranks = [EpochShuffleSampler(length, seed=1, num_replicas=2, rank=r) for r in (0, 1)]
+    for sampler in (single, *ranks):
+        sampler.set_epoch(4)
+    usable = [i for _, i in keys(single)][: length - length % 2]
+    assert [i for _, i in keys(ranks[0])] == usable[0::2] and [i for _, i in keys(ranks[1])] == usable[1::2]
+    assert all(len(r) == len(keys(r)) == length // 2 for r in ranks)
+
+
+def test_resume_skips_the_global_position_on_every_rank():
+    full = [EpochShuffleSampler(16, seed=2, num_replicas=2, rank=r) for r in (0, 1)]
+    resumed = [EpochShuffleSampler(16, seed=2, num_replicas=2, rank=r) for r in (0, 1)]
+    for sampler in (*full, *resumed):
+        sampler.set_epoch(1)
+    for sampler in resumed:
+        sampler.resume(epoch=1, samples_seen=6)  # 3 batches of 2 per... 6 samples of both ranks together
+    for f, r in zip(full, resumed):
+        assert keys(r) == keys(f)[3:] and len(r) == 8  # __len__ stays the whole epoch's
+    for sampler in resumed:
+        sampler.set_epoch(2)  # the next epoch is whole again
+        assert len(keys(sampler)) == 8
+
+
+def test_evaluation_order_keeps_every_sample_once():
+    ranks = [EpochShuffleSampler(7, num_replicas=2, rank=r, shuffle=False, drop_last=False) for r in (0, 1)]
+    assert sorted(i for r in ranks for _, i in keys(r)) == list(range(7))
+    assert [len(r) for r in ranks] == [4, 3]

@@ -1,0 +1,50 @@
+"""The package's layers: no module imports a layer above its own (DEVELOPERS.md, "Layers")."""
+
+import ast
+from pathlib import Path
+
+PACKAGE = Path(__file__).resolve().parents[1] / "dapm_lightning"
+LAYERS = {"geometry": 0, "models": 1, "metrics": 1, "data": 2, "training": 3, "tools": 4, "cli": 5}
+"""Lower numbers are lower layers; a module may import its own layer and those below."""
+
+
+def layer_of(module: str) -> str | None:
+    parts = module.split(".")
+    if parts[0] != "dapm_lightning" or len(parts) < 2:
+        return None
+    return parts[1] if parts[1] in LAYERS else None
+
+
+def imports(path: Path) -> list[str]:
+    found = []
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            found.append(node.module)
+        elif isinstance(node, ast.Import):
+            found += [alias.name for alias in node.names]
+    return found
+
+
+def test_no_module_imports_a_higher_layer():
+    violations = []
+    for path in PACKAGE.rglob("*.py"):
+        own = layer_of("dapm_lightning." + ".".join(path.relative_to(PACKAGE).with_suffix("").parts))
+        if own is None:
+            continue
+        for module in imports(path):
+            target = layer_of(module)
+            if target is not None and LAYERS[target] > LAYERS[own]:
+                violations.append(f"{path.relative_to(PACKAGE)} ({own}) imports {module} ({target})")
+    assert not violations, "\n".join(violations)
+
+
+def test_models_and_geometry_never_import_lightning():
+    for layer in ("geometry", "models", "metrics"):
+        for path in (PACKAGE / layer).rglob("*.py"):
+            assert not any(m.split(".")[0] in ("lightning", "pytorch_lightning") for m in imports(path)), path
+
+
+def test_every_module_belongs_to_a_layer():
+    top = sorted(p.name for p in PACKAGE.iterdir() if p.suffix == ".py" or (p.is_dir() and p.name != "__pycache__"))
+    assert top == ["__init__.py", "__main__.py", "cli.py", "configs", "data", "geometry", "metrics", "models",
+                   "tools", "training"]

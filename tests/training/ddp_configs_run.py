@@ -1,0 +1,48 @@
+"""Under torchrun (2 processes, gloo): fit every paper config and every ablation overlay for 2 steps in one
+process group, then report, per config, the steps done and the Lightning warnings about unsynced logging.
+
+Usage: python -m torch.distributed.run --nproc_per_node 2 ddp_configs_run.py OUT.json DATA POTSDAM [CONFIG ...]
+A CONFIG is `paper/X.yaml` or `ablations/Y.yaml` (stacked on paper/uapd_dapm.yaml, as the README says).
+"""
+
+import json
+import sys
+import warnings
+from pathlib import Path
+
+import torch.distributed as dist
+
+from dapm_lightning.training.lightning_cli import run_lightning_cli
+
+CONFIGS = Path(__file__).resolve().parents[2] / "configs"
+GPU_ONLY = ["--trainer.accelerator", "cpu", "--trainer.devices", "2", "--trainer.sync_batchnorm", "false",
+            "--trainer.precision", "32-true", "--model.net.pretrained", "false"]
+SMALL_RUN = ["--trainer.max_steps", "2", "--trainer.val_check_interval", "1", "--trainer.limit_val_batches", "1",
+
+             "--trainer.enable_progress_bar", "false", "--data.init_args.batch_size", "2",
+             "--data.init_args.eval_batch_size", "2", "--data.init_args.num_workers", "1"]
+
+
+def stack(config: str) -> list[str]:
+    files = [CONFIGS / config] if config.startswith("paper/") else [CONFIGS / "paper" / "uapd_dapm.yaml",
+                                                                    CONFIGS / config]
+    return [arg for path in files for arg in ("--config", str(path))]
+
+
+if __name__ == "__main__":
+    out, data, potsdam, configs = sys.argv[1], sys.argv[2], sys.argv[3], sys.argv[4:]
+    results = {}
+    for config in configs:
+        root = ["--data.init_args.root", potsdam, "--data.init_args.crop_size", "32"] if "potsdam" in config else [
+            "--data.init_args.root", data]
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            cli = run_lightning_cli(["fit", *stack(config), *GPU_ONLY, *SMALL_RUN, *root,
+                                     "--trainer.default_root_dir", str(Path(out).parent / "runs")])
+        unsynced = [str(w.message)[:200] for w in caught if "sync_dist" in str(w.message)]
+        results[config] = {"global_step": cli.trainer.global_step, "world_size": cli.trainer.world_size,
+                           "unsynced": unsynced,
+                           "find_unused": bool(getattr(cli.trainer.strategy, "_ddp_kwargs", {})
+                                               .get("find_unused_parameters", False))}
+    if dist.get_rank() == 0:
+        Path(out).write_text(json.dumps(results, indent=1))

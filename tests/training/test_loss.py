@@ -1,0 +1,65 @@
+"""Each term of Eq. 16-19 against a value worked out by hand on a two-pixel example."""
+
+import math
+
+import pytest
+import torch
+
+from dapm_lightning.geometry import MAX_DEPTH_M, encode_log_depth, normalize_pose
+from dapm_lightning.models import DAPMOutput, DepthPrediction, PosePrediction
+from dapm_lightning.training.loss import DAPMLoss, LossConfig, silog_loss
+
+LN2 = math.log(2.0)
+
+
+def test_silog_by_hand():
+    # g = (ln 2, 0): mean(g^2) = ln2^2 / 2, mean(g)^2 = ln2^2 / 4 -> 10 * sqrt(ln2^2 (1/2 - 0.85/4))
+    value = silog_loss(torch.tensor([2.0, 4.0]), torch.tensor([1.0, 4.0]), torch.tensor([True, True]))
+    assert value.item() == pytest.approx(10 * LN2 * math.sqrt(0.5 - 0.85 / 4), rel=1e-6)
+
+
+def example():
+    """Pixel 0: ground at 10 m, predicted 20 m; pixel 1: sky. Pose: nadir, height 46 m, predicted 55 m."""
+    depth = torch.tensor([[[[10.0, MAX_DEPTH_M]]]])
+    predicted = encode_log_depth(torch.tensor([[[[20.0, MAX_DEPTH_M]]]]))
+    depth_prediction = DepthPrediction(
+        depth_norm=predicted, depth_init_norm=predicted, depth_m=torch.tensor([[[[20.0, MAX_DEPTH_M]]]]),
+        sky_logits=torch.zeros(1, 1, 1, 2), bin_logits=(torch.zeros(1, 16, 1, 2), torch.zeros(1, 64, 1, 2)),
+        igd_norm=None, refined=True)
+    true_pose = torch.tensor([[46.0, -90.0, 0.0, 60.0]])
+    pose = torch.tensor([[55.0, -90.0, 0.0, 60.0]])
+    pose_norm = normalize_pose(pose)
+    pose_prediction = PosePrediction(pose_norm=pose_norm, pose_init_norm=normalize_pose(true_pose), pose=pose,
+                                     bin_logits=(torch.zeros(1, 4, 16), torch.zeros(1, 4, 64)), refined=True)
+    targets = dict(depth=depth, sky=depth >= MAX_DEPTH_M, valid=torch.ones_like(depth, dtype=torch.bool),
+                   pose=true_pose, has_pose=torch.tensor([True]))
+    return DAPMOutput(depth_prediction, pose_prediction), targets
+
+
+def test_every_term_and_the_total_by_hand():
+    out, targets = example()
+    terms = DAPMLoss(LossConfig(igd_loss_stride=4))(out, targets)
+    one_pixel_silog = 10 * LN2 * math.sqrt(1 - 0.85)  # Eq. 17 with g = ln 2 on the one ground pixel
+    assert terms["depth"].item() == pytest.approx(one_pixel_silog, rel=1e-5)
+    assert terms["init_depth"].item() == pytest.approx(one_pixel_silog, rel=1e-5)
+    # Eq. 16: BCE of logit 0 on both valid pixels (ln 2) + CE of uniform 16 and 64 bins on the ground pixel
+    assert terms["dq"].item() == pytest.approx(LN2 + math.log(16) + math.log(64), rel=1e-6)
+    # Eq. 18: uniform bins, the mean over the 4 components of ln n
+    assert terms["pq"].item() == pytest.approx(math.log(16) + math.log(64), rel=1e-6)
+    # refined pose: height off by 9 m of a 90 m range, in 1 of 4 components
+    assert terms["pose"].item() == pytest.approx((9 / 90) ** 2 / 4, rel=1e-5)
+    assert terms["init_pose"].item() == pytest.approx(0.0, abs=1e-12)
+    # L_pd: a 1x1 IGD of a nadir camera sees the ground at the camera height
+    igd = (math.log2(56) - math.log2(47)) / math.log2(1001)
+    assert terms["pd"].item() == pytest.approx(igd ** 2, rel=1e-4)
+    expected = (terms["depth"] + 10 * terms["pose"] + terms["init_depth"] + terms["init_pose"] + terms["dq"]
+                + terms["pq"] + 10 * terms["pd"])  # Eq. 19, rho = 10
+    assert terms["total"].item() == pytest.approx(expected.item(), rel=1e-6)
+
+
+def test_switched_off_terms_are_absent():
+    out, targets = example()
+    terms = DAPMLoss(LossConfig(use_igd_loss=False))(out, targets)
+    assert "pd" not in terms
+    unrefined = out._replace(depth=out.depth._replace(refined=False, sky_logits=None, bin_logits=()))
+    assert set(DAPMLoss()(unrefined, targets)) == {"init_depth", "init_pose", "pose", "pq", "pd", "total"}
