@@ -1,0 +1,57 @@
+"""Metric point clouds (design.md §1 world frame) from a depth map and the camera's pose."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from dapm_lightning.geometry.camera import camera_rays
+from dapm_lightning.geometry.constants import MAX_DEPTH_M
+from dapm_lightning.geometry.igd import DepthKind
+
+
+def depth_to_points(depth_m: Tensor, pose: Tensor, *, depth_kind: DepthKind = "range") -> Tensor:
+    """World coordinates of every pixel's 3D point: origin on the ground under the camera, Z up.
+
+    Args:
+        depth_m: ``[B, 1, H, W]`` or ``[B, H, W]`` metres, of the kind ``depth_kind``.
+        pose: ``[B, 4]`` (height m, pitch deg, roll deg, fov deg); the FoV spans the width ``W``.
+        depth_kind: ``"range"`` (lens to point) or ``"planar"`` (along the optical axis).
+
+    Returns:
+        ``[B, H, W, 3]`` metres (X the horizontal direction of the optical axis, Y to its left, Z up).
+        Pixels at or beyond the depth limit (sky) get points too; mask them with :func:`valid_points`.
+
+    Convention:
+        The camera sits at ``(0, 0, height)``. A nadir camera (pitch -90) at 50 m whose centre pixel
+        reads 50 m puts that point at ``(0, 0, 0)``; a depth equal to the Ideal Ground Depth of the pose
+        puts every ground pixel at ``z = 0``.
+    """
+    if depth_m.ndim == 4:
+        if depth_m.shape[1] != 1:
+            raise ValueError(f"depth_m must be [B, 1, H, W] or [B, H, W], got {tuple(depth_m.shape)}")
+        depth_m = depth_m[:, 0]
+    if depth_m.ndim != 3:
+        raise ValueError(f"depth_m must be [B, 1, H, W] or [B, H, W], got {tuple(depth_m.shape)}")
+    if pose.ndim != 2 or pose.shape != (depth_m.shape[0], 4):
+        raise ValueError(f"pose must be [B, 4] with B = {depth_m.shape[0]}, got {tuple(pose.shape)}")
+    if depth_kind not in ("range", "planar"):
+        raise ValueError(f"depth_kind must be 'range' or 'planar', got {depth_kind!r}")
+    pose = pose.to(depth_m.dtype)
+    size = (int(depth_m.shape[1]), int(depth_m.shape[2]))
+    rays = camera_rays(pose[:, 1], pose[:, 2], pose[:, 3], size)  # [B, H, W, 3], unit component along the axis
+    if depth_kind == "range":
+        rays = rays / torch.linalg.vector_norm(rays, dim=-1, keepdim=True)
+    camera = torch.zeros_like(pose[:, :3])
+    camera[:, 2] = pose[:, 0]
+    return camera[:, None, None, :] + depth_m[..., None] * rays
+
+
+def valid_points(depth_m: Tensor, max_depth: float = MAX_DEPTH_M, min_depth: float = 0.0) -> Tensor:
+    """``[B, H, W]`` bool: pixels whose depth is finite, above ``min_depth`` and below ``max_depth`` (not sky)."""
+    if depth_m.ndim == 4:
+        depth_m = depth_m[:, 0]
+    return torch.isfinite(depth_m) & (depth_m > min_depth) & (depth_m < max_depth)
+
+
+__all__ = ["depth_to_points", "valid_points"]
