@@ -47,6 +47,35 @@ def depth_to_points(depth_m: Tensor, pose: Tensor, *, depth_kind: DepthKind = "r
     return camera[:, None, None, :] + depth_m[..., None] * rays
 
 
+def camera_to_world(pose: Tensor) -> Tensor:
+    """Pose of the camera in the world frame of design.md §1, as a rigid transform.
+
+    Args:
+        pose: ``[B, 4]`` (height m, pitch deg, roll deg, fov deg).
+
+    Returns:
+        ``[B, 4, 4]``: maps camera coordinates (x right, y down, z forward; the frame of
+        :func:`~dapm_lightning.geometry.camera.intrinsics_matrix`) to world coordinates (origin on the
+        ground under the camera, Z up). Its rotation columns are ``R'``, ``D'`` and ``F``, its translation
+        ``(0, 0, height)``.
+
+    Convention:
+        A nadir camera (pitch -90, roll 0) looks along ``-Z``; its image right is world ``-Y``.
+    """
+    if pose.ndim != 2 or pose.shape[1] != 4:
+        raise ValueError(f"pose must be [B, 4] (height, pitch, roll, fov), got {tuple(pose.shape)}")
+    p, r = torch.deg2rad(pose[:, 1]), torch.deg2rad(pose[:, 2])
+    sp, cp, sr, cr = torch.sin(p), torch.cos(p), torch.sin(r), torch.cos(r)
+    zero = torch.zeros_like(p)
+    right = torch.stack((sr * sp, -cr, -sr * cp), -1)  # R' = cos r R + sin r D
+    down = torch.stack((cr * sp, sr, -cr * cp), -1)  # D' = -sin r R + cos r D
+    forward = torch.stack((cp, zero, sp), -1)
+    transform = torch.zeros(pose.shape[0], 4, 4, dtype=pose.dtype, device=pose.device)
+    transform[:, :3, 0], transform[:, :3, 1], transform[:, :3, 2] = right, down, forward
+    transform[:, 2, 3], transform[:, 3, 3] = pose[:, 0], 1.0
+    return transform
+
+
 def valid_points(depth_m: Tensor, max_depth: float = MAX_DEPTH_M, min_depth: float = 0.0) -> Tensor:
     """``[B, H, W]`` bool: pixels whose depth is finite, above ``min_depth`` and below ``max_depth`` (not sky)."""
     if depth_m.ndim == 4:
@@ -54,4 +83,4 @@ def valid_points(depth_m: Tensor, max_depth: float = MAX_DEPTH_M, min_depth: flo
     return torch.isfinite(depth_m) & (depth_m > min_depth) & (depth_m < max_depth)
 
 
-__all__ = ["depth_to_points", "valid_points"]
+__all__ = ["camera_to_world", "depth_to_points", "valid_points"]

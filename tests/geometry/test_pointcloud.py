@@ -3,7 +3,14 @@ import math
 import pytest
 import torch
 
-from dapm_lightning.geometry import MAX_DEPTH_M, depth_to_points, ideal_ground_depth, intrinsics_matrix, valid_points
+from dapm_lightning.geometry import (
+    MAX_DEPTH_M,
+    camera_to_world,
+    depth_to_points,
+    ideal_ground_depth,
+    intrinsics_matrix,
+    valid_points,
+)
 
 POSES = [[50.0, -90.0, 0.0, 60.0], [30.0, -45.0, 12.0, 90.0], [80.0, -20.0, -25.0, 110.0],
          [15.0, -70.0, 30.0, 35.0], [40.0, 5.0, -10.0, 75.0]]
@@ -47,6 +54,11 @@ def test_points_project_back_through_k():
     right, down = math.cos(r) * right0 + math.sin(r) * down0, -math.sin(r) * right0 + math.cos(r) * down0
     camera = torch.stack([planar @ right, planar @ down, planar @ forward], -1)  # camera frame: x right, y down, z fwd
     torch.testing.assert_close(camera[..., 2], depth[0, 0])  # planar depth is the z of the camera frame
+    transform = camera_to_world(pose)[0]  # the same camera frame as a 4x4 rigid transform
+    torch.testing.assert_close(transform[:3, :3], torch.stack([right, down, forward], 1))
+    torch.testing.assert_close(transform[:3, :3].T @ transform[:3, :3], torch.eye(3, dtype=torch.float64))
+    world = camera @ transform[:3, :3].T + transform[:3, 3]
+    torch.testing.assert_close(world, planar + torch.tensor([0.0, 0.0, 35.0], dtype=torch.float64))
     pixels = camera @ intrinsics_matrix(pose[:, 3], (h, w))[0].T
     jj, ii = torch.meshgrid(torch.arange(w, dtype=torch.float64), torch.arange(h, dtype=torch.float64), indexing="xy")
     torch.testing.assert_close(pixels[..., 0] / pixels[..., 2], jj + 0.5)
