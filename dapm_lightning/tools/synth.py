@@ -51,6 +51,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--shard", type=parse_shard, default=(0, 1), metavar="K/N",
                         help="render only part K of N (0-based) of the image list, e.g. $SLURM_ARRAY_TASK_ID/16; "
                              "all N parts together are byte-identical to one run")
+    parser.add_argument("--distortion", action="store_true",
+                        help="random radial lens distortion per image (k in [-0.5, 0.5], kcube in [-0.2, 0.2], "
+                             "written into the name), applied to image and depth alike")
     parser.add_argument("--no-effects", dest="effects", action="store_false",
                         help="no camera processing (exposure, white balance, blur, noise, JPEG artefacts)")
     return parser
@@ -69,7 +72,8 @@ def synth_main(argv: Sequence[str]) -> None:
     start = time.perf_counter()
     try:
         out = generate_uapd(args.out, train=args.train, val=args.val, size=size, seed=args.seed,
-                            workers=args.workers, families=args.families, effects=args.effects, shard=args.shard)
+                            workers=args.workers, families=args.families, effects=args.effects, shard=args.shard,
+                            distortion=args.distortion)
     except ValueError as error:
         parser.error(str(error))
     seconds = time.perf_counter() - start

@@ -181,3 +181,23 @@ def test_slurm_array_script_renders_the_shards(tmp_path):
     whole = generate_uapd(tmp_path / "whole", train=3, val=1, size=12, seed=5, workers=1,
                           families="suburb=1,forest=1")
     assert digest(whole) == digest(tmp_path / "array") and len(list(whole.rglob("*.png"))) == 8
+
+
+def test_lens_distortion_warps_image_and_depth_alike(tmp_path):
+    from dapm_lightning.data.synthetic.lens import distort, distortion_maps
+
+    rng = image_seed(2, "train", 0)
+    pose = sample_pose(rng)
+    rgb, range_m, hit = render_scene(pose, (33, 47), sample_scene(rng, "suburb"), effects=False)
+    same = distort(rgb, range_m, hit, 0.0, 0.0)
+    assert (same[0] == rgb).all() and np.array_equal(same[1], range_m) and (same[2] == hit).all()
+    warped_rgb, warped_m, warped_hit = distort(rgb, range_m, hit, 0.4, -0.1)
+    map_x, map_y = distortion_maps((33, 47), 0.4, -0.1)
+    src = (np.clip(np.round(map_y), 0, 32).astype(int), np.clip(np.round(map_x), 0, 46).astype(int))
+    np.testing.assert_array_equal(warped_m, range_m[src])  # every depth is the range of the pixel it shows
+    np.testing.assert_array_equal(warped_hit, hit[src])
+    assert warped_m[16, 23] == range_m[16, 23] and not np.array_equal(warped_m, range_m)
+    root = generate_uapd(tmp_path / "lens", train=2, val=0, size=16, seed=1, workers=1, distortion=True)
+    names = UAPDDataset(root, "train").names
+    assert all("lensk" in parse_uapd_filename(n) for n in names)
+    assert json.loads((root / "synth.json").read_text())["distortion"] is True

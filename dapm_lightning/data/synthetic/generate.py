@@ -13,8 +13,10 @@ import cv2
 import numpy as np
 import torch
 
+from dapm_lightning.data.synthetic.lens import distort, sample_lens
 from dapm_lightning.data.synthetic.render import render_scene
 from dapm_lightning.data.synthetic.scene import Scene, normalize_families, sample_scene
+from dapm_lightning.data.synthetic.shading import camera_effects
 from dapm_lightning.geometry.constants import MAX_DEPTH_M, POSE_KEYS, POSE_RANGES
 from dapm_lightning.geometry.depth_codec import depth_to_grey
 
@@ -34,41 +36,56 @@ def image_seed(seed: int, split: str, index: int) -> np.random.Generator:
     return np.random.default_rng([seed, _SPLIT_IDS.get(split, 9), index])
 
 
-def uapd_name(index: int, pose: np.ndarray, scene: Scene) -> str:
-    """UAPD-style file name carrying the pose (x, y, yaw as metadata, the family as a loose token)."""
+def uapd_name(index: int, pose: np.ndarray, scene: Scene, lens: tuple[float, float] | None = None) -> str:
+    """UAPD-style file name carrying the pose (x, y, yaw, lens k and kcube as metadata, the family as a token)."""
     height, pitch, roll, fov = (float(v) for v in pose)
     x, y = scene.camera_xy
+    distortion = f"_lensk_{lens[0]:.3f}_lenskcube_{lens[1]:.3f}" if lens else ""
     return (f"synth_{index:06d}_{scene.family}_x_{x:.2f}_y_{y:.2f}_z_{height:.2f}_pitch_{pitch:.2f}_roll_{roll:.2f}"
-            f"_yaw_{scene.yaw_deg:.2f}_fov_{fov:.2f}.png")
+            f"_yaw_{scene.yaw_deg:.2f}_fov_{fov:.2f}{distortion}.png")
 
 
 def render_sample(seed: int, split: str, index: int, size: tuple[int, int],
-                  families: dict[str, float] | None = None, effects: bool = True
+                  families: dict[str, float] | None = None, effects: bool = True, distortion: bool = False
                   ) -> tuple[str, np.ndarray, np.ndarray, np.ndarray]:
-    """``(name, rgb uint8, depth grey uint8, hit map)`` of one image of a data set."""
+    """``(name, rgb uint8, depth grey uint8, hit map)`` of one image of a data set.
+
+    With ``distortion``, lens coefficients are drawn from a stream of their own (the pose and scene
+    stay those of the undistorted image) and image and depth are warped alike (:mod:`.lens`).
+    """
     rng = image_seed(seed, split, index)
     pose = sample_pose(rng)
     scene = sample_scene(rng, families=families)
-    rgb, depth_m, hit = render_scene(pose, size, scene, effects=effects)
+    lens = None
+    if distortion:
+        lens = sample_lens(np.random.default_rng([seed, _SPLIT_IDS.get(split, 9), index, 1]))
+        rgb, depth_m, hit = render_scene(pose, size, scene, effects=False)
+        rgb, depth_m, hit = distort(rgb, depth_m, hit, *lens)
+        if effects:
+            rgb = camera_effects(rgb / 255.0, scene.look, np.random.default_rng(scene.texture_seed))
+    else:
+        rgb, depth_m, hit = render_scene(pose, size, scene, effects=effects)
     grey = depth_to_grey(np.where(np.isfinite(depth_m), depth_m, MAX_DEPTH_M))
-    return uapd_name(index, pose, scene), rgb, grey, hit
+    return uapd_name(index, pose, scene, lens), rgb, grey, hit
 
 
-def _render_one(job: tuple[Path, str, int, int, tuple[int, int], dict[str, float], bool]) -> str:
-    out, split, index, seed, size, families, effects = job
+def _render_one(job: tuple[Path, str, int, int, tuple[int, int], dict[str, float], bool, bool]) -> str:
+    out, split, index, seed, size, families, effects, distortion = job
     torch.set_num_threads(1)
-    name, rgb, grey, _ = render_sample(seed, split, index, size, families, effects)
+    name, rgb, grey, _ = render_sample(seed, split, index, size, families, effects, distortion)
     cv2.imwrite(str(out / split / "rgb" / name), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
     cv2.imwrite(str(out / split / "depth" / name), grey)
     return name
 
 
 def settings(*, train: int, val: int, size: int | tuple[int, int], seed: int,
-             families: dict[str, float] | str | None = None, effects: bool = True) -> dict[str, Any]:
+             families: dict[str, float] | str | None = None, effects: bool = True,
+             distortion: bool = False) -> dict[str, Any]:
     """What ``synth.json`` records; two data sets with equal settings hold the same bytes."""
     hw = [size, size] if isinstance(size, int) else [int(s) for s in size]
     return {"train": int(train), "val": int(val), "size": hw, "seed": int(seed),
-            "families": normalize_families(families), "effects": bool(effects), "depth_kind": "range",
+            "families": normalize_families(families), "effects": bool(effects),
+            "distortion": bool(distortion), "depth_kind": "range",
             "max_depth": MAX_DEPTH_M, "generator": "dapm_lightning.data.synthetic", "version": GENERATOR_VERSION}
 
 
@@ -93,7 +110,7 @@ def shard_range(count: int, shard: tuple[int, int]) -> range:
 
 def generate_uapd(out: str | Path, *, train: int = 200, val: int = 50, size: int | tuple[int, int] = 128,
                   seed: int = 0, workers: int | None = None, families: dict[str, float] | str | None = None,
-                  effects: bool = True, shard: tuple[int, int] = (0, 1)) -> Path:
+                  effects: bool = True, shard: tuple[int, int] = (0, 1), distortion: bool = False) -> Path:
     """Write a synthetic UAPD-format data set ``out/{train,val}/{rgb,depth}/NAME.png``.
 
     Args:
@@ -105,6 +122,8 @@ def generate_uapd(out: str | Path, *, train: int = 200, val: int = 50, size: int
         families: weights of the scene families (``{"downtown": 2, "forest": 1}`` or ``"downtown=2,forest=1"``;
             default: every family equally).
         effects: camera processing (exposure, blur, noise, JPEG artefacts).
+        distortion: radial lens distortion of random strength per image (:mod:`.lens`), applied to
+            image and depth alike (the depth is then consistent with the image, not pinhole).
         shard: ``(k, n)``: render only the k-th (0-based) of n contiguous parts of the image list, for
             array jobs; the union of all shards is byte-identical to one run.
 
@@ -114,10 +133,12 @@ def generate_uapd(out: str | Path, *, train: int = 200, val: int = 50, size: int
     """
     out = Path(out)
     hw = (size, size) if isinstance(size, int) else (int(size[0]), int(size[1]))
-    info = settings(train=train, val=val, size=hw, seed=seed, families=families, effects=effects)
+    info = settings(train=train, val=val, size=hw, seed=seed, families=families, effects=effects,
+                    distortion=distortion)
     weights = info["families"]
     stale = (out / "synth.json").is_file() and not is_current(out, train=train, val=val, size=hw, seed=seed,
-                                                               families=families, effects=effects)
+                                                               families=families, effects=effects,
+                                                               distortion=distortion)
     if stale and shard[1] > 1:
         raise ValueError(f"{out} holds a data set rendered with other settings ({out / 'synth.json'}); "
                          "remove it or choose another folder before rendering shards into it")
@@ -130,7 +151,7 @@ def generate_uapd(out: str | Path, *, train: int = 200, val: int = 50, size: int
     for split, count in (("train", train), ("val", val)):
         for sub in ("rgb", "depth"):
             (out / split / sub).mkdir(parents=True, exist_ok=True)
-        jobs += [(out, split, i, seed, hw, weights, effects) for i in range(count)]
+        jobs += [(out, split, i, seed, hw, weights, effects, distortion) for i in range(count)]
     jobs = [jobs[i] for i in shard_range(len(jobs), shard)]
     workers = workers or min(os.cpu_count() or 1, 8)
     if workers > 1 and len(jobs) > 1:
