@@ -52,22 +52,35 @@ def usage() -> str:
     lines = ["usage: dapm-lightning SUBCOMMAND [--help] ...", "",
              "DAPM: metric depth and camera pose (height, pitch, roll, FoV) from one UAV image.", "",
              "subcommands:"] + [f"  {name:<15}{text}" for name, text in rows]
-    lines += ["", "`dapm-lightning SUBCOMMAND --help` lists every setting of one subcommand."]
+    lines += ["", "`dapm-lightning SUBCOMMAND --help` lists every setting of one subcommand; errors show a",
+              "short message, and the Python traceback with --debug (or DAPM_DEBUG=1)."]
     return "\n".join(lines)
 
 
 def main(argv: Sequence[str] | None = None) -> None:
-    """Entry point of ``dapm-lightning``."""
-    args = list(sys.argv[1:] if argv is None else argv)
+    """Entry point of ``dapm-lightning``.
+
+    User errors (bad paths, data, checkpoints, settings) end in a short message and exit status 1;
+    ``--debug`` anywhere on the command line (or ``DAPM_DEBUG=1``) shows the traceback instead.
+    """
+    from dapm_lightning.tools.errors import debug_requested, run_reporting_errors
+
+    debug, args = debug_requested(sys.argv[1:] if argv is None else argv)
     if not args or args[0] in ("-h", "--help"):
         print(usage())
         return
     if args[0] in TOOLS:
         module_name, function, _ = TOOLS[args[0]]
-        result = getattr(importlib.import_module(module_name), function)(args[1:])
+        entry = getattr(importlib.import_module(module_name), function)
+        result = run_reporting_errors(lambda: entry(args[1:]), debug)
         if isinstance(result, int):
             raise SystemExit(result)
         return
+    if args[0] not in LIGHTNING_SUBCOMMANDS and not args[0].startswith("-"):
+        print(f"error: unknown subcommand {args[0]!r}\n\n{usage()}", file=sys.stderr)
+        raise SystemExit(2)
     from dapm_lightning.training.lightning_cli import run_lightning_cli
 
-    run_lightning_cli(None if argv is None else args)
+    if argv is None:  # LightningCLI reads sys.argv itself (and warns when given both): without --debug
+        sys.argv = [sys.argv[0], *args]
+    run_reporting_errors(lambda: run_lightning_cli(None if argv is None else args), debug)

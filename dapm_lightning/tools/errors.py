@@ -1,0 +1,82 @@
+"""User errors as short messages: what went wrong with which file, the fix, and a non-zero exit status.
+
+``dapm-lightning`` runs every subcommand through :func:`run_reporting_errors`: bad paths, bad data
+(:class:`~dapm_lightning.data.errors.DatasetError`), unreadable checkpoints and bad settings end in two or
+three lines on stderr and exit status 1. The Python traceback is shown only with ``--debug`` (anywhere on
+the command line) or ``DAPM_DEBUG=1``.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import sys
+from collections.abc import Callable, Sequence
+from typing import Any, TextIO
+
+from dapm_lightning.data.errors import DatasetError
+
+DEBUG_FLAG = "--debug"
+DEBUG_ENV = "DAPM_DEBUG"
+EXIT_ERROR = 1
+EXIT_INTERRUPTED = 130
+_PATH_ERRORS = (FileNotFoundError, NotADirectoryError, IsADirectoryError, PermissionError)
+_WORKER_TAIL = re.compile(r"^(?:[\w.]+\.)?(\w*(?:Error|Exception)): ", re.MULTILINE)
+
+
+def debug_requested(argv: Sequence[str]) -> tuple[bool, list[str]]:
+    """``(debug?, argv without --debug)``: the flag or ``DAPM_DEBUG`` set to anything but ``0``/empty."""
+    args = list(argv)
+    flag = DEBUG_FLAG in args
+    env = os.environ.get(DEBUG_ENV, "").strip().lower() not in ("", "0", "false", "no")
+    return flag or env, [a for a in args if a != DEBUG_FLAG]
+
+
+def _unwrap(error: BaseException) -> tuple[str, str]:
+    """``(type name, message)``, with a DataLoader worker's wrapped exception reduced to the original's."""
+    message = str(error).strip()
+    if "Original Traceback" in message:  # re-raised from a DataLoader worker: keep the original's last lines
+        matches = list(_WORKER_TAIL.finditer(message))
+        if matches:
+            return matches[-1].group(1), message[matches[-1].end():].strip()
+    return type(error).__name__, message
+
+
+def describe(error: BaseException) -> tuple[str, bool]:
+    """``(message, expected)`` for an exception: ``expected`` is False for what looks like a bug."""
+    name, message = _unwrap(error)
+    if isinstance(error, DatasetError) or name == "DatasetError":
+        fix = ("Fix: correct or remove the files listed (`dapm-lightning doctor ROOT` reports on a whole data "
+               "set), or leave them out with --data.init_args.on_bad_file skip.")
+        return f"{message}\n{fix}", True
+    if isinstance(error, _PATH_ERRORS):
+        fix = f"Fix: check the path (relative paths start from the current directory, {os.getcwd()})."
+        return (message if "Fix" in message else f"{message}\n{fix}"), True
+    if "not a readable checkpoint" in message:
+        return (f"{message}\nFix: copy the checkpoint again (a file cut short by a full disk or an interrupted "
+                "transfer cannot be read) or pick another one, e.g. the run's last.ckpt."), True
+    if isinstance(error, (ValueError, KeyError)) or name in ("ValueError", "DatasetError"):
+        return message, True
+    if isinstance(error, (RuntimeError, ImportError, OSError)):
+        return f"{name}: {message}", True
+    return f"{name}: {message}\n(an unexpected error, possibly a bug: rerun with --debug and report the traceback)", \
+        False
+
+
+def run_reporting_errors(function: Callable[[], Any], debug: bool, stream: TextIO | None = None) -> Any:
+    """Call ``function``; on an exception print a short message and exit 1 (re-raise it when ``debug``)."""
+    stream = stream or sys.stderr
+    try:
+        return function()
+    except KeyboardInterrupt:
+        if debug:
+            raise
+        print("\ninterrupted", file=stream)
+        raise SystemExit(EXIT_INTERRUPTED) from None
+    except Exception as error:
+        if debug:
+            raise
+        message, _ = describe(error)
+        print(f"error: {message}", file=stream)
+        print(f"(traceback: rerun with {DEBUG_FLAG} or {DEBUG_ENV}=1)", file=stream)
+        raise SystemExit(EXIT_ERROR) from None

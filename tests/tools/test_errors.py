@@ -1,0 +1,81 @@
+"""User errors end in a short message naming the file and the fix, exit status 1, and no traceback."""
+
+import os
+import subprocess
+import sys
+
+import pytest
+
+from dapm_lightning.cli import main
+from dapm_lightning.data.errors import DatasetError
+from dapm_lightning.tools.errors import debug_requested, describe
+from tests.conftest import CONFIGS, QUICKSTART
+
+
+def run_main(args, capsys):
+    with pytest.raises(SystemExit) as info:
+        main(args)
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    return info.value.code, err
+
+
+def test_missing_data_folder(tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    code, err = run_main(["fit", "--config", str(QUICKSTART), "--data.class_path",
+                          "dapm_lightning.data.datamodules.UAPDDataModule", "--data.init_args.root",
+                          str(tmp_path / "nowhere"), "--trainer.logger", "false"], capsys)
+    assert code == 1
+    assert f"{tmp_path / 'nowhere' / 'train'}: missing folder" in err and "Fix:" in err and "--debug" in err
+
+
+def test_missing_and_damaged_checkpoints_and_sources(checkpoint, tmp_path, capsys):
+    predict = ["predict", "--config", str(CONFIGS / "predict.yaml"), "--data.init_args.source", str(tmp_path)]
+    code, err = run_main([*predict, "--ckpt_path", str(tmp_path / "missing.ckpt")], capsys)
+    assert code == 1 and "missing.ckpt" in err and "Fix: check the path" in err
+    damaged = tmp_path / "cut.ckpt"
+    damaged.write_bytes(checkpoint.read_bytes()[:4096])
+    code, err = run_main([*predict, "--ckpt_path", str(damaged)], capsys)
+    assert code == 1 and f"{damaged}: not a readable checkpoint" in err and "Fix: copy the checkpoint again" in err
+    code, err = run_main(["predict", "--config", str(CONFIGS / "predict.yaml"), "--ckpt_path", str(checkpoint),
+                          "--data.init_args.source", str(tmp_path / "photos"), "--trainer.callbacks.output_dir",
+                          str(tmp_path / "out")], capsys)
+    assert code == 1 and f"{tmp_path / 'photos'}: no such file or folder" in err
+
+
+def test_bad_setting_and_debug_flag(capsys, monkeypatch):
+    args = ["fit", "--config", str(QUICKSTART), "--model.net.head_stride", "3", "--trainer.logger", "false"]
+    code, err = run_main(args, capsys)
+    assert code == 1 and "head_stride must be 1, 2, 4 or 8, got 3" in err
+    with pytest.raises(ValueError, match="head_stride"):  # --debug: the exception itself, with its traceback
+        main([*args, "--debug"])
+    monkeypatch.setenv("DAPM_DEBUG", "1")
+    with pytest.raises(ValueError, match="head_stride"):
+        main(args)
+    assert debug_requested(["fit", "--debug"]) == (True, ["fit"])
+    monkeypatch.setenv("DAPM_DEBUG", "0")
+    assert debug_requested(["fit"]) == (False, ["fit"])
+
+
+def test_messages_of_wrapped_and_unexpected_errors():
+    wrapped = RuntimeError("Caught DatasetError in DataLoader worker process 0.\nOriginal Traceback (most recent "
+                           "call last):\n  File \"x.py\", line 1, in f\ndapm_lightning.data.errors.DatasetError: "
+                           "/d/train: 1 problem(s) found:\n  /d/train/rgb/a.png: cannot be decoded as an image")
+    message, expected = describe(wrapped)
+    assert message.startswith("/d/train: 1 problem(s)") and "a.png" in message and "Fix:" in message and expected
+    message, expected = describe(DatasetError("/d", ["/d/x.png: bad"]))
+    assert "/d/x.png: bad" in message and expected
+    message, expected = describe(TypeError("unsupported operand"))
+    assert not expected and "possibly a bug" in message and "--debug" in message
+
+
+def test_real_process_exit_status_and_traceback_only_on_request(tmp_path):
+    env = {k: v for k, v in os.environ.items() if k != "DAPM_DEBUG"}
+    command = [sys.executable, "-m", "dapm_lightning", "export", "--ckpt_path", str(tmp_path / "gone.ckpt")]
+    quiet = subprocess.run(command, capture_output=True, text=True, env=env)
+    assert quiet.returncode == 1 and "gone.ckpt" in quiet.stderr and "Traceback" not in quiet.stderr
+    loud = subprocess.run(command, capture_output=True, text=True, env={**env, "DAPM_DEBUG": "1"})
+    assert loud.returncode == 1 and "Traceback" in loud.stderr
+    unknown = subprocess.run([sys.executable, "-m", "dapm_lightning", "trian"], capture_output=True, text=True,
+                             env=env)
+    assert unknown.returncode == 2 and "unknown subcommand 'trian'" in unknown.stderr and "fit" in unknown.stderr
