@@ -69,6 +69,14 @@ def test_messages_of_wrapped_and_unexpected_errors():
     assert not expected and "possibly a bug" in message and "--debug" in message
 
 
+def test_unknown_subcommand(capsys):
+    with pytest.raises(SystemExit) as info:
+        main(["trian"])
+    err = capsys.readouterr().err
+    assert info.value.code == 2 and "unknown subcommand 'trian'" in err and "fit" in err
+
+
+@pytest.mark.slow
 def test_real_process_exit_status_and_traceback_only_on_request(tmp_path):
     env = {k: v for k, v in os.environ.items() if k != "DAPM_DEBUG"}
     command = [sys.executable, "-m", "dapm_lightning", "export", "--ckpt_path", str(tmp_path / "gone.ckpt")]
@@ -76,6 +84,3 @@ def test_real_process_exit_status_and_traceback_only_on_request(tmp_path):
     assert quiet.returncode == 1 and "gone.ckpt" in quiet.stderr and "Traceback" not in quiet.stderr
     loud = subprocess.run(command, capture_output=True, text=True, env={**env, "DAPM_DEBUG": "1"})
     assert loud.returncode == 1 and "Traceback" in loud.stderr
-    unknown = subprocess.run([sys.executable, "-m", "dapm_lightning", "trian"], capture_output=True, text=True,
-                             env=env)
-    assert unknown.returncode == 2 and "unknown subcommand 'trian'" in unknown.stderr and "fit" in unknown.stderr
