@@ -43,8 +43,13 @@ class EpochShuffleSampler(DistributedSampler[SampleKey]):
         self.skip_epoch, self.skip_samples = -1, 0
 
     def resume(self, epoch: int, samples_seen: int) -> None:
-        """Skip the first ``samples_seen`` samples of the global order of ``epoch`` (all processes together)."""
+        """Skip the first ``samples_seen`` samples of the global order of ``epoch`` (all processes together).
+
+        Also sets the epoch: loader workers prefetch from the sampler as soon as Lightning builds the
+        resumed loader's iterator, which can come before its ``set_epoch`` call.
+        """
         self.skip_epoch, self.skip_samples = epoch, samples_seen
+        self.set_epoch(epoch)
 
     def _global_order(self) -> list[int]:
         if self.shuffle:

@@ -13,7 +13,7 @@ from lightning.pytorch.utilities import rank_zero_warn
 from torch import Tensor
 
 from dapm_lightning.data.sample import depth_masks
-from dapm_lightning.metrics import DepthMetrics, PoseMetrics
+from dapm_lightning.metrics import AuthorsDepthMetrics, DepthMetrics, PoseMetrics
 from dapm_lightning.models.config import DAPMConfig
 from dapm_lightning.models.dapm import DAPMNet, DAPMOutput
 from dapm_lightning.models.teacher_forcing import TeacherForcing
@@ -74,7 +74,11 @@ class DAPMModule(L.LightningModule):
         net: the network's settings (:class:`~dapm_lightning.models.config.DAPMConfig`), ``model.net`` in configs.
         loss: the loss' weights and switches (:class:`~dapm_lightning.training.loss.LossConfig`), ``model.loss``.
         optimizer: AdamW and its schedule (:class:`OptimizerConfig`), ``model.optimizer``.
-        log_space_metrics: also log the depth metrics in the paper's 8-bit log space (``<stage>_depthlog_*``).
+        log_space_metrics: also log the toolbox depth metrics on grey levels of the 8-bit log encoding
+            (``<stage>_depthlog_*``: per image, sky excluded; not the authors' protocol).
+        authors_depth_metrics: also log the authors' released evaluation (``<stage>_depthauthors_*``:
+            grey levels, sky included, pixels pooled; RMS as ``rmse_grey`` and ``rmse_unit``), the only
+            depth figures comparable with the paper's Table 4.
         pose_auc_min_error: pose errors at or below it count as perfect in the AUC (GeoCalib passes 1).
         skip_nonfinite_loss: skip a training step whose loss is NaN or Inf (with a warning and
             ``train_nonfinite_steps``) instead of corrupting the weights.
@@ -85,7 +89,8 @@ class DAPMModule(L.LightningModule):
     with another architecture fails with a message listing what differs.
 
     Logged keys: ``<stage>_loss_<term>``, ``<stage>_depth_<metric>`` (metres),
-    ``<stage>_depthlog_<metric>`` (paper's 8-bit log space), ``<stage>_pose_<component>_<stat>``.
+    ``<stage>_depthlog_<metric>`` (toolbox protocol on grey levels), ``<stage>_depthauthors_<metric>`` (the
+    authors' protocol), ``<stage>_pose_<component>_<stat>``.
     """
 
     igd_predicted_share: float
@@ -93,7 +98,8 @@ class DAPMModule(L.LightningModule):
 
     def __init__(self, net: DAPMConfig = DAPMConfig(), loss: LossConfig = LossConfig(),  # noqa: B008 (frozen)
                  optimizer: OptimizerConfig = OptimizerConfig(), log_space_metrics: bool = True,  # noqa: B008
-                 pose_auc_min_error: float | None = None, skip_nonfinite_loss: bool = True) -> None:
+                 pose_auc_min_error: float | None = None, skip_nonfinite_loss: bool = True,
+                 authors_depth_metrics: bool = True) -> None:
         super().__init__()
         # settings arrive as dataclasses (CLI, Python) or as plain mappings (a checkpoint's hyper-parameters)
         self.net_config: DAPMConfig = _as_config(net, DAPMConfig)
@@ -104,7 +110,7 @@ class DAPMModule(L.LightningModule):
                                                         "weights": dict(self.loss_config.weights)},
             "optimizer": {**asdict(self.optimizer_config), "betas": list(self.optimizer_config.betas)},
             "log_space_metrics": log_space_metrics, "pose_auc_min_error": pose_auc_min_error,
-            "skip_nonfinite_loss": skip_nonfinite_loss})
+            "skip_nonfinite_loss": skip_nonfinite_loss, "authors_depth_metrics": authors_depth_metrics})
         self.net = DAPMNet(self.net_config)
         igd = self.net_config.igd
         self.criterion = DAPMLoss(self.loss_config, igd)
@@ -116,6 +122,8 @@ class DAPMModule(L.LightningModule):
                 self.metrics[f"{stage}_depth"] = DepthMetrics(max_depth=igd.max_depth)
                 if log_space_metrics:
                     self.metrics[f"{stage}_depthlog"] = DepthMetrics(max_depth=igd.max_depth, space="uapd_log")
+                if authors_depth_metrics:
+                    self.metrics[f"{stage}_depthauthors"] = AuthorsDepthMetrics(max_depth=igd.max_depth)
             if self.net_config.use_pose:
                 self.metrics[f"{stage}_pose"] = PoseMetrics(min_error=pose_auc_min_error)
         self.nonfinite_steps = 0
@@ -158,8 +166,9 @@ class DAPMModule(L.LightningModule):
     def _update_metrics(self, out: DAPMOutput, batch: dict[str, Any], stage: str) -> None:
         if out.depth_m is not None:
             self.metrics[f"{stage}_depth"].update(out.depth_m, batch["depth"])
-            if f"{stage}_depthlog" in self.metrics:
-                self.metrics[f"{stage}_depthlog"].update(out.depth_m, batch["depth"])
+            for kind in ("depthlog", "depthauthors"):
+                if f"{stage}_{kind}" in self.metrics:
+                    self.metrics[f"{stage}_{kind}"].update(out.depth_m, batch["depth"])
         has_pose = batch["has_pose"]
         if out.pose_physical is not None and has_pose.any():
             self.metrics[f"{stage}_pose"].update(out.pose_physical[has_pose], batch["pose"][has_pose])
@@ -204,7 +213,8 @@ class DAPMModule(L.LightningModule):
         if per_rank is not None:  # saved under DDP: [world size, ...] per state
             saved_ranks = per_rank["torch"].shape[0]
             rank = self.trainer.global_rank % saved_ranks  # same process count: each rank its own states
-            set_rng_states(unpack_rng_states({k: v[rank] for k, v in per_rank.items()}))
+            # clone: a row of the gathered tensor is a view with a storage offset, which set_rng_state misreads
+            set_rng_states(unpack_rng_states({k: v[rank].clone() for k, v in per_rank.items()}))
         elif "dapm_rng_states" in checkpoint:
             set_rng_states(checkpoint["dapm_rng_states"])  # a resumed run draws what the uninterrupted one would
 

@@ -45,3 +45,10 @@ def test_evaluation_order_keeps_every_sample_once():
     ranks = [EpochShuffleSampler(7, num_replicas=2, rank=r, shuffle=False, drop_last=False) for r in (0, 1)]
     assert sorted(i for r in ranks for _, i in keys(r)) == list(range(7))
     assert [len(r) for r in ranks] == [4, 3]
+
+
+def test_resume_sets_the_epoch_before_lightning_does():
+    """Loader workers prefetch as soon as the resumed loader's iterator exists, before Lightning's set_epoch."""
+    sampler = EpochShuffleSampler(8, seed=2)
+    sampler.resume(epoch=3, samples_seen=2)
+    assert {epoch for epoch, _ in keys(sampler)} == {3} and len(keys(sampler)) == 6

@@ -1,7 +1,10 @@
 """Fit through the DAPM CLI in a subprocess, optionally pausing at a step (for a test to signal it),
 and save the final weights. Usage: python resume_run.py WEIGHTS.pt [CLI fit args without 'fit'].
-Environment: PAUSE_AT="STEP,MARKER_FILE" pauses after STEP until SIGTERM (or 120 s)."""
+Environment: PAUSE_AT="STEP,MARKER_FILE" pauses after STEP until SIGTERM (or 120 s); RECORD_IMAGES=PREFIX writes
+PREFIX<rank>.json: per epoch, a digest of every training image as the model received it (after augmentation)."""
 
+import hashlib
+import json
 import os
 import sys
 import time
@@ -25,6 +28,19 @@ class PauseAt(L.Callback):
                 time.sleep(0.05)
 
 
+class RecordImages(L.Callback):
+    def __init__(self, prefix: str) -> None:
+        self.prefix, self.seen = prefix, {}
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+        epoch = self.seen.setdefault(str(trainer.current_epoch), {})
+        for name, image in zip(batch["name"], batch["image"]):
+            epoch[name] = hashlib.sha1(image.cpu().numpy().tobytes()).hexdigest()
+
+    def on_train_end(self, trainer, pl_module):
+        Path(f"{self.prefix}{trainer.global_rank}.json").write_text(json.dumps(self.seen))
+
+
 if __name__ == "__main__":
     weights, args = sys.argv[1], sys.argv[2:]
     ckpt = None
@@ -36,5 +52,8 @@ if __name__ == "__main__":
     if os.environ.get("PAUSE_AT"):
         step, marker = os.environ["PAUSE_AT"].split(",")
         cli.trainer.callbacks.append(PauseAt(int(step), marker))
+    if os.environ.get("RECORD_IMAGES"):
+        cli.trainer.callbacks.append(RecordImages(os.environ["RECORD_IMAGES"]))
     cli.trainer.fit(cli.model, datamodule=cli.datamodule, ckpt_path=ckpt)
-    torch.save({"state_dict": cli.model.state_dict(), "global_step": cli.trainer.global_step}, weights)
+    if cli.trainer.is_global_zero:  # under DDP, rank 0's (BatchNorm running statistics are per process)
+        torch.save({"state_dict": cli.model.state_dict(), "global_step": cli.trainer.global_step}, weights)

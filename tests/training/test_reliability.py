@@ -1,5 +1,6 @@
 """Long jobs: resume after SIGKILL / SIGTERM, checkpoints, non-finite losses, bad data at scale, determinism."""
 
+import json
 import os
 import signal
 import subprocess
@@ -44,7 +45,8 @@ def job_config(tmp_path, name):
 
 
 def start(tmp_path, name, data, extra=(), pause=None):
-    env = dict(os.environ, PAUSE_AT=f"{pause},{tmp_path / (name + '.marker')}" if pause else "")
+    env = dict(os.environ, PAUSE_AT=f"{pause},{tmp_path / (name + '.marker')}" if pause else "",
+               RECORD_IMAGES=str(tmp_path / f"{name}_images_rank"))
     cmd = [sys.executable, str(HERE / "resume_run.py"), str(tmp_path / f"{name}.pt"), *job_config(tmp_path, name),
            "--data.class_path", "dapm_lightning.data.datamodules.UAPDDataModule", "--data.init_args.root", str(data),
            *TINY, *extra]
@@ -193,6 +195,13 @@ def test_two_process_ddp_resumes_mid_epoch_exactly(data16, tmp_path):
     assert code == 0, out[-3000:]
     reference = weights(tmp_path / "straight.pt")
     assert reference["global_step"] == 10
+    seen = {"0": {}, "1": {}}  # persistent workers under DDP: every image augmented anew in every epoch
+    for rank in (0, 1):
+        for epoch, images in json.loads((tmp_path / f"straight_images_rank{rank}.json").read_text()).items():
+            seen.setdefault(epoch, {}).update(images)
+    assert len(seen["0"]) == len(seen["1"]) == 16
+    renewed = sum(seen["0"][name] != seen["1"][name] for name in seen["0"])
+    assert renewed >= 12, f"{16 - renewed} of 16 images augmented identically in epochs 0 and 1"  # frozen: 0
 
     code, out = finish(start(tmp_path, "stopped", data16, extra=[*DDP, "--trainer.max_steps", "6"]), timeout=400)
     assert code == 0, out[-3000:]
