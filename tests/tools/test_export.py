@@ -1,33 +1,81 @@
 import onnxruntime
 import pytest
 import torch
+import yaml
 
 from dapm_lightning.cli import main
 from dapm_lightning.models import DAPMConfig, DAPMNet
-from dapm_lightning.tools.export import export_onnx
+from dapm_lightning.tools.export import _adaptive_avg_pool2d, export_onnx
+
+TINY = {"backbone": "resnet18", "decoder_channels": 16, "head_channels": 8, "igd_channels": 4, "pose_hidden": 16,
+        "depth_bins": (2, 4), "pose_bins": (4,)}
 
 
-def test_onnx_matches_pytorch(tmp_path):
+def tiny_net(**overrides):
     torch.manual_seed(0)
-    net = DAPMNet(DAPMConfig(backbone="resnet18")).eval()
-    net.depth_pqb.blocks[0].body[-1].bias.data.fill_(-4.0)  # mostly ground, so depth is not all sky
-    diffs = export_onnx(net, str(tmp_path / "m.onnx"), (64, 96), checks=2)
-    for diff in diffs:
-        assert diff["depth_m"] < 1e-2 and diff["sky_prob"] < 1e-4 and diff["pose"] < 1e-3
+    net = DAPMNet(DAPMConfig(**{**TINY, **overrides})).eval()
+    if net.config.use_depth:
+        net.depth_pqb.blocks[0].body[-1].bias.data.fill_(-4.0)  # mostly ground, so depth is not all sky
+    return net
+
+
+def test_size_symbolic_pooling_equals_pytorch():
+    for shape, n in (((2, 1, 8, 12), 8), ((1, 3, 20, 7), 8), ((1, 1, 64, 64), 8), ((2, 2, 9, 31), (4, 5))):
+        x = torch.rand(*shape, dtype=torch.float64)
+        torch.testing.assert_close(_adaptive_avg_pool2d(x, n), torch.nn.functional.adaptive_avg_pool2d(x, n))
+
+
+def test_dynamic_onnx_matches_pytorch_at_other_sizes(tmp_path):
+    net = tiny_net()
+    rows = export_onnx(net, tmp_path / "m.onnx", (64, 96), checks=1)
+    assert [r["shape"] for r in rows] == [(1, 64, 96), (2, 32, 128)]  # batch, height and width all changed
+    for row in rows:
+        assert row["depth_m"] < 1e-2 and row["sky_prob"] < 1e-4 and row["pose"] < 1e-3
     session = onnxruntime.InferenceSession(str(tmp_path / "m.onnx"))
     assert [o.name for o in session.get_outputs()] == ["depth_m", "sky_prob", "pose"]
-    assert session.get_outputs()[0].shape == [1, 1, 64, 96]
+    batch, _, height, width = session.get_inputs()[0].shape
+    assert all(isinstance(d, str) for d in (batch, height, width))  # symbolic: dynamic
+    depth = session.run(["depth_m"], {"image": torch.rand(3, 3, 96, 160).numpy()})[0]
+    assert depth.shape == (3, 1, 96, 160) and (depth < 1000).any()
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", ["depth_only", "pose_only", "fp16", "fixed"])
+def test_every_variant_exports(kind, tmp_path):
+    overrides = {"depth_only": {"use_pose": False, "use_igd_feature": False},
+                 "pose_only": {"use_depth": False, "use_igd_feature": False}}.get(kind, {})
+    rows = export_onnx(tiny_net(**overrides), tmp_path / "m.onnx", (64, 64), checks=1, fp16=kind == "fp16",
+                       dynamic=kind != "fixed")
+    names = {"depth_only": ["depth_m", "sky_prob"], "pose_only": ["pose"]}.get(kind, ["depth_m", "sky_prob", "pose"])
+    assert [k for k in rows[0] if k != "shape"] == names
+    depth_tol, pose_tol = (2.0, 0.2) if kind == "fp16" else (1e-2, 1e-3)  # metres at ~45 m / degrees
+    for row in rows:
+        assert row.get("depth_m", 0) < depth_tol and row.get("pose", 0) < pose_tol
+    if kind == "fp16":
+        import onnx
+
+        model = onnx.load(str(tmp_path / "m.onnx"))
+        assert {i.data_type for i in model.graph.initializer if len(i.dims) == 4} == {onnx.TensorProto.FLOAT16}
+        assert model.graph.input[0].type.tensor_type.elem_type == onnx.TensorProto.FLOAT
+
+
+def test_cli_export_settings_from_a_config_file(tmp_path, capsys):
+    config = tmp_path / "export.yaml"
+    config.write_text(yaml.safe_dump({"ckpt_path": str(tmp_path / "model.ckpt"), "height": 64, "fp16": True}))
+    with pytest.raises(SystemExit) as info:
+        main(["export", "--config", str(config), "--width", "96", "--print_config"])
+    assert info.value.code == 0
+    printed = yaml.safe_load(capsys.readouterr().out)
+    assert printed["height"] == 64 and printed["width"] == 96 and printed["fp16"] is True
+    with pytest.raises(SystemExit) as info:  # a missing checkpoint: a short message, exit 1
+        main(["export", "--config", str(config)])
+    assert info.value.code == 1 and "model.ckpt: no such checkpoint file" in capsys.readouterr().err
+
+
+@pytest.mark.slow
 def test_cli_export(checkpoint, tmp_path, capsys):
     out = tmp_path / "model.onnx"
     main(["export", "--ckpt_path", str(checkpoint), "--out", str(out), "--height", "32", "--width", "64",
           "--checks", "1"])
     printed = capsys.readouterr().out
-    assert out.is_file() and "max |onnxruntime - PyTorch|" in printed
-
-
-def test_depth_only_model_is_refused(tmp_path):
-    with pytest.raises(ValueError, match="full DAPM"):
-        export_onnx(DAPMNet(DAPMConfig(backbone="resnet18", use_pose=False, use_igd_feature=False)).eval(),
-                    tmp_path / "m.onnx", (32, 32))
+    assert out.is_file() and printed.count("max |onnxruntime - PyTorch fp32|") == 2
