@@ -1,18 +1,19 @@
-"""``dapm-lightning doctor ROOT``: check a UAPD-format data set and report per split.
+"""dapm-lightning doctor ROOT: check a UAPD-format data set and report per split.
 
 Counts, pose distribution against the UAPD ranges, depth range and sky fraction, unreadable or
 unpaired files, and the agreement of each file's depth with the Ideal Ground Depth of its own
 pose: pixels that see flat ground match the IGD exactly, so a pose whose roll sign is wrong, or
 whose fields are swapped, explains the depth worse than the corrected pose would. Exit status 1
-when a file is broken or a sample is flagged.
+when a file is broken or a sample is flagged. The report is printed, and written as JSON only where
+asked (--json FILE; nothing is written into the data set). Settings can come from a YAML file
+(--config FILE; --print_config shows one).
 """
 
 from __future__ import annotations
 
-import argparse
-import json
 import math
 from collections.abc import Sequence
+from json import dumps
 from pathlib import Path
 from typing import Any
 
@@ -150,31 +151,44 @@ def format_report(reports: list[dict[str, Any]]) -> str:
         lines += [f"   FLAGGED {f['name']}: {f['reason']}" for f in r["flagged"]]
         if r.get("unchecked"):
             lines.append(f"   note: {len(r['unchecked'])} sample(s) show no flat ground (pose not checkable), "
-                         "listed in the JSON report")
+                         "listed in the JSON report (--json FILE)")
     return "\n".join(lines)
+
+
+def doctor(root: Path, splits: list[str] | None = None, depth_kind: DepthKind = "range",
+           json: Path | None = None) -> int:
+    """Check a UAPD-format data set (ROOT/SPLIT/rgb, ROOT/SPLIT/depth) and print a report per split.
+
+    Args:
+        root: the data set's folder.
+        splits: splits to check (default: every sub-folder with rgb/ and depth/).
+        depth_kind: what the depth maps hold: range (lens to point) or planar (along the optical axis;
+            CARLA's depth camera).
+        json: also write the report as JSON to this file (nothing is written otherwise).
+
+    Returns:
+        the exit status: 0 clean, 1 a broken file or a flagged sample, 2 no data set at ROOT.
+    """
+    root = Path(root)
+    if not root.is_dir():
+        raise FileNotFoundError(f"{root}: no such folder (give the data set's root, which holds train/ and val/)")
+    splits = splits or sorted(p.name for p in root.iterdir() if (p / "rgb").is_dir() or (p / "depth").is_dir())
+    if not splits:
+        raise FileNotFoundError(f"{root}: no split folders with rgb/ and depth/ (expected ROOT/train, ROOT/val)")
+    reports = [diagnose_split(root, split, depth_kind) for split in splits]
+    print(format_report(reports))
+    bad = sum(len(r["errors"]) + len(r["flagged"]) for r in reports)
+    where = ""
+    if json is not None:
+        Path(json).parent.mkdir(parents=True, exist_ok=True)
+        Path(json).write_text(dumps(reports, indent=2) + "\n")
+        where = f"report: {json}; "
+    print(f"\n{where}{'no problems found' if not bad else f'{bad} problem(s)'}")
+    return 1 if bad else 0
 
 
 def doctor_main(argv: Sequence[str]) -> int:
     """Entry point of ``dapm-lightning doctor``; returns the exit status."""
-    parser = argparse.ArgumentParser(prog="dapm-lightning doctor", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("root", type=Path)
-    parser.add_argument("--splits", nargs="+", default=None, help="default: every sub-folder with rgb/ and depth/")
-    parser.add_argument("--depth-kind", choices=["range", "planar"], default="range")
-    parser.add_argument("--json", type=Path, default=None, help="report file (default ROOT/doctor_report.json)")
-    args = parser.parse_args(list(argv))
-    if not args.root.is_dir():
-        print(f"{args.root}: no such folder")
-        return 2
-    splits = args.splits or sorted(p.name for p in args.root.iterdir()
-                                   if (p / "rgb").is_dir() or (p / "depth").is_dir())
-    if not splits:
-        print(f"{args.root}: no split folders with rgb/ and depth/ (expected ROOT/train, ROOT/val)")
-        return 2
-    reports = [diagnose_split(args.root, split, args.depth_kind) for split in splits]
-    print(format_report(reports))
-    out = args.json or args.root / "doctor_report.json"
-    out.write_text(json.dumps(reports, indent=2) + "\n")
-    bad = sum(len(r["errors"]) + len(r["flagged"]) for r in reports)
-    print(f"\nreport: {out}; {'no problems found' if not bad else f'{bad} problem(s)'}")
-    return 1 if bad else 0
+    from jsonargparse import auto_cli
+
+    return int(auto_cli(doctor, args=list(argv), prog="dapm-lightning doctor", description=__doc__))

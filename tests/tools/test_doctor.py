@@ -15,9 +15,12 @@ def synthetic(tmp_path_factory):
     return generate_uapd(tmp_path_factory.mktemp("doc") / "d", train=16, val=4, size=64, seed=21, workers=1)
 
 
-def test_synthetic_data_is_in_full_agreement(synthetic, capsys):
+def test_synthetic_data_is_in_full_agreement(synthetic, capsys, tmp_path):
+    before = sorted(p.relative_to(synthetic) for p in synthetic.rglob("*"))
     assert doctor_main([str(synthetic)]) == 0
-    report = json.loads((synthetic / "doctor_report.json").read_text())
+    assert sorted(p.relative_to(synthetic) for p in synthetic.rglob("*")) == before  # nothing written into the data
+    assert doctor_main([str(synthetic), "--json", str(tmp_path / "reports" / "doctor.json")]) == 0
+    report = json.loads((tmp_path / "reports" / "doctor.json").read_text())
     assert [r["split"] for r in report] == ["train", "val"]
     assert all(not r["flagged"] and not r["errors"] for r in report)
     assert report[0]["count"] == 16 and report[0]["pose"]["roll"]["outside_range"] == 0
@@ -43,10 +46,20 @@ def test_negated_roll_names_are_flagged_exactly(synthetic, tmp_path):
     assert len(report["val"]["errors"]) == 1 and "no depth twin" in report["val"]["errors"][0]
 
 
-def test_cli_doctor_exit_status(synthetic, tmp_path):
+def test_cli_doctor_exit_status_and_settings_file(synthetic, tmp_path, capsys):
     with pytest.raises(SystemExit) as info:
         main(["doctor", str(tmp_path / "missing")])
-    assert info.value.code == 2
+    assert info.value.code == 1 and f"{tmp_path / 'missing'}: no such folder" in capsys.readouterr().err
+    config = tmp_path / "doctor.yaml"
+    config.write_text(f"depth_kind: planar\nsplits: [val]\njson: {tmp_path / 'planar.json'}\n")
+    with pytest.raises(SystemExit) as info:
+        main(["doctor", str(synthetic), "--config", str(config), "--print_config"])
+    printed = capsys.readouterr().out
+    assert info.value.code == 0 and "depth_kind: planar" in printed and "- val" in printed
+    with pytest.raises(SystemExit) as info:
+        main(["doctor", str(synthetic), "--config", str(config)])
+    report = json.loads((tmp_path / "planar.json").read_text())
+    assert [r["split"] for r in report] == ["val"] and report[0]["depth_kind"] == "planar"
     with pytest.raises(SystemExit) as info:
         main(["doctor", str(synthetic), "--json", str(tmp_path / "r.json")])
     assert info.value.code == 0
