@@ -24,7 +24,7 @@ from typing import Any
 
 import torch
 
-from dapm_lightning.data.synthetic import FAMILIES, generate_uapd
+from dapm_lightning.data.synthetic import FAMILIES, generate_uapd, is_current
 
 PREVIOUS_GENERATOR = {64: 46.5, 128: 16.9}
 """images/s of the single-town generator this one replaced (``generate_uapd(size=S, workers=2)``, 2 cores)."""
@@ -144,16 +144,20 @@ def transfer(args: argparse.Namespace) -> dict[str, Any]:
     train_root = out / "train_data"
     print(f"[1/3] rendering {args.train} + {args.val} images of {', '.join(trained)} and {args.test} test images "
           f"of each family ({args.size}x{args.size})")
-    generate_uapd(train_root, train=args.train, val=args.val, size=args.size, seed=args.seed,
-                  families=dict.fromkeys(trained, 1.0), workers=args.workers)
-    test_roots = {}
-    for family in FAMILIES:
-        test_roots[family] = generate_uapd(out / f"test_{family}", train=0, val=args.test, size=args.size,
-                                           seed=args.seed + 1000, families={family: 1.0}, workers=args.workers)
+    jobs = [(train_root, {"train": args.train, "val": args.val, "seed": args.seed,
+                          "families": dict.fromkeys(trained, 1.0)})]
+    jobs += [(out / f"test_{family}", {"train": 0, "val": args.test, "seed": args.seed + 1000,
+                                       "families": {family: 1.0}}) for family in FAMILIES]
+    for root, setting in jobs:  # sets already rendered with these settings are reused
+        if not is_current(root, size=args.size, **setting):
+            generate_uapd(root, size=args.size, workers=args.workers, **setting)
+    test_roots = {family: out / f"test_{family}" for family in FAMILIES}
     render_minutes = (time.time() - start) / 60
     mean_pose = torch.from_numpy(UAPDDataset(train_root, "train").poses.mean(axis=0)).double()
     module = None
-    if not args.skip_training:
+    if args.checkpoint:
+        module = DAPMModule.load_from_checkpoint(str(args.checkpoint), map_location="cpu", weights_only=True).eval()
+    elif not args.skip_training:
         print(f"[2/3] training the quickstart model on {', '.join(trained)} ({render_minutes:.1f} min so far)")
         config = _quickstart_config(train_root, out, args.epochs, args.batch_size)
         fit = run_lightning_cli(["fit", "--config", str(config)])
@@ -242,6 +246,8 @@ def main(argv: Sequence[str] | None = None) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--workers", type=int, default=None)
     p.add_argument("--skip-training", action="store_true", help="baselines only (checks the pipeline quickly)")
+    p.add_argument("--checkpoint", type=Path, default=None,
+                   help="test this checkpoint instead of training (e.g. OUT/csv/version_0/checkpoints/last.ckpt)")
     p.set_defaults(func=transfer)
     p = sub.add_parser("figure", help="a picture of every family (docs/figures/synthetic_samples.png)")
     p.add_argument("--out", type=Path, default=Path("docs/figures/synthetic_samples.png"))

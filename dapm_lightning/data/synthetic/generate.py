@@ -95,7 +95,9 @@ def is_current(root: str | Path, **kwargs: Any) -> bool:
     if not info.is_file():
         return False
     try:
-        return json.loads(info.read_text()) == json.loads(json.dumps(settings(**kwargs)))
+        have = json.loads(info.read_text())
+        have.setdefault("distortion", False)  # written before the option existed: undistorted
+        return have == json.loads(json.dumps(settings(**kwargs)))
     except (json.JSONDecodeError, OSError):
         return False
 
