@@ -172,23 +172,28 @@ class SyntheticDataModule(UAPDDataModule):
 class PotsdamDataModule(DAPMDataModule):
     """ISPRS Potsdam, depth only (train DAPM(D)).
 
-    Tiles in ``root/rgb`` and ``root/height`` are cut into ``crop_size`` crops on first use and
-    split 8:2 with a fixed seed.
+    ``root`` is the unpacked ISPRS download, no renaming: ``2_Ortho_RGB/`` beside
+    ``1_DSM_normalisation/`` (``product: ndsm``, the default) or ``1_DSM/`` (``product: dsm``); the older
+    ``rgb/`` + ``height/`` layout also works. Tiles are cut into ``crop_size`` crops on first use and
+    split 8:2 with a fixed seed. ``ndsm_scale``: how the 8-bit nDSM becomes metres
+    (:class:`~dapm_lightning.data.potsdam.PotsdamCrops`).
     """
 
     def __init__(self, root: str = "data/potsdam", crop_size: int = 512, val_fraction: float = 0.2,
-                 split_seed: int = 0, **kwargs: Any) -> None:
+                 split_seed: int = 0, product: Literal["ndsm", "dsm"] = "ndsm", ndsm_scale: float | None = None,
+                 **kwargs: Any) -> None:
         super().__init__(**kwargs)
         self.root, self.crop_size, self.val_fraction, self.split_seed = Path(root), crop_size, val_fraction, split_seed
+        self.product, self.ndsm_scale = product, ndsm_scale
 
     def prepare_data(self) -> None:
-        PotsdamCrops(self.root, crop_size=self.crop_size).prepare()
+        PotsdamCrops(self.root, crop_size=self.crop_size, product=self.product, ndsm_scale=self.ndsm_scale).prepare()
 
     def make_dataset(self, split: str, train: bool) -> Dataset[Sample]:
         return PotsdamDataset(self.root, "train" if split == "train" else "val",
                               train_transform() if train and self.augment else None, crop_size=self.crop_size,
                               val_fraction=self.val_fraction, seed=self.split_seed, image_dtype=self.image_dtype,
-                              augment_seed=self.seed)
+                              augment_seed=self.seed, product=self.product, ndsm_scale=self.ndsm_scale)
 
 
 __all__ = ["DAPMDataModule", "PotsdamDataModule", "SyntheticDataModule", "UAPDDataModule", "collate_samples"]

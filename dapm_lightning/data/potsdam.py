@@ -14,37 +14,95 @@ import torch
 from dapm_lightning.data.errors import DatasetError
 from dapm_lightning.data.sample import Sample, SampleKey, Transform, make_sample, seed_augmentation, split_key
 from dapm_lightning.geometry.constants import MAX_DEPTH_M, MIN_DEPTH_M
+from dapm_lightning.geometry.depth_codec import decode_log_depth
+
+
+def _tile_id(match: re.Match[str]) -> tuple[int, int]:
+    """Tile id as numbers, so zero-padded (``02_10``) and plain (``2_10``) names pair."""
+    return int(match.group(1)), int(match.group(2))
+
+
+Product = Literal["ndsm", "dsm"]
+"""Height product of the ISPRS download: ``"ndsm"`` (``1_DSM_normalisation``, 8-bit JPEG, height above
+ground; what height-estimation work on Potsdam and Table 5's baselines use) or ``"dsm"`` (``1_DSM``,
+float TIFF, metres above datum)."""
+
+ISPRS_RGB_DIR = "2_Ortho_RGB"
+ISPRS_PRODUCT_DIRS: dict[str, str] = {"ndsm": "1_DSM_normalisation", "dsm": "1_DSM"}
 
 
 class PotsdamCrops:
-    """Cut Potsdam tiles into ``crop_size`` crops once, under ``root/crops_<size>/`` (rgb PNG + height .npy).
+    """Cut Potsdam tiles into ``crop_size`` crops once, under ``root/crops_<size>[_<product>]/`` (PNG + .npy).
 
-    Tiles are paired by tile id: ``top_potsdam_<a>_<b>_RGB.tif`` with the height tile whose name holds
-    ``potsdam_<a>_<b>`` (leading zeros ignored; e.g. ``dsm_potsdam_02_10.tif``), found in ``height_dir``.
+    Two layouts, detected from ``root``:
+
+    - the unpacked ISPRS download, no renaming: ``2_Ortho_RGB/top_potsdam_<a>_<b>_RGB.tif`` paired by tile
+      id with the chosen ``product``: ``1_DSM_normalisation/dsm_potsdam_<aa>_<bb>_normalized_lastools.jpg``
+      (``"ndsm"``, the default) or ``1_DSM/dsm_potsdam_<aa>_<bb>.tif`` (``"dsm"``); ids are compared as
+      numbers (``02_10`` pairs with ``2_10``);
+    - the older flat layout ``rgb/`` + ``height/`` (float height TIFFs whose names hold ``potsdam_<a>_<b>``).
+
+    How a height tile becomes the depth the model learns (metres, the network's log encoding of
+    ``[0, 1000 m]``): a float TIFF holds metres and is used as is. The 8-bit nDSM is read per
+    ``ndsm_scale``: None (default) reads grey ``g`` the way the authors' loader reads a depth PNG, as the
+    normalised log depth ``g / 255``, i.e. ``depth = decode_log_depth(g / 255)`` (so the loss in the
+    authors' space and :class:`~dapm_lightning.metrics.AuthorsDepthMetrics` see ``g`` itself); a number
+    reads it as ``g * ndsm_scale`` metres. Height 0 (ground in an nDSM) stays 0: a valid target.
     """
 
     rgb_pattern = re.compile(r"top_potsdam_0*(\d+)_0*(\d+)_RGB\.tif$", re.IGNORECASE)
-    height_pattern = re.compile(r"potsdam_0*(\d+)_0*(\d+).*\.tiff?$", re.IGNORECASE)
+    height_patterns: dict[str, re.Pattern[str]] = {
+        "legacy": re.compile(r"potsdam_0*(\d+)_0*(\d+).*\.tiff?$", re.IGNORECASE),
+        "dsm": re.compile(r"^dsm_potsdam_0*(\d+)_0*(\d+)\.tiff?$", re.IGNORECASE),
+        "ndsm": re.compile(r"^dsm_potsdam_0*(\d+)_0*(\d+)_normalized_lastools\.jpe?g$", re.IGNORECASE),
+    }
 
-    def __init__(self, root: str | Path, *, rgb_dir: str = "rgb", height_dir: str = "height",
-                 crop_size: int = 512) -> None:
-        self.root, self.crop_size = Path(root), crop_size
-        self.rgb_dir, self.height_dir = self.root / rgb_dir, self.root / height_dir
-        self.out = self.root / f"crops_{crop_size}"
+    def __init__(self, root: str | Path, *, rgb_dir: str | None = None, height_dir: str | None = None,
+                 crop_size: int = 512, product: Product = "ndsm", ndsm_scale: float | None = None) -> None:
+        if product not in ISPRS_PRODUCT_DIRS:
+            raise ValueError(f"product must be one of {sorted(ISPRS_PRODUCT_DIRS)}, got {product!r}")
+        self.root, self.crop_size, self.product, self.ndsm_scale = Path(root), crop_size, product, ndsm_scale
+        self.isprs = rgb_dir is None and (self.root / ISPRS_RGB_DIR).is_dir()
+        if self.isprs:
+            self.rgb_dir, self.height_dir = self.root / ISPRS_RGB_DIR, self.root / ISPRS_PRODUCT_DIRS[product]
+            self.kind = product
+            scale = "log" if ndsm_scale is None else f"{ndsm_scale:g}m"
+            self.out = self.root / (f"crops_{crop_size}_{product}" + ("" if product == "dsm" else f"_{scale}"))
+        else:
+            self.rgb_dir, self.height_dir = self.root / (rgb_dir or "rgb"), self.root / (height_dir or "height")
+            self.kind = "legacy"
+            self.out = self.root / f"crops_{crop_size}"
 
     def pairs(self) -> list[tuple[Path, Path]]:
         """``(rgb tile, height tile)`` pairs; a :class:`DatasetError` lists every unpaired tile."""
         for folder in (self.rgb_dir, self.height_dir):
             if not folder.is_dir():
-                raise DatasetError(self.root, [f"{folder}: missing folder"])
-        rgb = {m.groups(): p for p in sorted(self.rgb_dir.iterdir()) if (m := self.rgb_pattern.search(p.name))}
-        height = {m.groups(): p for p in sorted(self.height_dir.iterdir())
-                  if (m := self.height_pattern.search(p.name)) and "RGB" not in p.name}
+                hint = (f" (the ISPRS download's folder for product {self.product!r}; set product to the one "
+                        "you unpacked)" if self.isprs and folder == self.height_dir else "")
+                raise DatasetError(self.root, [f"{folder}: missing folder{hint}"])
+        pattern = self.height_patterns[self.kind]
+        rgb = {_tile_id(m): p for p in sorted(self.rgb_dir.iterdir()) if (m := self.rgb_pattern.search(p.name))}
+        height = {_tile_id(m): p for p in sorted(self.height_dir.iterdir())
+                  if (m := pattern.search(p.name)) and "RGB" not in p.name}
         problems = [f"{rgb[k]}: no height tile for id {k}" for k in sorted(rgb.keys() - height.keys())]
         problems += [f"{height[k]}: no RGB tile for id {k}" for k in sorted(height.keys() - rgb.keys())]
         if problems or not rgb:
             raise DatasetError(self.root, problems or [f"{self.rgb_dir}: no top_potsdam_*_RGB.tif tiles"])
         return [(rgb[k], height[k]) for k in sorted(rgb)]
+
+    def read_height(self, path: Path) -> np.ndarray | None:
+        """A height tile as float32 metres (see the class notes), or None when it cannot be decoded."""
+        raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if raw is None:
+            return None
+        if raw.ndim == 3:  # an 8-bit JPEG nDSM may be stored with three equal channels
+            raw = raw[..., 0] if np.array_equal(raw[..., 0], raw[..., -1]) else raw
+        if raw.dtype == np.uint8:
+            if self.ndsm_scale is not None:
+                return raw.astype(np.float32) * np.float32(self.ndsm_scale)
+            grey = torch.from_numpy(raw.astype(np.float64) / 255.0)
+            return decode_log_depth(grey, MAX_DEPTH_M).numpy().astype(np.float32)
+        return raw.astype(np.float32)
 
     def prepare(self) -> Path:
         """Write the crops (once; skipped when ``crops.json`` is there) and return their folder."""
@@ -56,7 +114,7 @@ class PotsdamCrops:
         names = []
         for rgb_path, height_path in self.pairs():
             rgb = cv2.imread(str(rgb_path), cv2.IMREAD_COLOR)
-            height = cv2.imread(str(height_path), cv2.IMREAD_UNCHANGED)
+            height = self.read_height(height_path)
             if rgb is None or height is None:
                 raise DatasetError(self.root, [f"{rgb_path if rgb is None else height_path}: cannot be decoded"])
             if height.ndim != 2:
@@ -72,7 +130,8 @@ class PotsdamCrops:
                     np.save(self.out / "height" / f"{name}.npy",
                             height[top:top + s, left:left + s].astype(np.float32))
                     names.append(name)
-        index.write_text(json.dumps({"crop_size": self.crop_size, "names": names}) + "\n")
+        index.write_text(json.dumps({"crop_size": self.crop_size, "layout": self.kind, "ndsm_scale": self.ndsm_scale,
+                                     "names": names}) + "\n")
         return self.out
 
 
@@ -80,15 +139,19 @@ class PotsdamDataset(torch.utils.data.Dataset[Sample]):
     """Potsdam crops as :class:`Sample` s: depth = height above ground in metres, no pose (NaN).
 
     Args:
-        root: folder with ``rgb/`` and ``height/`` tiles (crops are cut on first use).
+        root: the unpacked ISPRS download (``2_Ortho_RGB/`` and ``1_DSM_normalisation/`` and/or ``1_DSM/``),
+            or a folder with ``rgb/`` and ``height/`` tiles (crops are cut on first use).
         split: ``"train"`` or ``"val"``: a seeded 8:2 split of the crops.
         seed: split seed.
+        product: ``"ndsm"`` or ``"dsm"`` (ISPRS layout only), see :class:`PotsdamCrops`.
+        ndsm_scale: how the 8-bit nDSM becomes metres, see :class:`PotsdamCrops`.
     """
 
     def __init__(self, root: str | Path, split: Literal["train", "val"], transform: Transform | None = None, *,
                  crop_size: int = 512, val_fraction: float = 0.2, seed: int = 0,
-                 image_dtype: Literal["float32", "uint8"] = "float32", augment_seed: int | None = None) -> None:
-        crops = PotsdamCrops(root, crop_size=crop_size).prepare()
+                 image_dtype: Literal["float32", "uint8"] = "float32", augment_seed: int | None = None,
+                 product: Product = "ndsm", ndsm_scale: float | None = None) -> None:
+        crops = PotsdamCrops(root, crop_size=crop_size, product=product, ndsm_scale=ndsm_scale).prepare()
         names: list[str] = json.loads((crops / "crops.json").read_text())["names"]
         order = torch.randperm(len(names), generator=torch.Generator().manual_seed(seed)).tolist()
         n_val = max(1, round(len(names) * val_fraction)) if len(names) > 1 else 0

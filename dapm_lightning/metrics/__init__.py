@@ -1,6 +1,13 @@
 """Depth and pose metrics as ``torchmetrics.Metric`` subclasses (design.md §5), correct under DDP."""
 
-from dapm_lightning.metrics.depth import DEPTH_METRIC_NAMES, DepthMetrics, per_image_depth_metrics
+from dapm_lightning.metrics.depth import (
+                                         AUTHORS_DEPTH_METRIC_NAMES,
+                                         DEPTH_METRIC_NAMES,
+                                         AuthorsDepthMetrics,
+                                         DepthMetrics,
+                                         per_image_depth_metrics,
+)
 from dapm_lightning.metrics.pose import PoseMetrics, auc_of_recall
 
-__all__ = ["DEPTH_METRIC_NAMES", "DepthMetrics", "PoseMetrics", "auc_of_recall", "per_image_depth_metrics"]
+__all__ = ["AUTHORS_DEPTH_METRIC_NAMES", "DEPTH_METRIC_NAMES", "AuthorsDepthMetrics", "DepthMetrics", "PoseMetrics",
+           "auc_of_recall", "per_image_depth_metrics"]

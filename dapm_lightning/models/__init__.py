@@ -1,9 +1,9 @@
 """Pure torch models: the DAPM network, its settings and parts (never imports Lightning)."""
 
-from dapm_lightning.models.config import DAPMConfig
+from dapm_lightning.models.config import EFFICIENT_NETWORK, PAPER_NETWORK, DAPMConfig
 from dapm_lightning.models.dapm import DAPMNet, DAPMOutput, DepthPrediction, PosePrediction
 from dapm_lightning.models.encoder import Encoder
 from dapm_lightning.models.teacher_forcing import TeacherForcing, predicted_share_at
 
-__all__ = ["DAPMConfig", "DAPMNet", "DAPMOutput", "DepthPrediction", "Encoder", "PosePrediction", "TeacherForcing",
-           "predicted_share_at"]
+__all__ = ["EFFICIENT_NETWORK", "PAPER_NETWORK", "DAPMConfig", "DAPMNet", "DAPMOutput", "DepthPrediction", "Encoder",
+           "PosePrediction", "TeacherForcing", "predicted_share_at"]

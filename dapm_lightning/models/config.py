@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field, fields
-from typing import Any
+from typing import Any, Literal
 
 from dapm_lightning.geometry.igd import IGDSpec
 
@@ -41,6 +41,27 @@ class DAPMConfig:
         pose_hidden: width of the pose decoder's MLP and of the pose bins stages.
         igd_feature_grad: let the depth losses reach the pose branch through the IGD feature
             (default False: the IGD feature sees a detached pose).
+        pose_stages: how many of the deepest encoder stages the pose decoder pools (4: all, this
+            project's default; 3: the 2nd-4th, as the paper's text and the authors' code).
+        pose_projection: width of each pooled projection in the pose decoder (authors: 256).
+        pose_bins_source: where the pose bins stages read from: ``"decoder"`` (MLP stages on the pose
+            decoder's feature, this project's default) or ``"encoder"`` (a residual conv block on the
+            deepest encoder stage per bins stage, the authors' released code: 11.8 M of their 42.82 M).
+        pose_residual_init: the refined pose logit is the head's output plus the initial pose logit
+            (authors' code); False: the head's output alone.
+        depth_residual_priors: the refined depth logit is the head's output plus the initial depth and
+            the IGD (both normalised; authors' code); False: the head's output alone.
+        decoder_squeeze_excite: squeeze-excitation on the FPN laterals (authors' code only, not in the
+            paper's text).
+        sky_override: pixels the binary (sky) stage calls sky are set to ``max_depth`` in ``depth_m``
+            (this project's default, needed when the depth loss leaves sky out, ``depth_space: metric``);
+            False: ``depth_m`` is the refined depth alone, as the authors' code outputs it (their binary
+            stage is supervised and feeds the later stages only; with ``depth_space: log_norm`` the
+            regression itself learns sky as 1.0).
+
+    The paper's network (Table 7's 42.82 M at ResNet-50) is ``configs/paper/*.yaml``; the efficient
+    variant (bins heads at 1/4 resolution) is ``configs/variants/efficient.yaml``. docs/model.md has the
+    table of every difference between the paper's text, the authors' code and this project.
     """
 
     backbone: str = _architecture("resnet50")
@@ -59,6 +80,13 @@ class DAPMConfig:
     dropout: float = 0.1
     pose_hidden: int = _architecture(256)
     igd_feature_grad: bool = False
+    pose_stages: int = _architecture(4)
+    pose_projection: int = _architecture(128)
+    pose_bins_source: Literal["decoder", "encoder"] = _architecture("decoder")
+    pose_residual_init: bool = _architecture(False)
+    depth_residual_priors: bool = _architecture(False)
+    decoder_squeeze_excite: bool = _architecture(False)
+    sky_override: bool = True
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "depth_bins", tuple(int(n) for n in self.depth_bins))
@@ -70,6 +98,10 @@ class DAPMConfig:
         if self.use_igd_feature and not (self.use_depth and self.use_pose):
             raise ValueError("use_igd_feature needs both branches: the IGD comes from the predicted pose and feeds "
                              "the depth refinement (set use_igd_feature: false for DAPM(D) / DAPM(P))")
+        if self.pose_bins_source not in ("decoder", "encoder"):
+            raise ValueError(f"pose_bins_source must be 'decoder' or 'encoder', got {self.pose_bins_source!r}")
+        if not 1 <= self.pose_stages <= 4:
+            raise ValueError(f"pose_stages must be 1 to 4 (deepest encoder stages pooled), got {self.pose_stages}")
         if self.head_stride not in (1, 2, 4, 8):
             raise ValueError(f"head_stride must be 1, 2, 4 or 8, got {self.head_stride}")
 
@@ -98,3 +130,16 @@ class DAPMConfig:
         """``"name: A vs B"`` for every architecture setting where ``self`` and ``other`` differ."""
         return [f"{name}: {getattr(self, name)!r} vs {getattr(other, name)!r}"
                 for name in self.architecture_fields() if getattr(self, name) != getattr(other, name)]
+
+
+PAPER_NETWORK: Mapping[str, Any] = {
+    "decoder_channels": 256, "head_channels": 128, "igd_channels": 32, "head_stride": 1, "pose_stages": 3,
+    "pose_projection": 256, "pose_bins_source": "encoder", "pose_residual_init": True,
+    "depth_residual_priors": True, "decoder_squeeze_excite": True, "sky_override": False}
+"""The paper's network (configs/paper/*.yaml): 42.60 M parameters at ResNet-50 (the authors' 42.82 M, -0.5 %)."""
+
+EFFICIENT_NETWORK: Mapping[str, Any] = {
+    "decoder_channels": 96, "head_channels": 32, "igd_channels": 16, "head_stride": 4, "pose_stages": 4,
+    "pose_projection": 128, "pose_bins_source": "decoder", "pose_residual_init": False,
+    "depth_residual_priors": False, "decoder_squeeze_excite": False, "sky_override": True}
+"""The efficient variant (configs/variants/efficient.yaml; the defaults of :class:`DAPMConfig`): 25.85 M."""

@@ -14,7 +14,7 @@ from dapm_lightning.models.config import DAPMConfig
 from dapm_lightning.models.decoders import DepthDecoder, PoseDecoder
 from dapm_lightning.models.encoder import Encoder
 from dapm_lightning.models.igd_branch import IGDFeature
-from dapm_lightning.models.pqb import DepthPQB, PosePQB
+from dapm_lightning.models.pqb import DepthPQB, EncoderPosePQB, PosePQB
 from dapm_lightning.models.teacher_forcing import TeacherForcing
 from dapm_lightning.models.upsample import ConvexUpsample
 
@@ -103,7 +103,8 @@ class DAPMNet(nn.Module):
         self.depth_decoder = self.to_head = self.igd_feature = self.depth_pqb = self.upsample = None
         self.pose_decoder = self.pose_pqb = None
         if config.use_depth:
-            self.depth_decoder = DepthDecoder(channels[-3:], config.decoder_channels, config.dropout)
+            self.depth_decoder = DepthDecoder(channels[-3:], config.decoder_channels, config.dropout,
+                                              squeeze_excite=config.decoder_squeeze_excite)
             if self.refines_depth:
                 igd_channels = config.igd_channels if config.use_igd_feature else 0
                 self.to_head = conv_bn_relu(config.decoder_channels, config.head_channels, kernel_size=1)
@@ -112,9 +113,12 @@ class DAPMNet(nn.Module):
                 self.upsample = (ConvexUpsample(config.head_channels, config.head_stride)
                                  if config.head_stride > 1 else None)
         if config.use_pose:
-            self.pose_decoder = PoseDecoder(channels, hidden=config.pose_hidden,
-                                            depth_grid=8 if config.use_depth else 0)
-            if config.pose_bins:
+            self.pose_decoder = PoseDecoder(channels[-config.pose_stages:], projection=config.pose_projection,
+                                            hidden=config.pose_hidden, depth_grid=8 if config.use_depth else 0)
+            if config.pose_bins and config.pose_bins_source == "encoder":
+                self.pose_pqb = EncoderPosePQB(channels[-1], config.pose_bins, config.pose_hidden,
+                                               residual_init=config.pose_residual_init)
+            elif config.pose_bins:
                 self.pose_pqb = PosePQB(config.pose_hidden, config.pose_bins, config.pose_hidden)
 
     @property
@@ -147,10 +151,15 @@ class DAPMNet(nn.Module):
 
     def _pose(self, features: list[Tensor], depth_coarse: Tensor | None) -> PosePrediction:
         assert self.pose_decoder is not None
-        pose_feature, pose_init = self.pose_decoder(features, depth_coarse)
+        pose_feature, pose_init, init_logit = self.pose_decoder(features[-self.config.pose_stages:], depth_coarse)
         pose_norm, bin_logits = pose_init, ()
-        if self.pose_pqb is not None:
+        if isinstance(self.pose_pqb, EncoderPosePQB):
+            pose_logit, logits = self.pose_pqb(features[-1], init_logit)
+            pose_norm, bin_logits = torch.sigmoid(pose_logit), tuple(logits)
+        elif self.pose_pqb is not None:
             pose_logit, logits = self.pose_pqb(pose_feature, pose_init)
+            if self.config.pose_residual_init:
+                pose_logit = pose_logit + init_logit
             pose_norm, bin_logits = torch.sigmoid(pose_logit), tuple(logits)
         return PosePrediction(pose_norm, pose_init, self.config.igd.denormalize(pose_norm), bin_logits,
                               self.pose_pqb is not None)
@@ -174,6 +183,8 @@ class DAPMNet(nn.Module):
             igd_norm = igd.depth_norm(pose_norm, head_size)
             igd_feature = self.igd_feature(igd_norm)
         refined_logit, sky_logit, bin_logits = self.depth_pqb(feature, init_head, igd_feature)
+        if self.config.depth_residual_priors:  # the authors' head: logit + initial depth + IGD (both in [0, 1])
+            refined_logit = refined_logit + init_head + (0.0 if igd_norm is None else igd_norm)
         refined = torch.sigmoid(refined_logit)
         if self.upsample is not None:
             refined = self.upsample(refined, feature, size)
@@ -182,6 +193,6 @@ class DAPMNet(nn.Module):
         sky_logits = (None if sky_logit is None
                       else F.interpolate(sky_logit, size=size, mode="bilinear", align_corners=False))
         depth_m = decode_log_depth(refined, igd.max_depth)
-        if sky_logits is not None:
+        if sky_logits is not None and self.config.sky_override:
             depth_m = torch.where(sky_logits > 0, torch.full_like(depth_m, igd.max_depth), depth_m)
         return DepthPrediction(refined, depth_init, depth_m, sky_logits, tuple(bin_logits), igd_norm, True)

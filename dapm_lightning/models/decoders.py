@@ -8,7 +8,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from dapm_lightning.models.blocks import ResidualConvBlock, ResidualMLPBlock
+from dapm_lightning.models.blocks import ResidualConvBlock, ResidualMLPBlock, SqueezeExcite
 
 
 class DepthDecoder(nn.Module):
@@ -18,16 +18,20 @@ class DepthDecoder(nn.Module):
         in_channels: channels of the encoder stages it fuses, shallow to deep.
         channels: FPN width.
         dropout: spatial dropout (``Dropout2d``) on the laterals.
+        squeeze_excite: channel attention (:class:`SqueezeExcite`) on each lateral before the dropout,
+            as the authors' released code has (not in the paper's text).
 
     Returns (forward):
         ``(feature [B, channels, h, w], depth_norm [B, 1, h, w])`` at the shallowest fused stage;
         ``depth_norm`` is the initial normalised log depth (sigmoid).
     """
 
-    def __init__(self, in_channels: Sequence[int], channels: int = 128, dropout: float = 0.1) -> None:
+    def __init__(self, in_channels: Sequence[int], channels: int = 128, dropout: float = 0.1,
+                 squeeze_excite: bool = False) -> None:
         super().__init__()
         self.laterals = nn.ModuleList(
-            nn.Sequential(nn.Conv2d(c, channels, 1), nn.Dropout2d(dropout)) for c in in_channels)
+            nn.Sequential(nn.Conv2d(c, channels, 1), *([SqueezeExcite(channels)] if squeeze_excite else []),
+                          nn.Dropout2d(dropout)) for c in in_channels)
         self.fuse = nn.ModuleList(ResidualConvBlock(channels) for _ in in_channels)
         head_channels = max(channels // 2, 8)
         self.head = nn.Sequential(nn.Conv2d(channels, head_channels, 1), ResidualConvBlock(head_channels),
@@ -67,8 +71,8 @@ class PoseDecoder(nn.Module):
                                  *[ResidualMLPBlock(hidden) for _ in range(mlp_blocks)])
         self.out = nn.Linear(hidden, 4)
 
-    def forward(self, features: Sequence[Tensor], depth_norm: Tensor | None) -> tuple[Tensor, Tensor]:
-        """Returns ``(pose feature [B, hidden], initial pose_norm [B, 4])``."""
+    def forward(self, features: Sequence[Tensor], depth_norm: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
+        """Returns ``(pose feature [B, hidden], initial pose_norm [B, 4], its logit [B, 4])``."""
         pooled = [proj(f.mean(dim=(2, 3))) for proj, f in zip(self.projections, features)]
         if self.depth_projection is not None:
             if depth_norm is None:
@@ -76,4 +80,5 @@ class PoseDecoder(nn.Module):
             grid = F.adaptive_avg_pool2d(depth_norm, self.depth_grid).flatten(1)
             pooled.append(self.depth_projection(grid))
         feature = self.mlp(torch.cat(pooled, dim=1))
-        return feature, torch.sigmoid(self.out(feature))
+        logit = self.out(feature)
+        return feature, torch.sigmoid(logit), logit

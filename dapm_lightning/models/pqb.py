@@ -8,7 +8,7 @@ import torch
 from torch import Tensor, nn
 
 from dapm_lightning.geometry.bins import bin_centers
-from dapm_lightning.models.blocks import conv_bn_relu
+from dapm_lightning.models.blocks import ResidualConvBlock, ResidualLinear, conv_bn_relu
 
 SKY_STAGE_BINS = 2
 """A depth stage of 2 bins is the binary "beyond d_max" (sky) map: one logit, trained with BCE."""
@@ -119,3 +119,45 @@ class PosePQB(nn.Module):
             fused += [previous, expected_value(logits, dim=-1).flatten(1)]
             all_logits.append(logits)
         return self.head(torch.cat(fused, dim=1)), all_logits
+
+
+class EncoderPosePQB(nn.Module):
+    """Pose PQB on the last encoder stage, the authors' released layout (``pose_bins_source="encoder"``).
+
+    Stage ``k`` runs a residual conv block (``in_channels -> channels``) on the deepest encoder
+    feature map, global-average-pools it and maps it by a residual linear block to ``[B, 4, n_k]``
+    logits; from the second stage on, a residual linear block fuses the previous stage's logits with
+    this stage's. The head is a residual linear block over ``cat(initial pose logit, every stage's
+    logits)``, whose output is a correction added to the initial pose logit when ``residual_init``
+    (the authors' ``sigmoid(head + initial)``), or the pose logit itself otherwise.
+
+    With ``in_channels=2048`` (ResNet-50), ``channels=256`` and bins ``(16, 64)`` this has the
+    authors' parameter count (11.84 M + 0.23 M + 2.6 k); their residual linear blocks use
+    BatchNorm1d and a final ReLU, here LayerNorm (batch of one) and no ReLU on logits/corrections.
+    """
+
+    def __init__(self, in_channels: int, bins: Sequence[int], channels: int = 256,
+                 residual_init: bool = True) -> None:
+        super().__init__()
+        self.bins = tuple(bins)
+        if any(n < 2 for n in self.bins):
+            raise ValueError(f"pose bins must be >= 2, got {self.bins}")
+        self.residual_init = residual_init
+        self.stages = nn.ModuleList(
+            nn.Sequential(ResidualConvBlock(in_channels, channels), nn.AdaptiveAvgPool2d(1), nn.Flatten(),
+                          ResidualLinear(channels, 4 * n, activate=False)) for n in self.bins)
+        self.fuse = nn.ModuleList(ResidualLinear(4 * p + 4 * n, 4 * n, activate=False)
+                                  for p, n in zip(self.bins[:-1], self.bins[1:]))
+        self.head = ResidualLinear(4 + sum(4 * n for n in self.bins), 4, activate=False)
+
+    def forward(self, feature: Tensor, pose_init_logit: Tensor) -> tuple[Tensor, list[Tensor]]:
+        """``feature [B, C, h, w]`` (deepest encoder stage) -> ``(pose logit [B, 4], bin logits [B, 4, n] each)``."""
+        flat: list[Tensor] = []
+        for k, stage in enumerate(self.stages):
+            logits = stage(feature)
+            if k > 0:
+                logits = self.fuse[k - 1](torch.cat([flat[-1], logits], dim=1))
+            flat.append(logits)
+        correction = self.head(torch.cat([pose_init_logit, *flat], dim=1))
+        pose_logit = correction + pose_init_logit if self.residual_init else correction
+        return pose_logit, [f.view(-1, 4, n) for f, n in zip(flat, self.bins)]

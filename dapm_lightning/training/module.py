@@ -17,8 +17,13 @@ from dapm_lightning.metrics import AuthorsDepthMetrics, DepthMetrics, PoseMetric
 from dapm_lightning.models.config import DAPMConfig
 from dapm_lightning.models.dapm import DAPMNet, DAPMOutput
 from dapm_lightning.models.teacher_forcing import TeacherForcing
-from dapm_lightning.training.checkpointing import (check_architecture, pack_rng_states, rng_states,
-                                                   set_rng_states, unpack_rng_states)
+from dapm_lightning.training.checkpointing import (
+    check_architecture,
+    pack_rng_states,
+    rng_states,
+    set_rng_states,
+    unpack_rng_states,
+)
 from dapm_lightning.training.loss import DAPMLoss, LossConfig
 
 Stage = Literal["train", "val", "test"]

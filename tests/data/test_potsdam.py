@@ -31,3 +31,53 @@ def test_unpaired_tile_and_nan_heights_are_named(tiny_potsdam, tmp_path):
     with pytest.raises(ValueError, match="non-finite height"):
         for i in range(len(ds)):
             ds[i]
+
+
+def isprs_download(root, product_tiles=((2, 10), (3, 11)), rgb_tiles=((2, 10), (3, 11))):
+    """The unpacked ISPRS layout: 2_Ortho_RGB (ids not padded), 1_DSM_normalisation 8-bit JPEG and 1_DSM float TIFF."""
+    rng = np.random.default_rng(0)
+    for sub in ("2_Ortho_RGB", "1_DSM_normalisation", "1_DSM"):
+        (root / sub).mkdir(parents=True, exist_ok=True)
+    for a, b in rgb_tiles:
+        cv2.imwrite(str(root / "2_Ortho_RGB" / f"top_potsdam_{a}_{b}_RGB.tif"),
+                    rng.integers(0, 255, (64, 96, 3), np.uint8))
+    for a, b in product_tiles:
+        ndsm = np.zeros((64, 96), np.uint8)
+        ndsm[:, 48:] = 128  # half ground (height 0), half grey 128
+        cv2.imwrite(str(root / "1_DSM_normalisation" / f"dsm_potsdam_{a:02d}_{b:02d}_normalized_lastools.jpg"), ndsm,
+                    [cv2.IMWRITE_JPEG_QUALITY, 100])
+        cv2.imwrite(str(root / "1_DSM" / f"dsm_potsdam_{a:02d}_{b:02d}.tif"), np.full((64, 96), 42.5, np.float32))
+    return root
+
+
+def test_isprs_download_without_renaming(tmp_path):
+    import torch
+
+    from dapm_lightning.geometry import decode_log_depth
+
+    root = isprs_download(tmp_path / "isprs")
+    ndsm = [PotsdamDataset(root, s, crop_size=32) for s in ("train", "val")]
+    assert (len(ndsm[0]), len(ndsm[1])) == (10, 2)
+    depths = np.stack([s["depth"].numpy() for d in ndsm for s in (d[i] for i in range(len(d)))])
+    # grey g read as the authors read a depth PNG: normalised log depth g / 255; ground stays exactly 0 m
+    grey128 = decode_log_depth(torch.tensor(128 / 255.0, dtype=torch.float64)).item()
+    assert np.isclose(depths.min(), 0.0) and (depths == 0).mean() > 0.3
+    assert np.allclose(depths[depths > 0], grey128, rtol=0.05)
+    scaled = np.stack([s["depth"].numpy() for s in PotsdamDataset(root, "train", crop_size=32, ndsm_scale=0.1)])
+    assert (scaled == 0).mean() > 0.3 and np.allclose(scaled[scaled > 0], 12.8, atol=0.3)  # grey 128 x 0.1 m
+    dsm = PotsdamDataset(root, "train", crop_size=32, product="dsm")
+    assert np.allclose(dsm[0]["depth"].numpy(), 42.5)
+
+
+def test_isprs_unpaired_and_missing_product_are_named(tmp_path):
+    root = isprs_download(tmp_path / "a", product_tiles=((2, 10),), rgb_tiles=((2, 10), (4, 12)))
+    with pytest.raises(DatasetError, match="top_potsdam_4_12_RGB.tif: no height tile"):
+        PotsdamDataset(root, "train", crop_size=32)
+    root = isprs_download(tmp_path / "b", product_tiles=((2, 10), (5, 13)), rgb_tiles=((2, 10),))
+    with pytest.raises(DatasetError, match="dsm_potsdam_05_13_normalized_lastools.jpg: no RGB tile"):
+        PotsdamDataset(root, "train", crop_size=32)
+    root = isprs_download(tmp_path / "c")
+    import shutil
+    shutil.rmtree(root / "1_DSM")
+    with pytest.raises(DatasetError, match="1_DSM: missing folder"):
+        PotsdamDataset(root, "train", crop_size=32, product="dsm")

@@ -5,11 +5,15 @@ import math
 import pytest
 import torch
 
-from dapm_lightning.geometry import MAX_DEPTH_M, encode_log_depth, normalize_pose
+from dapm_lightning.geometry import MAX_DEPTH_M, decode_log_depth, encode_log_depth, normalize_pose
 from dapm_lightning.models import DAPMOutput, DepthPrediction, PosePrediction
-from dapm_lightning.training.loss import DAPMLoss, LossConfig, silog_loss
+from dapm_lightning.training.loss import DAPMLoss, LossConfig, laplacian_gradient_loss, silog_loss, silog_loss_per_image
 
 LN2 = math.log(2.0)
+
+
+def decode(x):
+    return decode_log_depth(x, MAX_DEPTH_M)
 
 
 def test_silog_by_hand():
@@ -63,3 +67,49 @@ def test_switched_off_terms_are_absent():
     assert "pd" not in terms
     unrefined = out._replace(depth=out.depth._replace(refined=False, sky_logits=None, bin_logits=()))
     assert set(DAPMLoss()(unrefined, targets)) == {"init_depth", "init_pose", "pose", "pq", "pd", "total"}
+
+
+def test_silog_in_the_authors_space_by_hand():
+    # Eq. 17 as the authors compute it: on normalised log depth, per image, sky included, + 1e-3 under the root
+    out, targets = example()
+    terms = DAPMLoss(LossConfig(depth_space="log_norm"))(out, targets)
+    g = math.log(math.log2(21) / math.log2(11))  # ground pixel: ln(encode(20 m) / encode(10 m)); sky: g = 0
+    by_hand = 10 * math.sqrt(g ** 2 / 2 - 0.85 * (g / 2) ** 2 + 1e-3)
+    assert terms["depth"].item() == pytest.approx(by_hand, rel=1e-5)
+    assert terms["init_depth"].item() == pytest.approx(by_hand, rel=1e-5)
+    metric = DAPMLoss(LossConfig(depth_space="metric"))(out, targets)["depth"].item()
+    assert metric / by_hand > 1.4  # the same error weighs more in metres (the imbalance the switch undoes)
+    # the other terms do not depend on the space
+    assert terms["dq"].item() == pytest.approx(LN2 + math.log(16) + math.log(64), rel=1e-6)
+    assert terms["pose"].item() == pytest.approx((9 / 90) ** 2 / 4, rel=1e-5)
+
+
+def test_authors_space_averages_images_and_counts_zero_metres():
+    # image 0: g = (ln 2, 0) on two ground pixels; image 1: a 0 m target (grey 0, clamped at 1e-3) predicted at 1e-3
+    pred = torch.tensor([[[[0.2, 0.3]]], [[[1e-3, 0.5]]]])
+    target_norm = torch.tensor([[[[0.1, 0.3]]], [[[0.0, 0.5]]]])
+    depth = decode(target_norm)
+    value = silog_loss_per_image(pred, target_norm, torch.ones_like(pred, dtype=torch.bool))
+    image0 = 10 * math.sqrt(LN2 ** 2 / 2 - 0.85 * LN2 ** 2 / 4 + 1e-3)
+    image1 = 10 * math.sqrt(1e-3)
+    assert value.item() == pytest.approx((image0 + image1) / 2, rel=1e-5)
+    prediction = DepthPrediction(depth_norm=pred, depth_init_norm=pred, depth_m=decode(pred), sky_logits=None,
+                                 bin_logits=(), igd_norm=None, refined=False)
+    targets = dict(depth=depth, sky=depth >= MAX_DEPTH_M, valid=depth > 0)
+    term = DAPMLoss(LossConfig(depth_space="log_norm")).depth_terms(prediction, targets)["init_depth"]
+    assert term.item() == pytest.approx((image0 + image1) / 2, rel=1e-4)  # the 0 m pixel counts
+
+
+def test_gradient_loss_by_hand_and_opt_in():
+    # 1x1 maps, zero padding: L(x) = 1 - 4x; t = 0.5, p = 0.25 -> (4 (p - t))^2 + (t - p)^2 (1 - 4 t) = 1 - 0.0625
+    value = laplacian_gradient_loss(torch.tensor([[[[0.25]]]]), torch.tensor([[[[0.5]]]]),
+                                    torch.tensor([[[[True]]]]))
+    assert value.item() == pytest.approx(0.9375, rel=1e-6)
+    out, targets = example()
+    assert "grad" not in DAPMLoss()(out, targets)
+    terms = DAPMLoss(LossConfig(use_gradient_loss=True))(out, targets)
+    assert terms["total"].item() == pytest.approx(
+        sum(LossConfig().weights[k] * v.item() for k, v in terms.items() if k != "total"), rel=1e-6)
+    assert LossConfig().weights["grad"] == 10.0
+    with pytest.raises(ValueError, match="depth_space"):
+        LossConfig(depth_space="metres")
