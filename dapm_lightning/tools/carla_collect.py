@@ -1,4 +1,4 @@
-"""``dapm-lightning collect-carla``: the paper's UAPD acquisition loop against a CARLA server.
+"""dapm-lightning collect-carla: the paper's UAPD acquisition loop against a CARLA server.
 
 Paper §"Data Acquisition": towns without Town02, weather ClearNoon with the hour drawn from 8-17,
 200 vehicles and 200 walkers after each reset, camera in a 100 x 100 m square around the origin,
@@ -9,25 +9,25 @@ where it stopped and produces what an uninterrupted run would.
 
 Not run against a live CARLA server on the machines this project is built on (none can run
 there); the loop, sampling, naming, encoding, resume and error handling are tested against a fake
-client at the API boundary (``tests/data/test_carla_collect.py``).
+client at the API boundary (tests/tools/test_carla_collect.py). Every CarlaConfig setting is a flag
+(--height_m '[20, 80]'), and settings can come from a YAML file (--config FILE; --print_config writes one).
 """
 
 from __future__ import annotations
 
-import argparse
 import math
 import queue
 import re
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
 
-from dapm_lightning.geometry.constants import MAX_DEPTH_M
+from dapm_lightning.geometry.constants import MAX_DEPTH_M, POSE_RANGES
 from dapm_lightning.geometry.depth_codec import depth_to_grey
 
 CARLA_DEPTH_FAR_M = 1000.0
@@ -36,7 +36,35 @@ CARLA_DEPTH_FAR_M = 1000.0
 
 @dataclass
 class CarlaConfig:
-    """Acquisition settings; defaults are the paper's (parameter table of "Data Acquisition")."""
+    """Acquisition settings; defaults are the paper's (parameter table of "Data Acquisition").
+
+    Args:
+        out: output root; images go to OUT/{train,val}/{rgb,depth}/NAME.png in UAPD naming.
+        host: the CARLA server's host name.
+        port: the CARLA server's port.
+        timeout_s: seconds to wait for the server and for each sensor frame.
+        towns: maps, in turn, each for reset_every samples (the paper leaves Town02 out).
+        samples: number of samples (indices 0 .. samples-1; ones already on disk are skipped).
+        reset_every: reload the town and respawn the traffic every this many samples.
+        seed: every sample's draw depends only on (seed, index).
+        val_fraction: share of samples written to the val split.
+        image_size: width and height of the square images in pixels.
+        vehicles: vehicles spawned on autopilot after each reset.
+        walkers: walkers spawned with AI controllers after each reset.
+        hour: range of the hour of the day (sun altitude), drawn uniformly.
+        x_m: range of the camera's x position in metres.
+        y_m: range of the camera's y position in metres.
+        height_m: range of the camera height above the ground in metres (UAPD's, geometry.POSE_RANGES).
+        pitch_deg: range of the pitch in degrees (UAPD's).
+        roll_deg: range of the roll in degrees (UAPD's).
+        yaw_deg: range of the yaw in degrees.
+        fov_deg: range of the horizontal field of view in degrees (UAPD's).
+        lens_k: range of CARLA's lens_k distortion parameter.
+        lens_kcube: range of CARLA's lens_kcube distortion parameter.
+        lens_x_size: range of CARLA's lens_x_size.
+        lens_y_size: range of CARLA's lens_y_size.
+        pause_s: pause after each sample in seconds (the paper's 200 ms).
+    """
 
     out: str = "data/uapd_carla"
     host: str = "localhost"
@@ -53,16 +81,31 @@ class CarlaConfig:
     hour: tuple[float, float] = (8.0, 17.0)
     x_m: tuple[float, float] = (-50.0, 50.0)
     y_m: tuple[float, float] = (-50.0, 50.0)
-    height_m: tuple[float, float] = (10.0, 100.0)
-    pitch_deg: tuple[float, float] = (-100.0, 10.0)
-    roll_deg: tuple[float, float] = (-30.0, 30.0)
+    height_m: tuple[float, float] = POSE_RANGES["height"]
+    pitch_deg: tuple[float, float] = POSE_RANGES["pitch"]
+    roll_deg: tuple[float, float] = POSE_RANGES["roll"]
     yaw_deg: tuple[float, float] = (-180.0, 180.0)
-    fov_deg: tuple[float, float] = (30.0, 120.0)
+    fov_deg: tuple[float, float] = POSE_RANGES["fov"]
     lens_k: tuple[float, float] = (-0.5, 0.5)
     lens_kcube: tuple[float, float] = (-0.2, 0.2)
     lens_x_size: tuple[float, float] = (0.3, 0.7)
     lens_y_size: tuple[float, float] = (0.3, 0.7)
     pause_s: float = 0.2
+
+    def __post_init__(self) -> None:
+        self.towns = tuple(self.towns)
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if f.type == "tuple[float, float]":
+                if len(value) != 2 or float(value[0]) > float(value[1]):
+                    raise ValueError(f"{f.name} must be a range [low, high] with low <= high, got {list(value)}")
+                setattr(self, f.name, (float(value[0]), float(value[1])))
+        if not self.towns:
+            raise ValueError("towns must name at least one map")
+        if self.samples < 0 or self.reset_every < 1 or self.image_size < 1:
+            raise ValueError("samples must be >= 0, reset_every and image_size >= 1")
+        if not 0.0 <= self.val_fraction <= 1.0:
+            raise ValueError(f"val_fraction must lie in [0, 1], got {self.val_fraction}")
 
 
 @dataclass(frozen=True)
@@ -259,22 +302,25 @@ class CarlaCollector:
         return written
 
 
+def build_parser() -> Any:
+    """The collect-carla parser: every :class:`CarlaConfig` field as a flag, ``--config``, ``--print_config``."""
+    from jsonargparse import ActionConfigFile, ArgumentParser
+
+    parser = ArgumentParser(prog="dapm-lightning collect-carla", description=__doc__)
+    parser.add_argument("--config", action=ActionConfigFile, help="settings from a YAML file")
+    parser.add_class_arguments(CarlaConfig, nested_key=None, as_group=False)
+    return parser
+
+
+def parse_config(argv: Sequence[str]) -> CarlaConfig:
+    """The :class:`CarlaConfig` of a command line."""
+    namespace = build_parser().parse_args(list(argv))
+    return CarlaConfig(**{f.name: namespace[f.name] for f in fields(CarlaConfig)})
+
+
 def collect_main(argv: Sequence[str]) -> None:
-    """``dapm-lightning collect-carla --out DIR [--samples N] [--host H --port P] [--seed S]``."""
-    parser = argparse.ArgumentParser(prog="dapm-lightning collect-carla", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    defaults = CarlaConfig()
-    parser.add_argument("--out", default=defaults.out)
-    parser.add_argument("--host", default=defaults.host)
-    parser.add_argument("--port", type=int, default=defaults.port)
-    parser.add_argument("--samples", type=int, default=defaults.samples)
-    parser.add_argument("--seed", type=int, default=defaults.seed)
-    parser.add_argument("--towns", nargs="+", default=list(defaults.towns))
-    parser.add_argument("--image-size", type=int, default=defaults.image_size)
-    parser.add_argument("--reset-every", type=int, default=defaults.reset_every)
-    args = parser.parse_args(list(argv))
-    config = CarlaConfig(out=args.out, host=args.host, port=args.port, samples=args.samples, seed=args.seed,
-                         towns=tuple(args.towns), image_size=args.image_size, reset_every=args.reset_every)
+    """``dapm-lightning collect-carla --out DIR [--samples N] [--host H --port P] [--seed S] ...``."""
+    config = parse_config(argv)
     written = CarlaCollector(config).run()
     print(f"wrote {written} sample(s) to {config.out} (depth: CARLA planar depth, 8-bit log encoded; "
           f"train with depth_kind: planar)")
