@@ -1,0 +1,237 @@
+"""Inference benchmarks of the predict path: speed side by side, and memory over a long video.
+
+``python -m dapm_lightning.tools.bench_predict speed``: the network at 512x512, batch 1, as eager PyTorch,
+channels-last, ``torch.compile`` and the exported ONNX model in onnxruntime, measured in alternating
+rounds in one process; each row is a ratio to eager with the largest depth (metres) and pose difference
+to eager on the same input.
+
+``python -m dapm_lightning.tools.bench_predict memory``: ``dapm-lightning predict`` on a 2,000-frame video
+(tiny model, 64x64 frames, every output written), printing the process's resident memory every 200
+frames: it stays flat because nothing is kept once written.
+"""
+
+from __future__ import annotations
+
+import resource
+import statistics
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import cv2
+import lightning as L
+import numpy as np
+import torch
+from torch import Tensor
+
+from dapm_lightning.models.config import DAPMConfig
+from dapm_lightning.models.dapm import DAPMNet
+
+
+def current_rss_mb() -> float:
+    """Resident memory of this process now (MiB), from /proc; the peak where /proc is missing."""
+    status = Path("/proc/self/status")
+    if status.is_file():
+        for line in status.read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+    return peak_rss_mb()
+
+
+def peak_rss_mb() -> float:
+    """Peak resident memory of this process so far (MiB)."""
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return peak / (1024 * 1024) if sys.platform == "darwin" else peak / 1024
+
+
+def _network(ckpt_path: str | None, backbone: str) -> DAPMNet:
+    if ckpt_path:
+        from dapm_lightning.training.module import DAPMModule
+
+        return DAPMModule.load_from_checkpoint(ckpt_path, map_location="cpu", weights_only=True).net.eval()
+    torch.manual_seed(0)
+    net = DAPMNet(DAPMConfig(backbone=backbone)).eval()
+    if net.config.use_depth:  # random weights give all-sky depth; tilt them to ground so differences show
+        net.depth_pqb.blocks[0].body[-1].bias.data.fill_(-4.0)
+    return net
+
+
+def _outputs(out: Any) -> tuple[Tensor, Tensor]:
+    return out.depth_m.float(), out.pose_physical.float()
+
+
+def speed(ckpt_path: str | None = None, backbone: str = "resnet50", size: int = 512, rounds: int = 5,
+          onnx: bool = True, compile: bool = True, threads: int | None = None) -> list[dict[str, Any]]:
+    """Side-by-side latency of the predict path's network at ``size`` x ``size``, batch 1.
+
+    Args:
+        ckpt_path: a checkpoint (default: the paper's network with random weights and ``backbone``).
+        backbone: timm backbone when no checkpoint is given (resnet50: the paper's).
+        size: image height and width.
+        rounds: timed rounds; the variants alternate within each round, the median counts.
+        onnx: include onnxruntime (export first; needs the export extra).
+        compile: include torch.compile (compiles first).
+        threads: torch intra-op threads (default: torch's).
+    """
+    if threads:
+        torch.set_num_threads(threads)
+    net = _network(ckpt_path, backbone)
+    image = torch.rand(1, 3, size, size, generator=torch.Generator().manual_seed(0))
+    variants: dict[str, Callable[[], tuple[Tensor, Tensor]]] = {}
+    setup: dict[str, float] = {}
+    with torch.inference_mode():
+        variants["eager"] = lambda: _outputs(net(image))
+        channels_last = DAPMNet(net.config).eval()
+        channels_last.load_state_dict(net.state_dict())
+        channels_last = channels_last.to(memory_format=torch.channels_last)  # type: ignore[call-overload]
+        image_cl = image.contiguous(memory_format=torch.channels_last)
+        variants["channels-last"] = lambda: _outputs(channels_last(image_cl))
+    if compile:
+        start = time.perf_counter()
+        compiled = torch.compile(net, dynamic=False)
+        with torch.inference_mode():
+            compiled(image)
+        setup["torch.compile"] = time.perf_counter() - start
+        variants["torch.compile"] = lambda: _outputs(torch.inference_mode()(compiled)(image))
+    if onnx:
+        import onnxruntime
+
+        from dapm_lightning.tools.export import export_onnx
+
+        start = time.perf_counter()
+        with tempfile.TemporaryDirectory() as folder:
+            path = Path(folder) / "bench.onnx"
+            export_onnx(net, path, (size, size), checks=1, dynamic=True)
+            options = onnxruntime.SessionOptions()
+            if threads:
+                options.intra_op_num_threads = threads
+            session = onnxruntime.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+        setup["onnxruntime"] = time.perf_counter() - start
+        names = [o.name for o in session.get_outputs()]
+
+        def run_onnx() -> tuple[Tensor, Tensor]:
+            result = dict(zip(names, session.run(None, {"image": image.numpy()})))
+            return torch.from_numpy(result["depth_m"]), torch.from_numpy(result["pose"])
+
+        variants["onnxruntime"] = run_onnx
+    times: dict[str, list[float]] = {name: [] for name in variants}
+    results: dict[str, tuple[Tensor, Tensor]] = {}
+    with torch.inference_mode():
+        for name, run in variants.items():  # warm-up
+            results[name] = run()
+        for _ in range(rounds):
+            for name, run in variants.items():
+                start = time.perf_counter()
+                run()
+                times[name].append(time.perf_counter() - start)
+    eager_s = statistics.median(times["eager"])
+    rows = []
+    for name in variants:
+        median = statistics.median(times[name])
+        depth_diff = float((results[name][0] - results["eager"][0]).abs().max())
+        pose_diff = float((results[name][1] - results["eager"][1]).abs().max())
+        rows.append({"variant": name, "median_ms": 1000 * median, "speedup": eager_s / median,
+                     "max_depth_diff_m": depth_diff, "max_pose_diff": pose_diff,
+                     "setup_s": setup.get(name, 0.0)})
+    return rows
+
+
+def format_speed(rows: Sequence[dict[str, Any]], title: str) -> str:
+    """The speed rows as a table."""
+    lines = [title, f"{'variant':<15}{'median ms':>11}{'x eager':>9}{'max |depth - eager| m':>24}"
+                    f"{'max |pose - eager|':>20}{'setup s':>9}"]
+    for r in rows:
+        lines.append(f"{r['variant']:<15}{r['median_ms']:>11.1f}{r['speedup']:>9.2f}{r['max_depth_diff_m']:>24.3g}"
+                     f"{r['max_pose_diff']:>20.3g}{r['setup_s']:>9.0f}")
+    return "\n".join(lines)
+
+
+def write_video(path: Path, frames: int, size: int = 64, seed: int = 0) -> Path:
+    """A synthetic MJPG video of ``frames`` frames (moving gradients and noise)."""
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 25.0, (size, size))
+    rng = np.random.default_rng(seed)
+    base = np.linspace(0, 255, size, dtype=np.float32)
+    for k in range(frames):
+        frame = np.stack([np.roll(base, k)[None].repeat(size, 0), np.roll(base, -k)[:, None].repeat(size, 1),
+                          rng.uniform(0, 255, (size, size))], -1)
+        writer.write(frame.astype(np.uint8))
+    writer.release()
+    return path
+
+
+class MemoryProbe(L.Callback):
+    """Prints resident memory (now and peak) every ``every`` predicted images."""
+
+    def __init__(self, every: int = 200) -> None:
+        self.every, self.seen, self.samples = every, 0, []
+
+    def on_predict_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any,
+                             batch_idx: int, dataloader_idx: int = 0) -> None:
+        before = self.seen
+        self.seen += len(batch["name"])
+        if self.seen // self.every > before // self.every:
+            self.samples.append((self.seen, current_rss_mb(), peak_rss_mb()))
+            print(f"  {self.seen:>6} frames: RSS {self.samples[-1][1]:7.1f} MiB, peak {self.samples[-1][2]:7.1f} MiB",
+                  flush=True)
+
+
+def memory(frames: int = 2000, every: int = 200, batch_size: int = 16, out: str | None = None) -> list[tuple]:
+    """``predict`` on a ``frames``-frame video with a tiny model, all outputs written; RSS every ``every`` frames."""
+    from dapm_lightning.tools.predict import PredictDataModule, PredictionWriter
+    from dapm_lightning.training.module import DAPMModule
+
+    torch.manual_seed(0)
+    module = DAPMModule(net=DAPMConfig(backbone="resnet18", decoder_channels=16, head_channels=8, igd_channels=4,
+                                       pose_hidden=16, depth_bins=(2, 4), pose_bins=(4,)))
+    with tempfile.TemporaryDirectory() as folder:
+        video = write_video(Path(folder) / "long.avi", frames)
+        probe = MemoryProbe(every)
+        writer = PredictionWriter(output_dir=out or str(Path(folder) / "pred"), points_stride=2)
+        trainer = L.Trainer(accelerator="cpu", devices=1, logger=False, callbacks=[writer, probe],
+                            enable_progress_bar=False, enable_model_summary=False)
+        start = time.perf_counter()
+        trainer.predict(module, datamodule=PredictDataModule(source=str(video), image_width=64,
+                                                             batch_size=batch_size, num_workers=1))
+        seconds = time.perf_counter() - start
+        files = sum(1 for _ in Path(writer.output_dir).iterdir())
+    print(f"{probe.seen} frames in {seconds:.0f} s ({probe.seen / seconds:.1f} frames/s), {files} files written")
+    if len(probe.samples) > 2:
+        growth = probe.samples[-1][1] - probe.samples[1][1]
+        print(f"RSS change from frame {probe.samples[1][0]} to {probe.samples[-1][0]}: {growth:+.1f} MiB")
+    return probe.samples
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    """``python -m dapm_lightning.tools.bench_predict {speed,memory} [--option value ...]``."""
+    from jsonargparse import auto_cli
+
+    args = list(sys.argv[1:] if argv is None else argv)
+    if args and args[0] == "speed":
+        def run_speed(ckpt_path: str | None = None, backbone: str = "resnet50", size: int = 512, rounds: int = 5,
+                      onnx: bool = True, compile: bool = True, threads: int | None = None) -> None:
+            """Speed of the predict path's network: eager, channels-last, torch.compile, onnxruntime."""
+            rows = speed(ckpt_path, backbone, size, rounds, onnx, compile, threads)
+            what = ckpt_path or f"DAPM ({backbone}, random weights)"
+            print(format_speed(rows, f"{what}, {size}x{size}, batch 1, {torch.get_num_threads()} threads, "
+                                     f"median of {rounds} alternating rounds, torch {torch.__version__}"))
+
+        auto_cli(run_speed, args=args[1:], prog="bench_predict speed")
+    elif args and args[0] == "memory":
+        def run_memory(frames: int = 2000, every: int = 200, batch_size: int = 16) -> None:
+            """Resident memory while predicting a long video (tiny model, every output written)."""
+            memory(frames, every, batch_size)
+
+        auto_cli(run_memory, args=args[1:], prog="bench_predict memory")
+    else:
+        print(__doc__)
+        raise SystemExit(0 if args and args[0] in ("-h", "--help") else 2)
+
+
+if __name__ == "__main__":
+    main()
+
+
+__all__ = ["memory", "speed"]
