@@ -26,7 +26,7 @@ ABLATIONS = {
     "bins_2_64_64": dict(depth_bins=(2, 64, 64), pose_bins=(64, 64)),
     "bins_2": dict(depth_bins=(2,), pose_bins=(16,)),
     "paper_igd": dict(igd=IGDSpec(model="paper", depth_kind="planar")),
-    "paper_faithful_heads": dict(head_stride=1, head_channels=16),
+    "full_resolution_heads": dict(head_stride=1, head_channels=16),
     "dapm_d": dict(use_pose=False, use_igd_feature=False),
     "dapm_p": dict(use_depth=False, use_igd_feature=False),
 }
