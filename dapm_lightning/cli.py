@@ -1,4 +1,7 @@
-"""The ``dapm-lightning`` command: LightningCLI subcommands plus the tools synth, doctor, collect-carla, export."""
+"""The ``dapm-lightning`` command: LightningCLI subcommands plus the tools synth, doctor, collect-carla, export.
+
+Every subcommand runs with short error messages (:mod:`dapm_lightning.tools.errors`).
+"""
 
 from __future__ import annotations
 
@@ -43,7 +46,7 @@ TOOLS = {
 
 LIGHTNING_SUBCOMMANDS = {"fit": "train (and validate) a model", "validate": "validate a checkpoint",
                          "test": "test a checkpoint (metrics, viewpoint figure)",
-                         "predict": "predict depth and pose for a folder of images"}
+                         "predict": "depth, pose, camera and metric 3D for images, folders, globs or videos"}
 
 
 def usage() -> str:

@@ -150,3 +150,21 @@ def test_the_igd_feature_reaches_the_depth_wherever_it_is_on(stack):
         low, high = (net(image, TeacherForcing(net.config.igd.normalize(torch.tensor([pose])), 0.0)).depth.depth_norm
                      for pose in ([20.0, -90.0, 0.0, 60.0], [90.0, -20.0, 10.0, 100.0]))
     assert not torch.equal(low, high), "the depth ignores the IGD it is given"
+
+
+def test_top_level_help_lists_every_subcommand_and_tools_take_settings_files(capsys):
+    from dapm_lightning.cli import LIGHTNING_SUBCOMMANDS, TOOLS
+
+    main(["--help"])
+    listing = capsys.readouterr().out
+    for name in [*LIGHTNING_SUBCOMMANDS, *TOOLS]:
+        assert f"\n  {name} " in listing, name
+    assert "--debug" in listing
+    for tool in ("doctor", "export", "collect-carla"):
+        with pytest.raises(SystemExit) as info:
+            main([tool, "--help"])
+        text = capsys.readouterr().out
+        assert info.value.code == 0 and "--config" in text and "--print_config" in text, tool
+        assert "``" not in text, f"{tool} --help shows raw RST markup"
+        flags = [w.split("=")[0] for w in text.split() if w.startswith("--") and len(w) > 3]
+        assert not [f for f in flags if "-" in f[2:]], f"{tool}: one flag style (underscores)"

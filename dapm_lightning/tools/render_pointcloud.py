@@ -1,0 +1,90 @@
+"""Render a predicted metric point cloud beside its image (the README's 3D figure).
+
+``python -m dapm_lightning.tools.render_pointcloud --ckpt_path CKPT --image FRAME.png --out view.png``
+predicts depth and pose for the image, lifts the depth into the gravity-aligned world frame (origin on
+the ground under the camera, Z up) and draws the coloured points from an oblique viewpoint, with the
+camera and its predicted height, pitch, roll and FoV. Uses its own matplotlib figure (no global state).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+
+def render(image_rgb: np.ndarray, prediction: Any, out: str | Path, *, stride: int = 1,
+           max_depth: float | None = None, title: str | None = None) -> Path:
+    """Draw ``image_rgb`` (``[H, W, 3]`` uint8) and ``prediction``'s point cloud side by side into ``out``."""
+    from matplotlib.figure import Figure
+
+    cloud = prediction.points(stride=stride, max_depth=max_depth, rgb=image_rgb)
+    pose = prediction.pose
+    figure = Figure(figsize=(11, 4.6), dpi=110)
+    left = figure.add_subplot(1, 2, 1)
+    left.imshow(image_rgb)
+    left.set_title(title or "input image")
+    left.axis("off")
+    ax = figure.add_subplot(1, 2, 2, projection="3d")
+    xyz = cloud.xyz
+    ax.scatter(xyz[:, 0], xyz[:, 1], xyz[:, 2], c=cloud.rgb / 255.0, s=2.0, depthshade=False, linewidths=0)
+    height = pose["height"]
+    ax.scatter([0], [0], [height], c="red", s=30, marker="^")
+    ax.plot([0, 0], [0, 0], [0, height], color="red", linewidth=1)
+    forward = prediction.camera_to_world[:3, 2] * max(5.0, 0.3 * height)
+    ax.quiver(0, 0, height, *forward, color="red", linewidth=1.5)
+    span = max(float(np.ptp(xyz[:, 0])), float(np.ptp(xyz[:, 1])), height, 1.0)
+    centre = (xyz[:, 0].min() + xyz[:, 0].max()) / 2, (xyz[:, 1].min() + xyz[:, 1].max()) / 2
+    ax.set_xlim(centre[0] - span / 2, centre[0] + span / 2)
+    ax.set_ylim(centre[1] - span / 2, centre[1] + span / 2)
+    ax.set_zlim(0, span)
+    ax.set_box_aspect((1, 1, 1))
+    ax.view_init(elev=28, azim=-140)
+    ax.set_xlabel("X (m, forward)")
+    ax.set_ylabel("Y (m, left)")
+    ax.set_zlabel("Z (m, up)")
+    ax.set_title(f"predicted metric point cloud ({len(xyz)} points)\nheight {height:.1f} m, pitch "
+                 f"{pose['pitch']:.1f}, roll {pose['roll']:.1f}, FoV {pose['fov']:.1f} deg", fontsize=9)
+    figure.tight_layout()
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(out)
+    return out
+
+
+def render_main(ckpt_path: Path, image: Path, out: Path = Path("pointcloud.png"), image_width: int = 512,
+                stride: int = 1, max_depth: float | None = None, ply: Path | None = None) -> Path:
+    """Predict one image and render its point cloud beside it.
+
+    Args:
+        ckpt_path: a full DAPM checkpoint (depth and pose).
+        image: the image file.
+        out: the PNG to write.
+        image_width: network input width.
+        stride: keep every stride-th pixel in the point cloud.
+        max_depth: leave out points farther than this (metres).
+        ply: also write the point cloud to this PLY file.
+    """
+    from dapm_lightning.tools.predict import DAPMPredictor, read_image
+
+    rgb = read_image(Path(image))
+    prediction = DAPMPredictor.from_checkpoint(ckpt_path, image_width=image_width)(rgb)
+    if ply is not None:
+        prediction.points(stride, max_depth, rgb).write_ply(ply)
+    written = render(rgb, prediction, out, stride=stride, max_depth=max_depth, title=Path(image).name)
+    print(f"wrote {written}")
+    return written
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    """Command line of :func:`render_main`."""
+    from jsonargparse import auto_cli
+
+    auto_cli(render_main, args=None if argv is None else list(argv), as_positional=False,
+             prog="python -m dapm_lightning.tools.render_pointcloud", description=__doc__)
+
+
+if __name__ == "__main__":
+    main()
