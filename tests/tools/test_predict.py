@@ -224,3 +224,22 @@ def test_python_api_video_and_single_branch_models(tmp_path):
     assert {q.name for q in write_prediction(tmp_path, "pose_only", p)} == {"pose_only_camera.json"}
     with pytest.raises(ValueError, match="unknown output"):
         PredictionWriter(outputs=["depth_npy", "mesh"])
+
+
+def test_cli_predict_honours_precision_and_a_video_source(checkpoint, tmp_path):
+    video = write_video(tmp_path / "clip.avi", frames=6)
+    out = tmp_path / "pred"
+    run_lightning_cli(["predict", "--config", str(CONFIGS / "predict.yaml"), "--ckpt_path", str(checkpoint),
+                       "--data.init_args.source", str(video), "--data.init_args.image_width", "64",
+                       "--data.init_args.frame_step", "2", "--data.init_args.num_workers", "0",
+                       "--trainer.precision", "bf16-mixed", "--trainer.callbacks.output_dir", str(out),
+                       "--trainer.callbacks.outputs", "[depth_npy, camera]"])
+    names = [p["name"] for p in json.loads((out / "poses.json").read_text())]
+    assert names == ["clip_f000000", "clip_f000002", "clip_f000004"]
+    assert sorted(p.name for p in out.iterdir()) == sorted(
+        [f"{n}_{s}" for n in names for s in ("depth.npy", "camera.json")] + ["poses.csv", "poses.json"])
+    fp32 = DAPMPredictor.from_checkpoint(checkpoint, image_width=64)(next(iter(
+        VideoFramesDataset(video, image_width=None, keep_rgb=True)))["rgb"].numpy())
+    bf16 = np.load(out / "clip_f000000_depth.npy")
+    assert bf16.dtype == np.float32 and not np.array_equal(bf16, fp32.depth_m)  # bf16 ran, not float32
+    np.testing.assert_allclose(bf16, fp32.depth_m, rtol=0.1)
