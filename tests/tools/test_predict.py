@@ -243,3 +243,17 @@ def test_cli_predict_honours_precision_and_a_video_source(checkpoint, tmp_path):
     bf16 = np.load(out / "clip_f000000_depth.npy")
     assert bf16.dtype == np.float32 and not np.array_equal(bf16, fp32.depth_m)  # bf16 ran, not float32
     np.testing.assert_allclose(bf16, fp32.depth_m, rtol=0.1)
+
+
+@pytest.mark.slow
+def test_python_api_onnxruntime_backend_matches_pytorch(tmp_path):
+    torch.manual_seed(0)
+    module = DAPMModule(net=DAPMConfig(**TINY))
+    module.net.depth_pqb.blocks[0].body[-1].bias.data.fill_(-4.0)
+    rgb = np.random.default_rng(3).integers(0, 255, (50, 80, 3), np.uint8)
+    eager = DAPMPredictor(module, image_width=64)(rgb)
+    fast = DAPMPredictor(module, image_width=64, onnx_path=tmp_path / "m.onnx")
+    assert (tmp_path / "m.onnx").is_file()
+    for got in (fast(rgb), fast([rgb, rgb])[1]):
+        np.testing.assert_allclose(got.depth_m, eager.depth_m, rtol=1e-4, atol=1e-3)
+        assert max(abs(got.pose[k] - eager.pose[k]) for k in got.pose) < 1e-3
