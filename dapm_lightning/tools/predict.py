@@ -250,16 +250,16 @@ def _collate(items: list[dict[str, Any]]) -> dict[str, Any]:
 
 
 class PredictDataModule(DAPMDataModule):
-    """``predict`` on images or a video of any size; no depth or pose needed.
+    """predict on images or a video of any size; no depth or pose needed.
 
     Args:
-        source: a folder of images, a glob pattern (``'flight/**/*.jpg'``, quoted), one image, or a video
-            file (``.mp4``, ``.avi``, ``.mov``, ...).
-        image_width: network input width (height scaled to keep the aspect); ``None`` keeps each image's
+        source: a folder of images, a glob pattern ('flight/**/*.jpg', quoted), one image, or a video
+            file (.mp4, .avi, .mov, ...).
+        image_width: network input width (height scaled to keep the aspect); None keeps each image's
             size (rounded to 32). A batch needs images of one aspect ratio.
         batch_size: images per forward pass.
         num_workers: decoding processes.
-        frame_step: videos: keep every ``frame_step``-th frame.
+        frame_step: videos: keep every frame_step-th frame.
         max_frames: videos: stop after this many kept frames.
         keep_rgb: ship the original pixels with each batch (the writer colours point clouds with them).
     """
@@ -293,7 +293,7 @@ class PredictDataModule(DAPMDataModule):
 
 
 class ImageFolderDataModule(PredictDataModule):
-    """The former name of :class:`PredictDataModule` (``folder`` is its ``source``)."""
+    """The former name of PredictDataModule (folder is its source)."""
 
     def __init__(self, folder: str = "images", image_width: int | None = 512, batch_size: int = 1,
                  num_workers: int = 0, keep_rgb: bool = True) -> None:
@@ -478,20 +478,20 @@ def _model_settings(module: torch.nn.Module) -> tuple[float, str]:
 class PredictionWriter(BasePredictionWriter):
     """Writes each image's files as its batch is predicted and, at the end, the run's poses file.
 
-    Predictions are not kept in memory (the trainer's ``return_predictions`` is switched off), so memory
+    Predictions are not kept in memory (the trainer's return_predictions is switched off), so memory
     stays flat over any number of images or frames.
 
     Args:
         output_dir: where the files go (created).
-        outputs: which per-image files to write, any of ``depth_npy``, ``depth_tiff``, ``depth16``,
-            ``depth_color``, ``sky``, ``camera``, ``points`` (default: all).
-        points_stride: point clouds keep every ``points_stride``-th row and column.
+        outputs: which per-image files to write, any of depth_npy, depth_tiff, depth16,
+            depth_color, sky, camera, points (default: all).
+        points_stride: point clouds keep every points_stride-th row and column.
         points_max_depth: point clouds drop points farther than this (metres; sky is always dropped).
         channels_last: run the network with channels-last memory (NHWC convolutions).
-        compile: ``torch.compile`` the network before the first batch (each new input size compiles
+        compile: torch.compile the network before the first batch (each new input size compiles
             again: worth it for long runs of one size, e.g. a video).
 
-    Under DDP every process writes its own images and ``poses_rank<k>.{csv,json}``.
+    Under DDP every process writes its own images and poses_rank<k>.{csv,json}.
     """
 
     def __init__(self, output_dir: str = "predictions", outputs: list[Output] | None = None, points_stride: int = 2,
