@@ -29,7 +29,8 @@ def test_missing_data_folder(tmp_path, capsys, monkeypatch):
     assert f"{tmp_path / 'nowhere' / 'train'}: missing folder" in err and "Fix:" in err and "--debug" in err
 
 
-def test_missing_and_damaged_checkpoints_and_sources(checkpoint, tmp_path, capsys):
+def test_missing_and_damaged_checkpoints_and_sources(checkpoint, tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
     predict = ["predict", "--config", str(CONFIGS / "predict.yaml"), "--data.init_args.source", str(tmp_path)]
     code, err = run_main([*predict, "--ckpt_path", str(tmp_path / "missing.ckpt")], capsys)
     assert code == 1 and "missing.ckpt" in err and "Fix: check the path" in err
@@ -43,7 +44,8 @@ def test_missing_and_damaged_checkpoints_and_sources(checkpoint, tmp_path, capsy
     assert code == 1 and f"{tmp_path / 'photos'}: no such file or folder" in err
 
 
-def test_bad_setting_and_debug_flag(capsys, monkeypatch):
+def test_bad_setting_and_debug_flag(capsys, monkeypatch, tmp_path):
+    monkeypatch.chdir(tmp_path)
     args = ["fit", "--config", str(QUICKSTART), "--model.net.head_stride", "3", "--trainer.logger", "false"]
     code, err = run_main(args, capsys)
     assert code == 1 and "head_stride must be 1, 2, 4 or 8, got 3" in err

@@ -112,7 +112,8 @@ def test_video_frames_in_order_with_step_limit_and_workers(tmp_path):
     assert [n for batch in loader for n in batch] == [f"flight_f{k:06d}" for k in range(9)]
 
 
-def test_cli_predict_writes_every_output(checkpoint, image_folder, tmp_path):
+def test_cli_predict_writes_every_output(checkpoint, image_folder, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # LightningCLI saves its config.yaml into the working directory when logger: false
     out = tmp_path / "pred"
     cli = run_lightning_cli(["predict", "--config", str(CONFIGS / "predict.yaml"), "--ckpt_path", str(checkpoint),
                              "--data.init_args.source", str(image_folder), "--data.init_args.image_width", "64",
@@ -226,7 +227,8 @@ def test_python_api_video_and_single_branch_models(tmp_path):
         PredictionWriter(outputs=["depth_npy", "mesh"])
 
 
-def test_cli_predict_honours_precision_and_a_video_source(checkpoint, tmp_path):
+def test_cli_predict_honours_precision_and_a_video_source(checkpoint, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
     video = write_video(tmp_path / "clip.avi", frames=6)
     out = tmp_path / "pred"
     run_lightning_cli(["predict", "--config", str(CONFIGS / "predict.yaml"), "--ckpt_path", str(checkpoint),
