@@ -48,10 +48,11 @@ ALL_CONFIGS = [*(f"paper/{p.name}" for p in sorted((HERE.parents[1] / "configs" 
                *(f"ablations/{p.name}" for p in sorted((HERE.parents[1] / "configs" / "ablations").glob("*.yaml")))]
 
 
-def test_every_shipped_config_trains_under_two_process_ddp(tmp_path, tiny_uapd, tiny_potsdam):
+def test_every_shipped_config_trains_under_two_process_ddp(tmp_path, tiny_potsdam):
     """Each paper config and ablation overlay, as the README stacks them, under DDP without find_unused_parameters:
     a parameter built but not used stops DDP at the second step."""
     out = tmp_path / "configs.json"
+    tiny_uapd = generate_uapd(tmp_path / "data", train=12, val=2, size=(24, 40), seed=12, workers=1)
     try:
         subprocess.run([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2",
                         "--master_port", "29731", str(HERE / "ddp_configs_run.py"), str(out), str(tiny_uapd),
