@@ -262,13 +262,16 @@ class PredictDataModule(DAPMDataModule):
         frame_step: videos: keep every frame_step-th frame.
         max_frames: videos: stop after this many kept frames.
         keep_rgb: ship the original pixels with each batch (the writer colours point clouds with them).
+        pin_memory: DataLoader setting (GPUs).
+        folder: the former name of source (kept so that older commands work); source wins when both are set.
     """
 
     def __init__(self, source: str = "images", image_width: int | None = 512, batch_size: int = 1,
                  num_workers: int = 0, frame_step: int = 1, max_frames: int | None = None,
-                 keep_rgb: bool = True, pin_memory: bool = False) -> None:
+                 keep_rgb: bool = True, pin_memory: bool = False, folder: str | None = None) -> None:
         super().__init__(batch_size=batch_size, num_workers=num_workers, augment=False, pin_memory=pin_memory)
-        self.source, self.image_width = source, image_width
+        self.source = folder if folder is not None and source == "images" else source
+        self.image_width = image_width
         self.frame_step, self.max_frames, self.keep_rgb = frame_step, max_frames, keep_rgb
 
     def setup(self, stage: str | None = None) -> None:
