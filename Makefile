@@ -26,6 +26,8 @@ test-all: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/python -m dapm_lightning.tools.bench
+	$(BIN)/python -m dapm_lightning.tools.bench_synth speed
+	$(BIN)/python -m dapm_lightning.tools.bench_predict speed --rounds 3
 
 lint: $(STAMP)
 	$(BIN)/ruff check dapm_lightning tests

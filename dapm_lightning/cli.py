@@ -5,38 +5,12 @@ Every subcommand runs with short error messages (:mod:`dapm_lightning.tools.erro
 
 from __future__ import annotations
 
-import argparse
 import importlib
 import sys
 from collections.abc import Sequence
-from pathlib import Path
-
-
-def synth_main(argv: Sequence[str]) -> None:
-    """``dapm-lightning synth``: write a synthetic UAPD-format data set."""
-    from dapm_lightning.data.synthetic import generate_uapd
-
-    parser = argparse.ArgumentParser(
-        prog="dapm-lightning synth",
-        description="Render a synthetic data set in UAPD layout and naming: OUT/{train,val}/{rgb,depth}/NAME.png "
-                    "(depth: range in metres, 8-bit log encoded, grey 255 = sky).")
-    parser.add_argument("--out", type=Path, required=True, help="output root folder")
-    parser.add_argument("--train", type=int, default=200, help="training images (default 200)")
-    parser.add_argument("--val", type=int, default=50, help="validation images (default 50)")
-    parser.add_argument("--size", type=int, nargs="+", default=[128], metavar="S",
-                        help="S for SxS images, or H W (default 128)")
-    parser.add_argument("--seed", type=int, default=0, help="same seed, same bytes (default 0)")
-    parser.add_argument("--workers", type=int, default=None, help="processes (default: CPU count, max 8)")
-    args = parser.parse_args(list(argv))
-    if len(args.size) not in (1, 2) or min(args.size) < 1:
-        parser.error(f"--size takes S or H W (positive), got {args.size}")
-    size = args.size[0] if len(args.size) == 1 else (args.size[0], args.size[1])
-    out = generate_uapd(args.out, train=args.train, val=args.val, size=size, seed=args.seed, workers=args.workers)
-    print(f"wrote {args.train} train + {args.val} val images to {out}")
-
 
 TOOLS = {
-    "synth": ("dapm_lightning.cli", "synth_main", "render a synthetic data set in UAPD layout and naming"),
+    "synth": ("dapm_lightning.tools.synth", "synth_main", "render a synthetic data set in UAPD layout and naming"),
     "doctor": ("dapm_lightning.tools.doctor", "doctor_main", "check a UAPD-format data set against its poses"),
     "export": ("dapm_lightning.tools.export", "export_main", "export a checkpoint to ONNX, checked with onnxruntime"),
     "collect-carla": ("dapm_lightning.tools.carla_collect", "collect_main",

@@ -5,7 +5,8 @@ from __future__ import annotations
 from collections.abc import Sequence
 from pathlib import Path
 
-from lightning.pytorch.cli import LightningCLI
+import lightning as L
+from lightning.pytorch.cli import LightningCLI, SaveConfigCallback
 
 from dapm_lightning.data.datamodules import DAPMDataModule
 from dapm_lightning.models.config import DAPMConfig
@@ -14,6 +15,18 @@ from dapm_lightning.training.module import DAPMModule
 
 TRAINER_DEFAULTS = {"plugins": [{"class_path": "dapm_lightning.training.checkpointing.SafeCheckpointIO"}]}
 """Checkpoints load with ``weights_only=True`` and a clear error for damaged files."""
+
+
+class SaveConfigOfRun(SaveConfigCallback):
+    """Saves the resolved ``config.yaml`` into the run's log folder for fit, validate and test.
+
+    Not for predict: its outputs go to the prediction writer's folder, and without a logger Lightning's
+    log folder would be the current directory.
+    """
+
+    def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
+        if stage != "predict":
+            super().setup(trainer, pl_module, stage)
 
 
 class DAPMCLI(LightningCLI):
@@ -42,5 +55,6 @@ class DAPMCLI(LightningCLI):
 def run_lightning_cli(args: Sequence[str] | None = None, run: bool = True) -> DAPMCLI:
     """Parse ``args`` (``fit --config FILE ...``) and run the subcommand."""
     return DAPMCLI(DAPMModule, DAPMDataModule, subclass_mode_data=True, seed_everything_default=0,
-                   save_config_kwargs={"overwrite": True}, args=list(args) if args is not None else None, run=run,
-                   auto_configure_optimizers=False, trainer_defaults=TRAINER_DEFAULTS)
+                   save_config_callback=SaveConfigOfRun, save_config_kwargs={"overwrite": True},
+                   args=list(args) if args is not None else None, run=run, auto_configure_optimizers=False,
+                   trainer_defaults=TRAINER_DEFAULTS)

@@ -3,8 +3,7 @@ import math
 import pytest
 import torch
 
-from dapm_lightning.geometry import (MAX_DEPTH_M, camera_rays, decode_log_depth, encode_log_depth,
-                                     ideal_ground_depth)
+from dapm_lightning.geometry import MAX_DEPTH_M, camera_rays, decode_log_depth, encode_log_depth, ideal_ground_depth
 
 
 def pose(h, p, r, f, dtype=torch.float64):

@@ -2,8 +2,16 @@ import numpy as np
 import pytest
 import torch
 
-from dapm_lightning.geometry import (POSE_RANGES, bin_centers, denormalize_pose, depth_to_grey, flip_pose,
-                                     grey_to_depth, normalize_pose, quantize)
+from dapm_lightning.geometry import (
+    POSE_RANGES,
+    bin_centers,
+    denormalize_pose,
+    depth_to_grey,
+    flip_pose,
+    grey_to_depth,
+    normalize_pose,
+    quantize,
+)
 
 
 def test_normalize_maps_ranges_to_unit_interval():

@@ -8,10 +8,16 @@ import cv2
 import numpy as np
 import pytest
 
-from dapm_lightning.tools.carla_collect import (CarlaCollector, CarlaConfig, _import_carla, decode_carla_depth,
-                                          done_indices, sample_params)
 from dapm_lightning.data import UAPDDataset, parse_uapd_filename
 from dapm_lightning.geometry import depth_to_grey
+from dapm_lightning.tools.carla_collect import (
+    CarlaCollector,
+    CarlaConfig,
+    _import_carla,
+    decode_carla_depth,
+    done_indices,
+    sample_params,
+)
 
 FAKE_DEPTH_M = 50.0
 
