@@ -154,6 +154,10 @@ def train_compare(configs: list[str], *, backbone: str, size: int, steps: int, b
                     run["seconds"] += time.perf_counter() - start
                     run["loss"] = float(loss.detach())
                 step += 1
+                if step % 10 == 0:
+                    print(f"step {step}/{steps}: " + ", ".join(f"{k} {r['seconds'] / step:.2f} s/step loss "
+                                                              f"{r['loss']:.3f}" for k, r in runs.items()),
+                          file=sys.stderr, flush=True)
                 if step == steps:
                     break
         rows = []
