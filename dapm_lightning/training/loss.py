@@ -206,14 +206,17 @@ class DAPMLoss(nn.Module):
                                       torch.zeros_like(depth_m))
             terms["grad"] = laplacian_gradient_loss(depth.depth_norm, target_norm, valid)
         dq = depth.depth_norm.sum() * 0.0
+        # the authors' space counts 0 m targets (Potsdam ground) in the bins too; sky stays out of the classes
+        counted = (torch.isfinite(depth_m) & (depth_m >= 0) if self.config.depth_space == "log_norm" else valid)
         if depth.sky_logits is not None:
             bce = F.binary_cross_entropy_with_logits(depth.sky_logits, sky.float(), reduction="none")
-            dq = dq + _masked_mean(bce, valid)
-        depth_norm = encode_log_depth(depth_m, max_depth)
+            dq = dq + _masked_mean(bce, counted)
+        depth_norm = encode_log_depth(torch.where(counted, depth_m, torch.zeros_like(depth_m)), max_depth)
+        binned = counted & ~sky if self.config.depth_space == "log_norm" else metric
         for logits in depth.bin_logits:
             size = (logits.shape[-2], logits.shape[-1])
             classes = quantize(_resize_nearest(depth_norm, size), logits.shape[1])[:, 0]
-            usable = _resize_nearest(metric, size)[:, 0] > 0.5
+            usable = _resize_nearest(binned, size)[:, 0] > 0.5
             if usable.any():
                 dq = dq + F.cross_entropy(logits, torch.where(usable, classes, IGNORE), ignore_index=IGNORE)
         if depth.sky_logits is not None or depth.bin_logits:

@@ -113,3 +113,19 @@ def test_gradient_loss_by_hand_and_opt_in():
     assert LossConfig().weights["grad"] == 10.0
     with pytest.raises(ValueError, match="depth_space"):
         LossConfig(depth_space="metres")
+
+
+def test_authors_space_counts_zero_metre_pixels_in_the_bins():
+    # one image, pixel 0 at 0 m (Potsdam ground) confidently in its class 0 (CE ~ 0), pixel 1 at 10 m uniform (ln 16)
+    depth = torch.tensor([[[[0.0, 10.0]]]])
+    norm = encode_log_depth(depth)
+    logits = torch.zeros(1, 16, 1, 2)
+    logits[0, 0, 0, 0] = 30.0
+    prediction = DepthPrediction(depth_norm=norm, depth_init_norm=norm, depth_m=depth,
+                                 sky_logits=torch.zeros(1, 1, 1, 2), bin_logits=(logits,), igd_norm=None, refined=True)
+    targets = dict(depth=depth, sky=depth >= MAX_DEPTH_M, valid=depth > 0)
+    authors = DAPMLoss(LossConfig(depth_space="log_norm")).depth_terms(prediction, targets)
+    metric = DAPMLoss(LossConfig(depth_space="metric")).depth_terms(prediction, targets)
+    assert authors["dq"].item() == pytest.approx(LN2 + math.log(16) / 2, rel=1e-6)  # CE: mean over both pixels
+    assert metric["dq"].item() == pytest.approx(LN2 + math.log(16), rel=1e-6)  # CE: the 10 m pixel alone
+    assert torch.isfinite(authors["depth"]) and authors["depth"].item() == pytest.approx(10 * math.sqrt(1e-3))
