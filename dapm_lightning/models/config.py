@@ -94,16 +94,18 @@ class DAPMConfig:
         if isinstance(self.igd, Mapping):
             object.__setattr__(self, "igd", IGDSpec(**self.igd))
         if not (self.use_depth or self.use_pose):
-            raise ValueError("DAPMConfig needs use_depth or use_pose (or both)")
+            raise ValueError("model.net: needs use_depth or use_pose (or both)")
         if self.use_igd_feature and not (self.use_depth and self.use_pose):
-            raise ValueError("use_igd_feature needs both branches: the IGD comes from the predicted pose and feeds "
-                             "the depth refinement (set use_igd_feature: false for DAPM(D) / DAPM(P))")
+            raise ValueError("model.net.use_igd_feature needs both branches: the IGD comes from the predicted pose and "
+                             "feeds the depth refinement (set use_igd_feature: false for DAPM(D) / DAPM(P))")
         if self.pose_bins_source not in ("decoder", "encoder"):
-            raise ValueError(f"pose_bins_source must be 'decoder' or 'encoder', got {self.pose_bins_source!r}")
+            raise ValueError("model.net.pose_bins_source must be 'decoder' or 'encoder', "
+                             f"got {self.pose_bins_source!r}")
         if not 1 <= self.pose_stages <= 4:
-            raise ValueError(f"pose_stages must be 1 to 4 (deepest encoder stages pooled), got {self.pose_stages}")
+            raise ValueError("model.net.pose_stages must be 1 to 4 (deepest encoder stages pooled), "
+                             f"got {self.pose_stages}")
         if self.head_stride not in (1, 2, 4, 8):
-            raise ValueError(f"head_stride must be 1, 2, 4 or 8, got {self.head_stride}")
+            raise ValueError(f"model.net.head_stride must be 1, 2, 4 or 8, got {self.head_stride}")
 
     @classmethod
     def architecture_fields(cls) -> tuple[str, ...]:
@@ -116,7 +118,7 @@ class DAPMConfig:
         known = {f.name for f in fields(cls)}
         unknown = sorted(set(values) - known)
         if unknown:
-            raise ValueError(f"unknown network setting(s) {unknown}; known: {sorted(known)}")
+            raise ValueError(f"unknown model.net setting(s) {unknown}; known: {sorted(known)}")
         return cls(**dict(values))
 
     def to_dict(self) -> dict[str, Any]:
