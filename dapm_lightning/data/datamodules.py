@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any, Literal
 
@@ -14,7 +13,7 @@ from torch.utils.data._utils.collate import default_collate
 from dapm_lightning.data.potsdam import PotsdamCrops, PotsdamDataset
 from dapm_lightning.data.sample import Sample
 from dapm_lightning.data.samplers import EpochShuffleSampler
-from dapm_lightning.data.synthetic import generate_uapd
+from dapm_lightning.data.synthetic import generate_uapd, is_current
 from dapm_lightning.data.transforms import train_transform
 from dapm_lightning.data.uapd import UAPDDataset
 
@@ -140,7 +139,7 @@ class UAPDDataModule(DAPMDataModule):
 
 
 class SyntheticDataModule(UAPDDataModule):
-    """Synthetic UAPD-format data, rendered into ``root`` on first use (and re-rendered if the settings change).
+    """Synthetic UAPD-format data, rendered into ``root`` on first use (and re-rendered if any setting changes).
 
     Args:
         root: cache folder.
@@ -148,25 +147,25 @@ class SyntheticDataModule(UAPDDataModule):
         image_size: square side in pixels.
         render_seed: seed of the generator (the scenes and poses); ``seed`` is the loaders'.
         render_workers: processes for the generator (default: CPU count, at most 8).
+        families: scene families and their weights, e.g. ``{downtown: 2, suburb: 1}``; None: all alike
+            (docs/synthetic.md).
+        effects: camera effects (exposure, blur, noise, JPEG artefacts).
+        distortion: the lens distortion UAPD randomised (image and depth warped alike).
     """
 
     def __init__(self, root: str = "data/synthetic", train_size: int = 1000, val_size: int = 200,
                  image_size: int = 64, render_seed: int = 0, render_workers: int | None = None,
+                 families: dict[str, float] | None = None, effects: bool = True, distortion: bool = False,
                  **kwargs: Any) -> None:
         super().__init__(root=root, **kwargs)
-        self.train_size, self.val_size, self.image_size = train_size, val_size, image_size
-        self.render_seed, self.render_workers = render_seed, render_workers
+        self.render_settings: dict[str, Any] = {
+            "train": train_size, "val": val_size, "size": image_size, "seed": render_seed,
+            "families": families, "effects": effects, "distortion": distortion}
+        self.render_workers = render_workers
 
     def prepare_data(self) -> None:
-        info = self.root / "synth.json"
-        wanted = {"train": self.train_size, "val": self.val_size, "size": [self.image_size] * 2,
-                  "seed": self.render_seed}
-        if info.is_file():
-            have = json.loads(info.read_text())
-            if all(have.get(k) == v for k, v in wanted.items()):
-                return
-        generate_uapd(self.root, train=self.train_size, val=self.val_size, size=self.image_size,
-                      seed=self.render_seed, workers=self.render_workers)
+        if not is_current(self.root, **self.render_settings):  # synth.json records every setting and the version
+            generate_uapd(self.root, workers=self.render_workers, **self.render_settings)
 
 
 class PotsdamDataModule(DAPMDataModule):
