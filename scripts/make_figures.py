@@ -9,7 +9,6 @@ import matplotlib.pyplot as plt
 import numpy as np
 import torch
 
-from dapm_lightning.data.synthetic import render_scene, sample_pose, sample_scene
 from dapm_lightning.geometry import ideal_ground_depth
 
 OUT = Path(__file__).resolve().parents[1] / "docs" / "figures"
@@ -50,26 +49,8 @@ def pinhole_vs_paper() -> None:
     plt.close(fig)
 
 
-def synthetic_samples() -> None:
-    rng = np.random.default_rng(3)
-    fig, axes = plt.subplots(2, 6, figsize=(13, 4.8), constrained_layout=True)
-    for k in range(6):
-        pose = sample_pose(rng)
-        rgb, range_m, _ = render_scene(pose, (128, 128), sample_scene(rng))
-        axes[0, k].imshow(rgb)
-        axes[0, k].set_title(f"h {pose[0]:.0f} p {pose[1]:.0f}\nr {pose[2]:.0f} fov {pose[3]:.0f}", fontsize=8)
-        depth = np.minimum(np.where(np.isfinite(range_m), range_m, 1000), 1000)
-        axes[1, k].imshow(np.log2(depth + 1) / np.log2(1001), cmap="magma_r", vmin=0, vmax=1)
-        for ax in axes[:, k]:
-            ax.axis("off")
-    fig.suptitle("Synthetic UAPD-format samples (dapm-lightning synth): RGB and log depth")
-    fig.savefig(OUT / "synthetic_samples.png", dpi=70)
-    plt.close(fig)
-
-
 if __name__ == "__main__":
     OUT.mkdir(parents=True, exist_ok=True)
     igd_grid()
     pinhole_vs_paper()
-    synthetic_samples()
-    print(f"wrote figures to {OUT}")
+    print(f"wrote figures to {OUT}; the synthetic samples figure: python -m dapm_lightning.tools.bench_synth figure")
