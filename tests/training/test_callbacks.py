@@ -48,3 +48,12 @@ def test_warmup_then_cosine():
     assert warmup_cosine(29, 100, 0.3, 0.0) == pytest.approx(1.0)
     assert warmup_cosine(65, 100, 0.3, 0.0) == pytest.approx(0.5, abs=0.03)
     assert warmup_cosine(100, 100, 0.3, 0.1) == pytest.approx(0.1)
+
+
+def test_data_and_model_depth_kinds_must_agree():
+    module = DAPMModule(DAPMConfig(backbone="resnet18"))  # IGD of range depth
+    module._trainer = SimpleNamespace(datamodule=SimpleNamespace(depth_kind="planar"))
+    with pytest.raises(ValueError, match=r"model.net.igd.depth_kind: planar"):
+        module.setup("fit")
+    module._trainer = SimpleNamespace(datamodule=SimpleNamespace(depth_kind="range"))
+    module.setup("fit")
