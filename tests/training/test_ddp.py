@@ -53,13 +53,16 @@ def test_every_shipped_config_trains_under_two_process_ddp(tmp_path, tiny_potsda
     a parameter built but not used stops DDP at the second step."""
     out = tmp_path / "configs.json"
     tiny_uapd = generate_uapd(tmp_path / "data", train=12, val=2, size=(24, 40), seed=12, workers=1)
+    logs = tmp_path / "rank_logs"  # each rank's output in its own file: the failing rank's error is not cut off
     try:
         subprocess.run([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2",
-                        "--master_port", "29731", str(HERE / "ddp_configs_run.py"), str(out), str(tiny_uapd),
-                        str(tiny_potsdam), *ALL_CONFIGS],
+                        "--master_port", "29731", "--log-dir", str(logs), "--redirects", "3",
+                        str(HERE / "ddp_configs_run.py"), str(out), str(tiny_uapd), str(tiny_potsdam), *ALL_CONFIGS],
                        check=True, cwd=tmp_path, capture_output=True, text=True, timeout=900)
-    except subprocess.CalledProcessError as error:
-        pytest.fail(f"DDP run failed:\n{error.stdout[-2000:]}\n{error.stderr[-4000:]}")
+    except subprocess.CalledProcessError:
+        pytest.fail("DDP run failed:\n" + "\n".join(f"== {path.relative_to(logs)}\n{path.read_text()[-3000:]}"
+                                                     for path in sorted(logs.rglob("stderr.log"))))
+    assert not (tmp_path / "outputs").exists(), "ddp_configs_run.py leaves the paper checkpoints behind"
     results = json.loads(out.read_text())
     assert sorted(results) == sorted(ALL_CONFIGS)
     for config, result in results.items():
