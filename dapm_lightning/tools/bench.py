@@ -41,9 +41,9 @@ def _median_latency(fn: Any, x: torch.Tensor, repeats: int) -> float:
     return statistics.median(times)
 
 
+@torch.no_grad()
 def measure(config: str, backbone: str, size: int, repeats: int, device: str) -> dict[str, Any]:
     """Measure one configuration in this process."""
-    torch.set_grad_enabled(False)
     net = DAPMNet(DAPMConfig(backbone=backbone, **CONFIGS[config])).eval().to(device)
     x = torch.rand(1, 3, size, size, device=device)
 
@@ -182,20 +182,30 @@ def train_compare(configs: list[str], *, backbone: str, size: int, steps: int, b
     return rows
 
 
+def print_table(rows: list[dict[str, Any]], columns: list[tuple[str, str, int, str]]) -> None:
+    """Print ``rows`` under a header.
+
+    ``columns``: (row key, title, width, number format such as ``.2f``; empty for a left-aligned text column).
+    """
+    header = "".join(f"{title:{'>' if fmt else '<'}{width}}" for _, title, width, fmt in columns)
+    print(header)
+    print("-" * len(header))
+    for row in rows:
+        print("".join(f"{row[key]:{'>' if fmt else '<'}{width}{fmt}}" for key, _, width, fmt in columns))
+
+
 def print_train_compare(rows: list[dict[str, Any]], args: argparse.Namespace) -> None:
     """Print :func:`train_compare`'s rows as a table."""
     print(f"Training side by side: {args.backbone}, synthetic {args.train_size}x{args.train_size}, "
           f"{args.train_images} train / {args.val_images} val images, {args.train_steps} steps of batch "
           f"{args.train_batch}, {torch.get_num_threads()} CPU threads")
-    header = (f"{'config':<11}{'params M':>9}{'s/step':>8}{'eval ms':>8}{'d1':>7}{'AbsRel':>8}{'RMSE m':>8}"
-              f"{'A-d1':>7}{'A-AbsRel':>9}{'A-RMS':>7}{'h med':>7}{'p med':>7}{'r med':>7}{'f med':>7}")
-    print(header)
-    print("-" * len(header))
-    for r in rows:
-        print(f"{r['config']:<11}{r['params_m']:>9.2f}{r['s_per_step']:>8.2f}{r['eval_ms_per_image']:>8.1f}"
-              f"{r['d1']:>7.3f}{r['abs_rel']:>8.3f}{r['rmse_m']:>8.1f}{r['authors_d1']:>7.3f}"
-              f"{r['authors_abs_rel']:>9.3f}{r['authors_rmse_unit']:>7.3f}{r['height_median']:>7.2f}"
-              f"{r['pitch_median']:>7.2f}{r['roll_median']:>7.2f}{r['fov_median']:>7.2f}")
+    print_table(rows, [("config", "config", 11, ""), ("params_m", "params M", 9, ".2f"),
+                       ("s_per_step", "s/step", 8, ".2f"), ("eval_ms_per_image", "eval ms", 8, ".1f"),
+                       ("d1", "d1", 7, ".3f"), ("abs_rel", "AbsRel", 8, ".3f"), ("rmse_m", "RMSE m", 8, ".1f"),
+                       ("authors_d1", "A-d1", 7, ".3f"), ("authors_abs_rel", "A-AbsRel", 9, ".3f"),
+                       ("authors_rmse_unit", "A-RMS", 7, ".3f"), ("height_median", "h med", 7, ".2f"),
+                       ("pitch_median", "p med", 7, ".2f"), ("roll_median", "r med", 7, ".2f"),
+                       ("fov_median", "f med", 7, ".2f")])
     print("d1/AbsRel/RMSE m: toolbox protocol in metres; A-*: the authors' protocol (grey levels, sky included, "
           "pooled; RMS in [0, 1] units); medians: pose errors (m, deg).")
 
@@ -239,13 +249,10 @@ def main(argv: list[str] | None = None) -> None:
             result = subprocess.run(cmd, check=True, capture_output=True, text=True)
             rows.append(json.loads(result.stdout.strip().splitlines()[-1]))
     print(f"DAPM forward, {args.backbone}, {args.size}x{args.size}, batch 1, {torch.get_num_threads()} CPU threads")
-    header = (f"{'config':<16}{'device':<7}{'params M':>9}{'GMAC':>8}{'enc GMAC':>9}{'full ms':>10}"
-              f"{'enc ms':>9}{'ratio':>7}{'peak MB':>9}")
-    print(header)
-    print("-" * len(header))
-    for r in rows:
-        print(f"{r['config']:<16}{r['device']:<7}{r['params_m']:>9.2f}{r['gmac']:>8.1f}{r['encoder_gmac']:>9.1f}"
-              f"{r['latency_ms']:>10.0f}{r['encoder_latency_ms']:>9.0f}{r['ratio']:>7.2f}{r['peak_mb']:>9.0f}")
+    print_table(rows, [("config", "config", 16, ""), ("device", "device", 7, ""), ("params_m", "params M", 9, ".2f"),
+                       ("gmac", "GMAC", 8, ".1f"), ("encoder_gmac", "enc GMAC", 9, ".1f"),
+                       ("latency_ms", "full ms", 10, ".0f"), ("encoder_latency_ms", "enc ms", 9, ".0f"),
+                       ("ratio", "ratio", 7, ".2f"), ("peak_mb", "peak MB", 9, ".0f")])
     print("ratio = full model latency / encoder-alone latency (same process). "
           "Paper (Table 7): 42.82 M params; the paper row within 1 %; efficient target: ratio <= 1.3.")
     print("peak MB: CPU = process max RSS (model + activations); CUDA = max allocated.")

@@ -6,6 +6,7 @@ A CONFIG is `paper/X.yaml` or `ablations/Y.yaml` (stacked on paper/uapd_dapm.yam
 """
 
 import json
+import resource
 import shutil
 import sys
 import warnings
@@ -51,6 +52,7 @@ if __name__ == "__main__":
         results[config] = {"global_step": cli.trainer.global_step, "world_size": cli.trainer.world_size,
                            "unsynced": unsynced,
                            "find_unused": bool(getattr(cli.trainer.strategy, "_ddp_kwargs", {})
-                                               .get("find_unused_parameters", False))}
+                                               .get("find_unused_parameters", False)),
+                           "max_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
     if dist.get_rank() == 0:
         Path(out).write_text(json.dumps(results, indent=1))

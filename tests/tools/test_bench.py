@@ -1,0 +1,31 @@
+"""The benchmark's measurements and tables (`make bench`), on tiny settings."""
+
+import argparse
+import math
+
+from dapm_lightning.tools.bench import measure, print_table, print_train_compare, train_compare
+
+
+def test_print_table_aligns_columns(capsys):
+    print_table([{"name": "a", "value": 1.5}, {"name": "longer", "value": 12.25}],
+                [("name", "config", 8, ""), ("value", "x", 7, ".2f")])
+    lines = capsys.readouterr().out.splitlines()
+    assert lines == ["config        x", "-" * 15, "a          1.50", "longer    12.25"]
+
+
+def test_measure_counts_the_paper_and_efficient_networks():
+    paper, efficient = (measure(name, "resnet18", 64, 1, "cpu") for name in ("paper", "efficient"))
+    assert paper["params_m"] > efficient["params_m"] > 0
+    assert paper["gmac"] > efficient["gmac"] > paper["encoder_gmac"] == efficient["encoder_gmac"] > 0
+
+
+def test_train_compare_trains_both_on_the_same_batches(capsys):
+    rows = train_compare(["efficient", "paper"], backbone="resnet18", size=32, steps=2, batch=2, train_images=4,
+                         val_images=2)
+    assert [r["config"] for r in rows] == ["efficient", "paper"]
+    for row in rows:
+        assert all(math.isfinite(v) for k, v in row.items() if k != "config"), row
+    print_train_compare(rows, argparse.Namespace(backbone="resnet18", train_size=32, train_images=4, val_images=2,
+                                                 train_steps=2, train_batch=2))
+    table = capsys.readouterr().out
+    assert "\nefficient " in table and "\npaper " in table
