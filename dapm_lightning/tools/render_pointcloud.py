@@ -15,6 +15,19 @@ from typing import Any
 import numpy as np
 
 
+def view_box(xyz: np.ndarray, height: float) -> tuple[np.ndarray, np.ndarray, float]:
+    """The plotted square: (x/y low corner, x/y high corner, side in metres).
+
+    It frames the central 96 % of the points in x and y and the camera (origin, ``height`` up): a few
+    far points near the horizon would otherwise shrink the scene into a corner of the plot.
+    """
+    low = np.minimum(np.percentile(xyz[:, :2], 2, axis=0), 0.0)
+    high = np.maximum(np.percentile(xyz[:, :2], 98, axis=0), 0.0)
+    span = max(float((high - low).max()), height, 1.0)
+    centre = (low + high) / 2
+    return centre - span / 2, centre + span / 2, span
+
+
 def render(image_rgb: np.ndarray, prediction: Any, out: str | Path, *, stride: int = 1,
            max_depth: float | None = None, title: str | None = None) -> Path:
     """Draw ``image_rgb`` (``[H, W, 3]`` uint8) and ``prediction``'s point cloud side by side into ``out``."""
@@ -25,27 +38,30 @@ def render(image_rgb: np.ndarray, prediction: Any, out: str | Path, *, stride: i
     figure = Figure(figsize=(11, 4.6), dpi=110)
     left = figure.add_subplot(1, 2, 1)
     left.imshow(image_rgb)
-    left.set_title(title or "input image")
+    title = title or "input image"
+    left.set_title(title if len(title) <= 48 else title[:45] + "...", fontsize=9)
     left.axis("off")
     ax = figure.add_subplot(1, 2, 2, projection="3d")
-    xyz = cloud.xyz
-    ax.scatter(xyz[:, 0], xyz[:, 1], xyz[:, 2], c=cloud.rgb / 255.0, s=2.0, depthshade=False, linewidths=0)
     height = pose["height"]
+    box_low, box_high, span = view_box(cloud.xyz, height)
+    inside = np.all((cloud.xyz[:, :2] >= box_low) & (cloud.xyz[:, :2] <= box_high), axis=1) & (
+        cloud.xyz[:, 2] <= span)
+    xyz = cloud.xyz[inside]
+    ax.scatter(xyz[:, 0], xyz[:, 1], xyz[:, 2], c=cloud.rgb[inside] / 255.0, s=2.0, depthshade=False, linewidths=0)
     ax.scatter([0], [0], [height], c="red", s=30, marker="^")
     ax.plot([0, 0], [0, 0], [0, height], color="red", linewidth=1)
     forward = prediction.camera_to_world[:3, 2] * max(5.0, 0.3 * height)
     ax.quiver(0, 0, height, *forward, color="red", linewidth=1.5)
-    span = max(float(np.ptp(xyz[:, 0])), float(np.ptp(xyz[:, 1])), height, 1.0)
-    centre = (xyz[:, 0].min() + xyz[:, 0].max()) / 2, (xyz[:, 1].min() + xyz[:, 1].max()) / 2
-    ax.set_xlim(centre[0] - span / 2, centre[0] + span / 2)
-    ax.set_ylim(centre[1] - span / 2, centre[1] + span / 2)
-    ax.set_zlim(0, span)
+    ax.set_xlim(box_low[0], box_high[0])
+    ax.set_ylim(box_low[1], box_high[1])
+    ax.set_zlim(min(0.0, float(xyz[:, 2].min(initial=0.0))), span)
     ax.set_box_aspect((1, 1, 1))
     ax.view_init(elev=28, azim=-140)
     ax.set_xlabel("X (m, forward)")
     ax.set_ylabel("Y (m, left)")
     ax.set_zlabel("Z (m, up)")
-    ax.set_title(f"predicted metric point cloud ({len(xyz)} points)\nheight {height:.1f} m, pitch "
+    ax.set_title(f"predicted metric point cloud ({len(xyz)} of {len(cloud.xyz)} points shown)\n"
+                 f"height {height:.1f} m, pitch "
                  f"{pose['pitch']:.1f}, roll {pose['roll']:.1f}, FoV {pose['fov']:.1f} deg", fontsize=9)
     figure.tight_layout()
     out = Path(out)

@@ -4,7 +4,7 @@ import torch
 
 from dapm_lightning.geometry import ideal_ground_depth
 from dapm_lightning.tools.predict import make_prediction
-from dapm_lightning.tools.render_pointcloud import render
+from dapm_lightning.tools.render_pointcloud import render, view_box
 
 
 def test_render_writes_a_figure_without_touching_global_matplotlib_state(tmp_path):
@@ -19,3 +19,14 @@ def test_render_writes_a_figure_without_touching_global_matplotlib_state(tmp_pat
     assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and out.stat().st_size > 10_000
     assert matplotlib.get_backend() == backend and dict(matplotlib.rcParams) == params
     assert plt.get_fignums() == figures
+
+
+def test_view_box_frames_the_scene_not_its_far_outliers():
+    rng = np.random.default_rng(0)
+    scene = np.c_[rng.uniform(10, 60, (1000, 1)), rng.uniform(-20, 20, (1000, 1)), rng.uniform(0, 15, (1000, 1))]
+    far = np.array([[900.0, 400.0, 0.0]] * 5)  # ground points near the horizon
+    low, high, span = view_box(np.r_[scene, far], height=30.0)
+    assert span == high[0] - low[0] == high[1] - low[1]
+    assert 50 < span < 70  # the scene's 50 m extent plus the camera at the origin, not the 900 m outlier
+    assert np.all(low <= [0.0, 0.0]) and np.all(high >= [0.0, 0.0])  # the camera is in view
+    assert view_box(scene[:3], height=80.0)[2] == 80.0  # a high camera sets the side
