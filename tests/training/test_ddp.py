@@ -53,8 +53,8 @@ def test_every_shipped_config_trains_under_two_process_ddp(tmp_path, tiny_potsda
     a parameter built but not used stops DDP at the second step."""
     tiny_uapd = generate_uapd(tmp_path / "data", train=12, val=2, size=(24, 40), seed=12, workers=1)
     results = {}
-    # a few configs per launch: every fit in one process keeps ~0.5 GB (the paper network and its optimizer
-    # state stay referenced inside Lightning/jsonargparse after the fit), so 21 in one launch need ~10 GB per rank
+    # a few configs per launch: each DDP fit raises a process's peak memory by ~0.5 GB that later fits in the
+    # same process do not reuse (not seen in one-process fits), so 21 in one launch need ~10 GB per rank
     for launch, start in enumerate(range(0, len(ALL_CONFIGS), 6)):
         out, logs = tmp_path / f"configs{launch}.json", tmp_path / f"rank_logs{launch}"  # one log file per rank
         try:
