@@ -129,6 +129,12 @@ def target_check(model: dict[str, float], base: dict[str, float]) -> list[str]:
     return misses
 
 
+def extra_fit_args(args: argparse.Namespace) -> list[str]:
+    """The ``fit`` arguments given after ``--`` (none when absent)."""
+    extra = list(getattr(args, "fit_args", None) or [])
+    return extra[1:] if extra[:1] == ["--"] else extra
+
+
 def transfer(args: argparse.Namespace) -> dict[str, Any]:
     """Render, train on the kept families, test on every family; print the table, write transfer.json."""
     from dapm_lightning.data.uapd import UAPDDataset
@@ -160,7 +166,7 @@ def transfer(args: argparse.Namespace) -> dict[str, Any]:
     elif not args.skip_training:
         print(f"[2/3] training the quickstart model on {', '.join(trained)} ({render_minutes:.1f} min so far)")
         config = _quickstart_config(train_root, out, args.epochs, args.batch_size)
-        fit = run_lightning_cli(["fit", "--config", str(config)])
+        fit = run_lightning_cli(["fit", "--config", str(config), *extra_fit_args(args)])
         checkpoint = fit.trainer.checkpoint_callback
         best = getattr(checkpoint, "best_model_path", "") or getattr(checkpoint, "last_model_path", "")
         module = DAPMModule.load_from_checkpoint(best, map_location="cpu", weights_only=True).eval()
@@ -248,6 +254,9 @@ def main(argv: Sequence[str] | None = None) -> None:
     p.add_argument("--skip-training", action="store_true", help="baselines only (checks the pipeline quickly)")
     p.add_argument("--checkpoint", type=Path, default=None,
                    help="test this checkpoint instead of training (e.g. OUT/csv/version_0/checkpoints/last.ckpt)")
+    p.add_argument("fit_args", nargs=argparse.REMAINDER,
+                   help="after --: more `dapm-lightning fit` arguments for the model trained, e.g. "
+                        "-- --model.net.pose_bins_source encoder")
     p.set_defaults(func=transfer)
     p = sub.add_parser("figure", help="a picture of every family (docs/figures/synthetic_samples.png)")
     p.add_argument("--out", type=Path, default=Path("docs/figures/synthetic_samples.png"))
