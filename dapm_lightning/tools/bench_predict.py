@@ -68,7 +68,8 @@ def speed(ckpt_path: str | None = None, backbone: str = "resnet50", size: int = 
     """Side-by-side latency of the predict path's network at ``size`` x ``size``, batch 1.
 
     Args:
-        ckpt_path: a checkpoint (default: the paper's network with random weights and ``backbone``).
+        ckpt_path: a checkpoint (default: the efficient variant, the ``DAPMConfig`` defaults, with random
+            weights and ``backbone``).
         backbone: timm backbone when no checkpoint is given (resnet50: the paper's).
         size: image height and width.
         rounds: timed rounds; the variants alternate within each round, the median counts.

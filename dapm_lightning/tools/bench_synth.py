@@ -256,7 +256,7 @@ def main(argv: Sequence[str] | None = None) -> None:
                    help="test this checkpoint instead of training (e.g. OUT/csv/version_0/checkpoints/last.ckpt)")
     p.add_argument("fit_args", nargs=argparse.REMAINDER,
                    help="after --: more `dapm-lightning fit` arguments for the model trained, e.g. "
-                        "-- --model.net.pose_bins_source encoder")
+                        "-- --model.net.pose_bins_source decoder")
     p.set_defaults(func=transfer)
     p = sub.add_parser("figure", help="a picture of every family (docs/figures/synthetic_samples.png)")
     p.add_argument("--out", type=Path, default=Path("docs/figures/synthetic_samples.png"))
@@ -267,6 +267,8 @@ def main(argv: Sequence[str] | None = None) -> None:
     args = parser.parse_args(argv)
     if args.command == "transfer" and set(args.held_out) == set(FAMILIES):
         parser.error("leave at least one family to train on")
+    if args.command == "transfer" and extra_fit_args(args) and (args.checkpoint or args.skip_training):
+        parser.error("fit arguments after -- need a training run (drop --checkpoint / --skip-training)")
     args.func(args)
 
 

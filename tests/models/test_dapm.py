@@ -27,6 +27,9 @@ ABLATIONS = {
     "bins_2": dict(depth_bins=(2,), pose_bins=(16,)),
     "paper_igd": dict(igd=IGDSpec(model="paper", depth_kind="planar")),
     "full_resolution_heads": dict(head_stride=1, head_channels=16),
+    "decoder_pose_bins": dict(pose_bins_source="decoder", pose_stages=4, pose_projection=128,
+                              pose_residual_init=False),
+    "decoder_pose_bins_residual_init": dict(pose_bins_source="decoder"),
     "dapm_d": dict(use_pose=False, use_igd_feature=False),
     "dapm_p": dict(use_depth=False, use_igd_feature=False),
 }
@@ -85,9 +88,10 @@ def _grads(module, loss):
     return {n: p.grad is not None and p.grad.abs().sum().item() > 0 for n, p in module.named_parameters()}
 
 
-def test_gradients_reach_only_where_they_should():
+@pytest.mark.parametrize("pose_bins_source", ["encoder", "decoder"])
+def test_gradients_reach_only_where_they_should(pose_bins_source):
     torch.manual_seed(0)
-    net = make_net()
+    net = make_net(pose_bins_source=pose_bins_source)
     true = normalize_pose(torch.tensor([[50.0, -30, 5, 60]] * 2))
     terms = DAPMLoss()(net(torch.rand(2, 3, 48, 64), forced(true, 0.5)), targets_for(2, (48, 64)))
     for key in ("depth", "init_depth", "dq", "pose", "init_pose", "pq", "pd"):
@@ -97,7 +101,7 @@ def test_gradients_reach_only_where_they_should():
         reaches_depth = any(v for n, v in g.items() if n.startswith(("depth_decoder.", "depth_pqb.")))
         assert reaches_pose == (key in ("pose", "init_pose", "pq", "pd")), key
         assert reaches_depth == (key in ("depth", "init_depth", "dq")), key
-    # the initial pose feeds the PQB stages: the refined pose loss reaches it, the 64-bin CE reaches the 16-bin stage
+    # the initial pose's loss trains the pose decoder, not the refinement head
     g = _grads(net, terms["init_pose"])
     assert not any(v for n, v in g.items() if n.startswith("pose_pqb.head"))
 

@@ -3,6 +3,8 @@
 import argparse
 import math
 
+import torch
+
 from dapm_lightning.tools.bench import measure, print_table, print_train_compare, train_compare
 
 
@@ -17,6 +19,7 @@ def test_measure_counts_the_paper_and_efficient_networks():
     paper, efficient = (measure(name, "resnet18", 64, 1, "cpu") for name in ("paper", "efficient"))
     assert paper["params_m"] > efficient["params_m"] > 0
     assert paper["gmac"] > efficient["gmac"] > paper["encoder_gmac"] == efficient["encoder_gmac"] > 0
+    assert torch.is_grad_enabled()  # measured without switching autograd off for the caller
 
 
 def test_train_compare_trains_both_on_the_same_batches(capsys):

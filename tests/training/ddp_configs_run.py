@@ -20,8 +20,8 @@ CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 GPU_ONLY = ["--trainer.accelerator", "cpu", "--trainer.devices", "2", "--trainer.sync_batchnorm", "false",
             "--trainer.precision", "32-true", "--model.net.pretrained", "false"]
 # 2 steps inside the first epoch (12 images, 3 batches per process): DDP checks at its second step that every
-# parameter got a gradient; no validation and no epoch end, so no checkpoint is written (validation under DDP
-# has its own test); loader workers are covered by the data and resume tests
+# parameter got a gradient; no validation (validation under DDP has its own test); the configs' ModelCheckpoint
+# still writes last.ckpt when the fit ends; loader workers are covered by the data and resume tests
 SMALL_RUN = ["--trainer.max_steps", "2", "--trainer.limit_val_batches", "0",
              "--trainer.enable_progress_bar", "false", "--data.init_args.batch_size", "2",
              "--data.init_args.eval_batch_size", "2", "--data.init_args.num_workers", "0"]

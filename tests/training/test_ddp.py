@@ -63,9 +63,11 @@ def test_every_shipped_config_trains_under_two_process_ddp(tmp_path, tiny_potsda
                             str(HERE / "ddp_configs_run.py"), str(out), str(tiny_uapd), str(tiny_potsdam),
                             *ALL_CONFIGS[start:start + 6]],
                            check=True, cwd=tmp_path, capture_output=True, text=True, timeout=600)
-        except subprocess.CalledProcessError:
-            pytest.fail("DDP run failed:\n" + "\n".join(f"== {path.relative_to(logs)}\n{path.read_text()[-3000:]}"
-                                                         for path in sorted(logs.rglob("stderr.log"))))
+        except (subprocess.CalledProcessError, subprocess.TimeoutExpired) as error:
+            launcher = error.stderr if isinstance(error.stderr, str) else (error.stderr or b"").decode()
+            pytest.fail(f"DDP run failed ({error}):\n" + "\n".join(
+                f"== {path.relative_to(logs)}\n{path.read_text()[-3000:]}" for path in sorted(logs.rglob("stderr.log")))
+                + f"\n== torchrun\n{launcher[-2000:]}")
         results.update(json.loads(out.read_text()))
     assert not (tmp_path / "outputs").exists(), "ddp_configs_run.py leaves the paper checkpoints behind"
     assert sorted(results) == sorted(ALL_CONFIGS)

@@ -9,6 +9,7 @@ def test_efficient_variant_overlay_trains_a_step(tiny_uapd, tmp_path, monkeypatc
                    tmp_path, monkeypatch)
     assert cli.trainer.global_step == 1
     net = cli.model.hparams["net"]
-    assert net["head_stride"] == 4 and net["pose_bins_source"] == "decoder" and not net["decoder_squeeze_excite"]
+    assert net["head_stride"] == 4 and not net["depth_residual_priors"] and not net["decoder_squeeze_excite"]
+    assert net["pose_bins_source"] == "encoder" and net["pose_residual_init"]  # the paper's pose branch
     assert cli.model.hparams["loss"]["depth_space"] == "log_norm"  # the overlay changes the network only
     assert "val_depthauthors_rmse_unit" in cli.trainer.callback_metrics
