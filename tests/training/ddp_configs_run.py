@@ -1,8 +1,9 @@
-"""Under torchrun (2 processes, gloo): fit every paper config and every ablation overlay for 2 steps in one
-process group, then report, per config, the steps done and the Lightning warnings about unsynced logging.
+"""Under torchrun (2 processes, gloo): fit every paper config and every ablation and variant overlay for 2 steps
+in one process group, then report, per config, the steps done and the Lightning warnings about unsynced logging.
 
 Usage: python -m torch.distributed.run --nproc_per_node 2 ddp_configs_run.py OUT.json DATA POTSDAM [CONFIG ...]
-A CONFIG is `paper/X.yaml` or `ablations/Y.yaml` (stacked on paper/uapd_dapm.yaml, as the README says).
+A CONFIG is `paper/X.yaml`, or `ablations/Y.yaml` / `variants/Z.yaml` (stacked on paper/uapd_dapm.yaml, as the
+README says).
 """
 
 import json

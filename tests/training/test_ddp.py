@@ -44,13 +44,13 @@ def test_ddp_two_cpu_processes_match_single_process(tmp_path):
         assert double["metrics"][key] == pytest.approx(single["metrics"][key], rel=1e-5, abs=1e-6), key
 
 
-ALL_CONFIGS = [*(f"paper/{p.name}" for p in sorted((HERE.parents[1] / "configs" / "paper").glob("*.yaml"))),
-               *(f"ablations/{p.name}" for p in sorted((HERE.parents[1] / "configs" / "ablations").glob("*.yaml")))]
+ALL_CONFIGS = [f"{folder}/{p.name}" for folder in ("paper", "ablations", "variants")
+               for p in sorted((HERE.parents[1] / "configs" / folder).glob("*.yaml"))]
 
 
 def test_every_shipped_config_trains_under_two_process_ddp(tmp_path, tiny_potsdam):
-    """Each paper config and ablation overlay, as the README stacks them, under DDP without find_unused_parameters:
-    a parameter built but not used stops DDP at the second step."""
+    """Each paper config and each ablation and variant overlay, as the README stacks them, under DDP without
+    find_unused_parameters: a parameter built but not used stops DDP at the second step."""
     tiny_uapd = generate_uapd(tmp_path / "data", train=12, val=2, size=(24, 40), seed=12, workers=1)
     results = {}
     # a few configs per launch: each DDP fit raises a process's peak memory by ~0.5 GB that later fits in the
