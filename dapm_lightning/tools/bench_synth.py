@@ -68,7 +68,7 @@ def _quickstart_config(train_root: Path, out: Path, epochs: int | None, batch_si
     trainer["logger"] = [{"class_path": "lightning.pytorch.loggers.CSVLogger",
                           "init_args": {"save_dir": str(out), "name": "csv"}}]
     trainer["callbacks"] = [c for c in trainer.get("callbacks", []) if c["class_path"].split(".")[-1] in
-                            ("CheckpointOnSigterm", "IGDTeacherForcing", "ModelCheckpoint")]
+                            ("CheckpointOnSigterm", "IGDTeacherForcing", "ModelCheckpoint", "LastCheckpoint")]
     if epochs:
         trainer["max_epochs"] = epochs
     init = {k: v for k, v in config["data"]["init_args"].items()
@@ -80,16 +80,34 @@ def _quickstart_config(train_root: Path, out: Path, epochs: int | None, batch_si
     return path
 
 
+def median_scaled(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """``pred`` times ``median(target) / median(pred)`` per image over the valid pixels (scale-free depth)."""
+    from dapm_lightning.geometry.constants import MAX_DEPTH_M, MIN_DEPTH_M
+
+    scaled = pred.clone()
+    for i in range(pred.shape[0]):
+        valid = (target[i] > MIN_DEPTH_M) & (target[i] < MAX_DEPTH_M)
+        if valid.any():
+            scaled[i] = pred[i] * target[i][valid].median() / pred[i][valid].clamp(min=MIN_DEPTH_M).median()
+    return scaled
+
+
 @torch.no_grad()
 def evaluate(module: torch.nn.Module | None, root: Path, mean_pose: torch.Tensor,
              batch: int = 32) -> dict[str, dict[str, float]]:
-    """Model and baseline metrics on ``root/val``: ``{"model": ..., "mean_pose": ...}`` (depth and pose keys)."""
+    """Metrics on ``root/val`` per row (depth and pose keys).
+
+    Rows: ``model``; ``scale_fixed``: the model's depth rescaled per image to the true median (how much
+    of the depth error is metric scale); ``mean_pose``: the mean training pose and its IGD (no
+    learning); ``true_pose``: the IGD of each image's true pose (what a perfect pose alone gives).
+    """
     from dapm_lightning.data.uapd import UAPDDataset
     from dapm_lightning.geometry.igd import ideal_ground_depth
     from dapm_lightning.metrics import DepthMetrics, PoseMetrics
 
     data = UAPDDataset(root, "val")
-    metrics = {name: (DepthMetrics(), PoseMetrics()) for name in ("model", "mean_pose")}
+    metrics = {name: (DepthMetrics(), PoseMetrics()) for name in ("model", "scale_fixed", "mean_pose", "true_pose")}
+    poses: dict[str, list[torch.Tensor]] = {"true": [], "model": [], "mean_pose": []}
     for start in range(0, len(data), batch):
         samples = [data[i] for i in range(start, min(start + batch, len(data)))]
         image = torch.stack([s["image"] for s in samples])
@@ -99,21 +117,50 @@ def evaluate(module: torch.nn.Module | None, root: Path, mean_pose: torch.Tensor
         igd = ideal_ground_depth(base, tuple(depth.shape[-2:]), depth_kind="range")
         metrics["mean_pose"][0].update(igd.float(), depth)
         metrics["mean_pose"][1].update(base, pose)
+        poses["true"].append(pose)
+        poses["mean_pose"].append(base)
+        true_igd = ideal_ground_depth(pose, tuple(depth.shape[-2:]), depth_kind="range")
+        metrics["true_pose"][0].update(true_igd.float(), depth)
+        metrics["true_pose"][1].update(pose, pose)
         if module is not None:
             out = module(image)
             metrics["model"][0].update(out.depth_m.float(), depth)
             metrics["model"][1].update(out.pose_physical.double(), pose)
+            metrics["scale_fixed"][0].update(median_scaled(out.depth_m.float(), depth), depth)
+            metrics["scale_fixed"][1].update(out.pose_physical.double(), pose)
+            poses["model"].append(out.pose_physical.double())
     result = {}
     for name, (depth_m, pose_m) in metrics.items():
-        if name == "model" and module is None:
+        if name in ("model", "scale_fixed") and module is None:
             continue
         result[name] = {**{k: float(v) for k, v in depth_m.compute().items()},
                         **{k: float(v) for k, v in pose_m.compute().items()}}
+        if poses.get(name):
+            result[name].update(scale_errors(torch.cat(poses[name]), torch.cat(poses["true"])))
     return result
 
 
+def scale_errors(pred: torch.Tensor, true: torch.Tensor) -> dict[str, float]:
+    """Median relative errors of the height and of the ground footprint ``height * tan(fov / 2)``.
+
+    The footprint is what the image shows directly (at nadir, how many metres the picture spans); the
+    height follows from it only with the FoV. ``exp(median |log(pred / true)|) - 1``: 0.25 = off by 25 %.
+    """
+    def relative(a: torch.Tensor, b: torch.Tensor) -> float:
+        return float((a / b).log().abs().median().exp() - 1)
+
+    def footprint(pose: torch.Tensor) -> torch.Tensor:
+        return pose[:, 0] * torch.tan(torch.deg2rad(pose[:, 3]) / 2)
+
+    return {"height_rel": relative(pred[:, 0], true[:, 0]), "footprint_rel": relative(footprint(pred), footprint(true))}
+
+
 COLUMNS = [("d1", "d1"), ("abs_rel", "AbsRel"), ("height_median", "h m"), ("pitch_median", "pitch"),
-           ("roll_median", "roll"), ("fov_median", "fov")]
+           ("roll_median", "roll"), ("fov_median", "fov"), ("height_rel", "h rel"), ("footprint_rel", "foot rel")]
+
+
+DEPTH_ONLY_ROWS = ("scale_fixed", "true_pose")
+"""Rows whose pose columns are not printed (the model's own, or exact)."""
 
 
 def target_check(model: dict[str, float], base: dict[str, float]) -> list[str]:
@@ -138,6 +185,7 @@ def extra_fit_args(args: argparse.Namespace) -> list[str]:
 def transfer(args: argparse.Namespace) -> dict[str, Any]:
     """Render, train on the kept families, test on every family; print the table, write transfer.json."""
     from dapm_lightning.data.uapd import UAPDDataset
+    from dapm_lightning.training.checkpointing import best_or_last_checkpoint
     from dapm_lightning.training.lightning_cli import run_lightning_cli
     from dapm_lightning.training.module import DAPMModule
 
@@ -167,8 +215,7 @@ def transfer(args: argparse.Namespace) -> dict[str, Any]:
         print(f"[2/3] training the quickstart model on {', '.join(trained)} ({render_minutes:.1f} min so far)")
         config = _quickstart_config(train_root, out, args.epochs, args.batch_size)
         fit = run_lightning_cli(["fit", "--config", str(config), *extra_fit_args(args)])
-        checkpoint = fit.trainer.checkpoint_callback
-        best = getattr(checkpoint, "best_model_path", "") or getattr(checkpoint, "last_model_path", "")
+        best = best_or_last_checkpoint(fit.trainer)
         module = DAPMModule.load_from_checkpoint(best, map_location="cpu", weights_only=True).eval()
     train_minutes = (time.time() - start) / 60 - render_minutes
     print("[3/3] testing on every family")
@@ -178,11 +225,16 @@ def transfer(args: argparse.Namespace) -> dict[str, Any]:
     for family, rows in results.items():
         label = family + (" *" if family in args.held_out else "")
         for name, values in rows.items():
-            lines.append(f"{label:<13}{name:<11}" + "".join(f"{values[k]:>9.3f}" for k, _ in COLUMNS))
+            depth_only = name in DEPTH_ONLY_ROWS
+            lines.append(f"{label:<13}{name:<11}" + "".join(
+                f"{'-':>9}" if (depth_only and k not in ("d1", "abs_rel")) or k not in values else f"{values[k]:>9.3f}"
+                for k, _ in COLUMNS))
             label = ""
     print(f"\nleave-out transfer: trained on {', '.join(trained)}; * = never seen in training. Depth in metres "
-          "(d1 higher, AbsRel lower), pose medians in m / deg (lower). mean_pose: the mean training pose and "
-          "its IGD.\n")
+          "(d1 higher, AbsRel lower), pose medians in m / deg (lower); h rel, foot rel: median relative errors "
+          "of the height and of the footprint height * tan(fov / 2). scale_fixed: the model's depth rescaled "
+          "per image to the true median; mean_pose: the mean training pose and its IGD; true_pose: the IGD of "
+          "the true pose.\n")
     print("\n".join(lines))
     summary: dict[str, Any] = {"trained_on": trained, "held_out": args.held_out, "results": results,
                                "render_minutes": render_minutes, "train_minutes": train_minutes,

@@ -17,6 +17,7 @@ import torch
 from dapm_lightning.data.uapd import UAPDDataset
 from dapm_lightning.geometry.igd import ideal_ground_depth
 from dapm_lightning.metrics import DepthMetrics, PoseMetrics
+from dapm_lightning.training.checkpointing import best_or_last_checkpoint
 from dapm_lightning.training.lightning_cli import run_lightning_cli
 
 DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "quickstart.yaml"
@@ -86,8 +87,7 @@ def main(argv: list[str] | None = None) -> int:
     fit_args = ["fit", *common] + (["--trainer.max_epochs", str(args.max_epochs)] if args.max_epochs else [])
     print(f"[1/3] synthetic UAPD-format data in {data_root} (rendered on first use), then training on the CPU")
     fit = run_lightning_cli(fit_args)
-    checkpoint = fit.trainer.checkpoint_callback
-    best = getattr(checkpoint, "best_model_path", "") or getattr(checkpoint, "last_model_path", "")
+    best = best_or_last_checkpoint(fit.trainer)
     print(f"[2/3] testing {best}")
     test = run_lightning_cli(["test", *common, "--ckpt_path", best])
     metrics = {k: float(v) for k, v in test.trainer.callback_metrics.items()}

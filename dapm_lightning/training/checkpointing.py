@@ -1,10 +1,15 @@
-"""Checkpoints for long jobs: safe loading with clear errors, the architecture check, RNG states, a save on SIGTERM."""
+"""Checkpoints for long jobs: safe loading, the architecture check, RNG states, ``last.ckpt``, SIGTERM saves.
+
+``last.ckpt`` is kept at the latest state (:class:`LastCheckpoint`) and ``--ckpt_path last`` finds it in
+any of the run's log versions (:func:`find_last_checkpoint`).
+"""
 
 from __future__ import annotations
 
 import math
 import random
-from collections.abc import Callable, Mapping
+import re
+from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -12,6 +17,7 @@ import lightning as L
 import numpy as np
 import torch
 from lightning.fabric.plugins.io.torch_io import TorchCheckpointIO
+from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 from torch import Tensor
 
@@ -109,6 +115,53 @@ def set_rng_states(states: Mapping[str, Any]) -> None:
         torch.cuda.set_rng_state_all(cuda)
 
 
+class LastCheckpoint(ModelCheckpoint):
+    """Keeps ``last.ckpt`` at the latest training state, whatever the validation metrics do.
+
+    Lightning's ``ModelCheckpoint(monitor=..., save_last=True)`` rewrites ``last.ckpt`` only when it
+    saves a new best checkpoint (Lightning >= 2.6): a job whose validation metric stopped improving
+    would resume from that old step after a crash. This callback has no monitor; it overwrites
+    ``last.ckpt`` every ``every_n_train_steps`` steps (or every ``every_n_epochs`` epochs, the default:
+    each epoch) and once more when training ends, if the final step was not saved yet. Keep a
+    ``ModelCheckpoint`` with a monitor (without ``save_last``) for the best model.
+    """
+
+    def __init__(self, dirpath: str | Path | None = None, every_n_train_steps: int | None = None,
+                 every_n_epochs: int | None = None) -> None:
+        super().__init__(dirpath=dirpath, filename=self.CHECKPOINT_NAME_LAST, monitor=None, save_top_k=1,
+                         every_n_train_steps=every_n_train_steps, every_n_epochs=every_n_epochs,
+                         enable_version_counter=False)
+
+    def on_train_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        super().on_train_end(trainer, pl_module)
+        if trainer.sanity_checking or trainer.fast_dev_run or trainer.global_step == 0:
+            return
+        if self._last_global_step_saved != trainer.global_step:  # the final step fell between two saves
+            self.best_model_path = self.format_checkpoint_name({})
+            trainer.save_checkpoint(self.best_model_path)
+            self._last_global_step_saved = trainer.global_step
+
+
+def best_or_last_checkpoint(trainer: L.Trainer) -> str:
+    """The path of the best checkpoint of a finished fit, else its ``last.ckpt`` ("" when neither exists)."""
+    callbacks = [cb for cb in trainer.checkpoint_callbacks if isinstance(cb, ModelCheckpoint)]
+    best = [cb.best_model_path for cb in callbacks if cb.monitor is not None]
+    last = [cb.best_model_path for cb in callbacks if isinstance(cb, LastCheckpoint)]  # its one file
+    last += [cb.last_model_path for cb in callbacks]  # a user's ModelCheckpoint(save_last=True)
+    return next((path for path in best + last if path and Path(path).is_file()), "")
+
+
+def find_last_checkpoint(roots: Iterable[str | Path]) -> Path | None:
+    """The newest ``last.ckpt`` (or ``last-N.ckpt``) anywhere under ``roots``, or None.
+
+    What ``--ckpt_path last`` resumes from: a resumed run logs into a new version folder
+    (``tensorboard/version_1``), where Lightning's own lookup would find nothing and start from scratch.
+    """
+    found = [path for root in roots if Path(root).is_dir() for path in Path(root).rglob("last*.ckpt")
+             if re.fullmatch(r"last(-v?\d+)?\.ckpt", path.name)]
+    return max(found, key=lambda path: path.stat().st_mtime_ns) if found else None
+
+
 class CheckpointOnSigterm(L.Callback):
     """On SIGTERM (what SLURM sends before pre-emption), save ``last.ckpt`` before the process exits.
 
@@ -119,7 +172,8 @@ class CheckpointOnSigterm(L.Callback):
     def on_exception(self, trainer: L.Trainer, pl_module: L.LightningModule, exception: BaseException) -> None:
         if not isinstance(exception, SIGTERMException):
             return
-        checkpoint = trainer.checkpoint_callback
+        last = [cb for cb in trainer.checkpoint_callbacks if isinstance(cb, LastCheckpoint)]
+        checkpoint = last[0] if last else trainer.checkpoint_callback
         folder = getattr(checkpoint, "dirpath", None) or Path(trainer.default_root_dir) / "checkpoints"
         path = Path(folder) / "last.ckpt"
         trainer.save_checkpoint(path)

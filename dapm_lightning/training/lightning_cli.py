@@ -4,13 +4,15 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import lightning as L
 from lightning.pytorch.cli import LightningCLI, SaveConfigCallback
+from lightning.pytorch.utilities import rank_zero_info
 
 from dapm_lightning.data.datamodules import DAPMDataModule
 from dapm_lightning.models.config import DAPMConfig
-from dapm_lightning.training.checkpointing import SafeCheckpointIO, check_architecture
+from dapm_lightning.training.checkpointing import SafeCheckpointIO, check_architecture, find_last_checkpoint
 from dapm_lightning.training.module import DAPMModule
 
 TRAINER_DEFAULTS = {"plugins": [{"class_path": "dapm_lightning.training.checkpointing.SafeCheckpointIO"}]}
@@ -42,6 +44,8 @@ class DAPMCLI(LightningCLI):
     def _parse_ckpt_path(self) -> None:
         subcommand = self.config.get("subcommand")
         ckpt_path = self.config[subcommand].get("ckpt_path") if subcommand else None
+        if ckpt_path == "last":
+            ckpt_path = self._resolve_last(self.config[subcommand])
         if ckpt_path and Path(ckpt_path).is_file():
             checkpoint = SafeCheckpointIO().load_checkpoint(ckpt_path, map_location="cpu")  # names a damaged file
             saved = checkpoint.get("hyper_parameters", {}).get("net")
@@ -50,6 +54,32 @@ class DAPMCLI(LightningCLI):
                 current = DAPMConfig.from_dict(net.as_dict() if hasattr(net, "as_dict") else dict(net))
                 check_architecture(saved, current, str(ckpt_path))
         super()._parse_ckpt_path()
+
+    @staticmethod
+    def _resolve_last(config: Any) -> str:
+        """``--ckpt_path last``: the newest ``last.ckpt`` under the run's folders, across its log versions.
+
+        The folders: ``trainer.default_root_dir``, every logger's ``save_dir`` and every callback's
+        ``dirpath``. With none there, ``"last"`` stays as it is: Lightning warns and starts from scratch
+        (the first submission of a job that is always launched with ``--ckpt_path last``).
+        """
+        trainer = config.get("trainer") or {}
+        roots = [trainer.get("default_root_dir") or "."]
+        for entry in _as_list(trainer.get("logger")) + _as_list(trainer.get("callbacks")):
+            init_args = entry.get("init_args") if hasattr(entry, "get") else None
+            for key in ("save_dir", "dirpath"):
+                if init_args is not None and init_args.get(key):
+                    roots.append(init_args.get(key))
+        found = find_last_checkpoint(roots)
+        if found is None:
+            return "last"
+        rank_zero_info(f"--ckpt_path last: resuming from {found}")
+        config["ckpt_path"] = str(found)
+        return str(found)
+
+
+def _as_list(value: Any) -> list[Any]:
+    return list(value) if isinstance(value, (list, tuple)) else [] if value in (None, False, True) else [value]
 
 
 def run_lightning_cli(args: Sequence[str] | None = None, run: bool = True) -> DAPMCLI:

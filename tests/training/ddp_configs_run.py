@@ -13,16 +13,18 @@ import sys
 import warnings
 from pathlib import Path
 
+import torch
 import torch.distributed as dist
 
+from dapm_lightning.training.checkpointing import find_last_checkpoint
 from dapm_lightning.training.lightning_cli import run_lightning_cli
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 GPU_ONLY = ["--trainer.accelerator", "cpu", "--trainer.devices", "2", "--trainer.sync_batchnorm", "false",
             "--trainer.precision", "32-true", "--model.net.pretrained", "false"]
 # 2 steps inside the first epoch (12 images, 3 batches per process): DDP checks at its second step that every
-# parameter got a gradient; no validation (validation under DDP has its own test); the configs' ModelCheckpoint
-# still writes last.ckpt when the fit ends; loader workers are covered by the data and resume tests
+# parameter got a gradient; no validation (validation under DDP has its own test); the configs' LastCheckpoint
+# (every 1000 steps) writes last.ckpt when the fit ends; loader workers are covered by the data and resume tests
 SMALL_RUN = ["--trainer.max_steps", "2", "--trainer.limit_val_batches", "0",
              "--trainer.enable_progress_bar", "false", "--data.init_args.batch_size", "2",
              "--data.init_args.eval_batch_size", "2", "--data.init_args.num_workers", "0"]
@@ -47,10 +49,14 @@ if __name__ == "__main__":
         # the paper configs write a last.ckpt of about 0.5 GB each (42.6 M parameters with AdamW state) into
         # ./outputs: remove it before the next config, or the run needs ~9 GB of disk
         dist.barrier()
+        last = find_last_checkpoint(["outputs"])
+        last_step = torch.load(last, map_location="cpu", weights_only=True, mmap=True)["global_step"] if last else None
+        dist.barrier()
         if dist.get_rank() == 0:
             shutil.rmtree("outputs", ignore_errors=True)
         unsynced = [str(w.message)[:200] for w in caught if "sync_dist" in str(w.message)]
         results[config] = {"global_step": cli.trainer.global_step, "world_size": cli.trainer.world_size,
+                           "last_ckpt_step": last_step,
                            "unsynced": unsynced,
                            "find_unused": bool(getattr(cli.trainer.strategy, "_ddp_kwargs", {})
                                                .get("find_unused_parameters", False)),

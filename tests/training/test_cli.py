@@ -11,6 +11,7 @@ import yaml
 from dapm_lightning.cli import main
 from dapm_lightning.data.datamodules import DAPMDataModule, PotsdamDataModule
 from dapm_lightning.models import TeacherForcing
+from dapm_lightning.training.checkpointing import find_last_checkpoint
 from dapm_lightning.training.lightning_cli import DAPMCLI, run_lightning_cli
 from dapm_lightning.training.module import DAPMModule
 from dapm_lightning.training.viewpoints import ViewpointBreakdown
@@ -69,10 +70,11 @@ def test_quickstart_config_fit_test_and_outputs(tiny_uapd, tmp_path, monkeypatch
     common = ["--config", str(QUICKSTART), "--data.class_path",
               "dapm_lightning.data.datamodules.UAPDDataModule", "--data.init_args.root", str(tiny_uapd),
               "--data.init_args.batch_size", "2", "--data.init_args.num_workers", "0"]
-    fit = run_lightning_cli(["fit", *common, "--trainer.max_epochs", "1", "--trainer.limit_train_batches", "2"])
-    ckpt = Path(fit.trainer.checkpoint_callback.last_model_path)
-    assert ckpt.is_file()
-    test = run_lightning_cli(["test", *common, "--ckpt_path", str(ckpt)])
+    run_lightning_cli(["fit", *common, "--trainer.max_epochs", "1", "--trainer.limit_train_batches", "2"])
+    last = find_last_checkpoint([tmp_path / "outputs"])
+    assert last is not None and torch.load(last, weights_only=True)["global_step"] == 2
+    test = run_lightning_cli(["test", *common, "--ckpt_path", "last"])  # found in the fit's log version
+    assert Path(test.trainer.ckpt_path).resolve() == last.resolve()
     metrics = test.trainer.callback_metrics
     for key in ("test_depth_d1", "test_depth_abs_rel", "test_depthlog_d1", "test_pose_roll_median",
                 "test_pose_fov_auc5", "test_loss_pd"):

@@ -73,5 +73,6 @@ def test_every_shipped_config_trains_under_two_process_ddp(tmp_path, tiny_potsda
     assert sorted(results) == sorted(ALL_CONFIGS)
     for config, result in results.items():
         assert result["world_size"] == 2 and result["global_step"] == 2, config
+        assert result["last_ckpt_step"] == 2, config  # last.ckpt holds the final step, between two periodic saves
         assert not result["find_unused"], config
         assert not result["unsynced"], (config, result["unsynced"])

@@ -38,9 +38,8 @@ def job_config(tmp_path, name):
     path = tmp_path / f"{name}.yaml"
     path.write_text(yaml.safe_dump({"trainer": {"logger": False, "callbacks": [
         {"class_path": "dapm_lightning.training.checkpointing.CheckpointOnSigterm"},
-        {"class_path": "lightning.pytorch.callbacks.ModelCheckpoint",
-         "init_args": {"dirpath": str(tmp_path / name), "every_n_train_steps": 1, "save_last": True,
-                       "monitor": "step", "mode": "max", "save_top_k": 1}}]}}))
+        {"class_path": "dapm_lightning.training.checkpointing.LastCheckpoint",
+         "init_args": {"dirpath": str(tmp_path / name), "every_n_train_steps": 1}}]}}))
     return ["--config", str(QUICKSTART), "--config", str(path)]
 
 

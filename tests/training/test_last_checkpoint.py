@@ -1,0 +1,67 @@
+"""last.ckpt is always the latest training state, and `--ckpt_path last` finds it in an earlier log version."""
+
+import os
+import time
+from pathlib import Path
+
+import lightning as L
+import torch
+import yaml
+
+from dapm_lightning.training.checkpointing import LastCheckpoint, find_last_checkpoint
+from dapm_lightning.training.lightning_cli import run_lightning_cli
+from tests.conftest import QUICKSTART
+
+
+class Linear(L.LightningModule):
+    def __init__(self):
+        super().__init__()
+        self.layer = torch.nn.Linear(2, 1)
+
+    def training_step(self, batch, batch_idx):
+        return self.layer(batch[0]).square().mean()
+
+    def configure_optimizers(self):
+        return torch.optim.SGD(self.parameters(), lr=0.1)
+
+
+def test_the_final_step_is_saved_between_two_periodic_saves(tmp_path):
+    loader = torch.utils.data.DataLoader(torch.utils.data.TensorDataset(torch.randn(12, 2)), batch_size=2)
+    trainer = L.Trainer(max_steps=5, logger=False, enable_progress_bar=False, enable_model_summary=False,
+                        callbacks=[LastCheckpoint(dirpath=tmp_path, every_n_train_steps=4)])
+    trainer.fit(Linear(), loader)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["last.ckpt"]  # overwritten, never last-v1.ckpt
+    assert torch.load(tmp_path / "last.ckpt", weights_only=True)["global_step"] == 5
+
+
+def test_find_last_checkpoint_takes_the_newest_of_every_version(tmp_path):
+    assert find_last_checkpoint([tmp_path, tmp_path / "missing"]) is None
+    for i, name in enumerate(["tb/version_0/checkpoints/last.ckpt", "tb/version_1/checkpoints/last-v1.ckpt",
+                              "tb/version_1/checkpoints/best-step=3.ckpt", "tb/version_1/checkpoints/last_good.ckpt"]):
+        path = tmp_path / name
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(b"x")
+        os.utime(path, ns=(time.time_ns(), 1_000_000_000 * (i + 1)))
+    assert find_last_checkpoint([tmp_path]) == tmp_path / "tb/version_1/checkpoints/last-v1.ckpt"
+
+
+def test_quickstart_resumes_from_the_latest_state_when_validation_stopped_improving(tmp_path, monkeypatch):
+    """The best model stays at epoch 0 (its metric, the step, is minimal there); last.ckpt follows every epoch,
+    and `fit --ckpt_path last` continues from it although the resumed run logs into a new version folder."""
+    monkeypatch.chdir(tmp_path)
+    config = yaml.safe_load(QUICKSTART.read_text())
+    best = next(c for c in config["trainer"]["callbacks"] if c["class_path"].endswith(".ModelCheckpoint"))
+    best["init_args"].update(monitor="step", mode="min")
+    (tmp_path / "run.yaml").write_text(yaml.safe_dump(config))
+    common = ["--config", str(tmp_path / "run.yaml"), "--data.init_args.root", str(tmp_path / "data"),
+              "--data.init_args.train_size", "4", "--data.init_args.val_size", "2",
+              "--data.init_args.image_size", "32", "--data.init_args.render_workers", "1",
+              "--data.init_args.batch_size", "2", "--data.init_args.num_workers", "0",
+              "--trainer.enable_progress_bar", "false"]
+    first = run_lightning_cli(["fit", *common, "--trainer.max_epochs", "3"])
+    assert torch.load(first.trainer.checkpoint_callback.best_model_path, weights_only=True)["global_step"] == 2
+    last = find_last_checkpoint([tmp_path / "outputs"])
+    assert torch.load(last, weights_only=True)["global_step"] == 6
+    resumed = run_lightning_cli(["fit", *common, "--trainer.max_epochs", "4", "--ckpt_path", "last"])
+    assert Path(resumed.trainer.ckpt_path).resolve() == last.resolve() and resumed.trainer.global_step == 8
+    assert resumed.trainer.log_dir != first.trainer.log_dir
