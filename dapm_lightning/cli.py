@@ -34,6 +34,26 @@ def usage() -> str:
     return "\n".join(lines)
 
 
+def packaged_configs(args: Sequence[str]) -> list[str]:
+    """``--config configs/NAME.yaml`` that is not there reads the package's own config of that name.
+
+    For an installed package or another working directory: ``dapm_lightning/configs/NAME.yaml``, when there
+    is one.
+    """
+    from pathlib import Path
+
+    packaged = Path(__file__).resolve().parent / "configs"
+    result = list(args)
+    for k, value in enumerate(result):
+        name = value.split("=", 1)[1] if value.startswith("--config=") else value
+        if (k > 0 and result[k - 1] == "--config") or value.startswith("--config="):
+            path = Path(name)
+            if not path.exists() and (packaged / path.name).is_file():
+                shipped = str(packaged / path.name)
+                result[k] = f"--config={shipped}" if value.startswith("--config=") else shipped
+    return result
+
+
 def main(argv: Sequence[str] | None = None) -> None:
     """Entry point of ``dapm-lightning``.
 
@@ -56,6 +76,14 @@ def main(argv: Sequence[str] | None = None) -> None:
     if args[0] not in LIGHTNING_SUBCOMMANDS and not args[0].startswith("-"):
         print(f"error: unknown subcommand {args[0]!r}\n\n{usage()}", file=sys.stderr)
         raise SystemExit(2)
+    if args[0] == "predict":
+        from dapm_lightning.tools.predict import is_lightning_form, predict_main
+
+        if not is_lightning_form(args[1:]):  # the one-line form: SOURCE --ckpt_path CKPT [--out DIR] ...
+            run_reporting_errors(lambda: predict_main(args[1:]), debug)
+            return
+        import dapm_lightning.inference.datamodule  # noqa: F401  (--data PredictDataModule by its short name)
+    args = packaged_configs(args)
     from dapm_lightning.training.lightning_cli import run_lightning_cli
 
     if argv is None:  # LightningCLI reads sys.argv itself (and warns when given both): without --debug

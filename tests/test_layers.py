@@ -4,7 +4,7 @@ import ast
 from pathlib import Path
 
 PACKAGE = Path(__file__).resolve().parents[1] / "dapm_lightning"
-LAYERS = {"geometry": 0, "models": 1, "metrics": 1, "data": 2, "training": 3, "tools": 4, "cli": 5}
+LAYERS = {"geometry": 0, "models": 1, "metrics": 1, "data": 2, "training": 3, "inference": 4, "tools": 5, "cli": 6}
 """Lower numbers are lower layers; a module may import its own layer and those below."""
 
 
@@ -46,5 +46,5 @@ def test_models_and_geometry_never_import_lightning():
 
 def test_every_module_belongs_to_a_layer():
     top = sorted(p.name for p in PACKAGE.iterdir() if p.suffix == ".py" or (p.is_dir() and p.name != "__pycache__"))
-    assert top == ["__init__.py", "__main__.py", "cli.py", "configs", "data", "geometry", "metrics", "models",
-                   "tools", "training"]
+    assert top == ["__init__.py", "__main__.py", "cli.py", "configs", "data", "geometry", "inference", "metrics",
+                   "models", "tools", "training"]

@@ -17,7 +17,8 @@ from dapm_lightning.data.sample import Sample, SampleKey, Transform, make_sample
 from dapm_lightning.geometry.constants import MAX_DEPTH_M, POSE_KEYS
 from dapm_lightning.geometry.depth_codec import grey_to_depth
 
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp")
+"""Image files the project reads (data sets and prediction inputs)."""
 KEY_ALIASES = {"z": "height", "height": "height", "pitch": "pitch", "roll": "roll", "fov": "fov"}
 """File-name keys that carry the pose, mapped to the pose component they name."""
 _NUMBER = re.compile(r"^[+-]?(\d+(\.\d*)?|\.\d+)$")

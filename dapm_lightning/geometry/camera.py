@@ -88,3 +88,28 @@ def _plane_coords(fov_deg: Tensor, size: tuple[int, int]) -> tuple[Tensor, Tenso
     u, v = pixel_offsets(size, device=fov_deg.device, dtype=fov_deg.dtype)
     inv_f = inverse_focal(fov_deg, size[1])[:, None, None]
     return u * inv_f, v * inv_f
+
+
+def horizon_segment(pitch_deg: float, roll_deg: float, fov_deg: float,
+                    size: tuple[int, int]) -> tuple[tuple[float, float], tuple[float, float]] | None:
+    """The horizon (rays with ``d_z = 0``) across an image: ``((x0, y0), (x1, y1))`` in pixel coordinates.
+
+    With §1's frame, ``d_z = 0`` is the line ``u sin r + v cos r = f tan p``. The points lie on the image's left
+    and right edges (``x`` = 0 and W), or on its top and bottom edges when the roll is near 90 degrees; ``y`` may
+    be outside the image (the horizon is not in view). None when the optical axis is vertical (no horizon).
+    """
+    import math
+
+    height, width = size
+    p, r = math.radians(pitch_deg), math.radians(roll_deg)
+    if abs(math.cos(p)) < 1e-9:
+        return None
+    f = width / (2 * math.tan(math.radians(min(max(fov_deg, FOV_EPS_DEG), 180 - FOV_EPS_DEG)) / 2))
+    c = f * math.tan(p)
+    if abs(math.cos(r)) >= abs(math.sin(r)):
+        u0, u1 = -width / 2, width / 2
+        v0, v1 = (c - u0 * math.sin(r)) / math.cos(r), (c - u1 * math.sin(r)) / math.cos(r)
+    else:
+        v0, v1 = -height / 2, height / 2
+        u0, u1 = (c - v0 * math.cos(r)) / math.sin(r), (c - v1 * math.cos(r)) / math.sin(r)
+    return (u0 + width / 2, v0 + height / 2), (u1 + width / 2, v1 + height / 2)

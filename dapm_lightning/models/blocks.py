@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import torch
+import torch.nn.functional as F
 from torch import Tensor, nn
 
 
@@ -76,3 +78,32 @@ class SqueezeExcite(nn.Module):
 
     def forward(self, x: Tensor) -> Tensor:
         return x * self.gate(x)
+
+
+def adaptive_avg_pool2d(x: Tensor, output_size: int | tuple[int, int]) -> Tensor:
+    """``F.adaptive_avg_pool2d``; while exporting (ONNX, ``torch.export``), the same windows in size-symbolic ops.
+
+    PyTorch's own decomposition bakes the example input's window indices into an exported graph, which then
+    fails at any other input size. The export form takes PyTorch's windows (``floor(i H / n)`` to
+    ``ceil((i + 1) H / n)``) from prefix sums, so one exported model runs at every size.
+    """
+    if not torch.compiler.is_exporting():
+        return F.adaptive_avg_pool2d(x, output_size)
+    return adaptive_avg_pool2d_symbolic(x, output_size)
+
+
+def adaptive_avg_pool2d_symbolic(x: Tensor, output_size: int | tuple[int, int]) -> Tensor:
+    """:func:`adaptive_avg_pool2d`'s export form: PyTorch's windows from prefix sums (numerically the same)."""
+    n_h, n_w = (output_size, output_size) if isinstance(output_size, int) else output_size
+
+    def pool(values: Tensor, dim: int, n: int) -> Tensor:
+        size = values.shape[dim]
+        index = torch.arange(n, device=values.device)
+        start, end = (index * size) // n, ((index + 1) * size + n - 1) // n
+        sums = torch.cat([torch.zeros_like(values.narrow(dim, 0, 1)), values.cumsum(dim)], dim)
+        shape = [1] * values.ndim
+        shape[dim] = n
+        counts = (end - start).to(values.dtype).view(shape)
+        return (sums.index_select(dim, end) - sums.index_select(dim, start)) / counts
+
+    return pool(pool(x, x.ndim - 1, n_w), x.ndim - 2, n_h)

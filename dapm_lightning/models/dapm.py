@@ -55,11 +55,24 @@ class PosePrediction(NamedTuple):
     refined: bool
 
 
+INFERENCE_OUTPUTS = ("depth_m", "sky_prob", "pose")
+"""What inference returns per image, by name: the predict step, the Python API and the ONNX model's outputs."""
+
+
 class DAPMOutput(NamedTuple):
     """Everything one forward pass predicts; a branch switched off is ``None``."""
 
     depth: DepthPrediction | None
     pose: PosePrediction | None
+
+    def inference_outputs(self) -> dict[str, Tensor]:
+        """The :data:`INFERENCE_OUTPUTS` this model has, by name.
+
+        ``depth_m [B, 1, H, W]`` metres (sky at the depth limit), ``sky_prob [B, 1, H, W]``, ``pose [B, 4]``
+        (height m, pitch, roll, fov deg).
+        """
+        values = {"depth_m": self.depth_m, "sky_prob": self.sky_prob, "pose": self.pose_physical}
+        return {name: values[name] for name in INFERENCE_OUTPUTS if values[name] is not None}
 
     @property
     def depth_m(self) -> Tensor | None:

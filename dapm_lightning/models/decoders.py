@@ -8,7 +8,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from dapm_lightning.models.blocks import ResidualConvBlock, ResidualMLPBlock, SqueezeExcite
+from dapm_lightning.models.blocks import ResidualConvBlock, ResidualMLPBlock, SqueezeExcite, adaptive_avg_pool2d
 
 
 class DepthDecoder(nn.Module):
@@ -77,7 +77,7 @@ class PoseDecoder(nn.Module):
         if self.depth_projection is not None:
             if depth_norm is None:
                 raise ValueError("this pose decoder was built with a depth input (depth_grid > 0) but got none")
-            grid = F.adaptive_avg_pool2d(depth_norm, self.depth_grid).flatten(1)
+            grid = adaptive_avg_pool2d(depth_norm, self.depth_grid).flatten(1)  # export-safe at any input size
             pooled.append(self.depth_projection(grid))
         feature = self.mlp(torch.cat(pooled, dim=1))
         logit = self.out(feature)

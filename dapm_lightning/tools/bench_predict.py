@@ -100,7 +100,7 @@ def speed(ckpt_path: str | None = None, backbone: str = "resnet50", size: int = 
     if onnx:
         import onnxruntime
 
-        from dapm_lightning.tools.export import export_onnx
+        from dapm_lightning.inference.onnx import export_onnx
 
         start = time.perf_counter()
         with tempfile.TemporaryDirectory() as folder:
@@ -181,7 +181,8 @@ class MemoryProbe(L.Callback):
 
 def memory(frames: int = 2000, every: int = 200, batch_size: int = 16, out: str | None = None) -> list[tuple]:
     """``predict`` on a ``frames``-frame video with a tiny model, all outputs written; RSS every ``every`` frames."""
-    from dapm_lightning.tools.predict import PredictDataModule, PredictionWriter
+    from dapm_lightning.inference.datamodule import PredictDataModule
+    from dapm_lightning.inference.writers import PredictionWriter
     from dapm_lightning.training.module import DAPMModule
 
     torch.manual_seed(0)

@@ -70,7 +70,7 @@ def render(image_rgb: np.ndarray, prediction: Any, out: str | Path, *, stride: i
     return out
 
 
-def render_main(ckpt_path: Path, image: Path, out: Path = Path("pointcloud.png"), image_width: int = 512,
+def render_main(ckpt_path: Path, image: Path, out: Path = Path("pointcloud.png"), image_width: int | None = None,
                 stride: int = 1, max_depth: float | None = None, ply: Path | None = None) -> Path:
     """Predict one image and render its point cloud beside it.
 
@@ -78,12 +78,13 @@ def render_main(ckpt_path: Path, image: Path, out: Path = Path("pointcloud.png")
         ckpt_path: a full DAPM checkpoint (depth and pose).
         image: the image file.
         out: the PNG to write.
-        image_width: network input width.
+        image_width: network input width (default: the checkpoint's training size).
         stride: keep every stride-th pixel in the point cloud.
         max_depth: leave out points farther than this (metres).
         ply: also write the point cloud to this PLY file.
     """
-    from dapm_lightning.tools.predict import DAPMPredictor, read_image
+    from dapm_lightning.inference.inputs import read_image
+    from dapm_lightning.inference.predictor import DAPMPredictor
 
     rgb = read_image(Path(image))
     prediction = DAPMPredictor.from_checkpoint(ckpt_path, image_width=image_width)(rgb)

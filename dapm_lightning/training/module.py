@@ -72,6 +72,20 @@ def _as_config(value: Any, kind: type[Any]) -> Any:
     raise TypeError(f"expected {kind.__name__} or a mapping, got {type(value).__name__}")
 
 
+def training_image_size(checkpoint: dict[str, Any]) -> tuple[int, int] | None:
+    """``(H, W)`` a checkpoint was trained at: recorded by :class:`DAPMModule`, else (older checkpoints) the
+    saved data module's ``image_size`` or ``crop_size``; None when neither says."""
+    recorded = checkpoint.get("dapm_train_image_size")
+    if recorded is not None:
+        return int(recorded[0]), int(recorded[1])
+    data = checkpoint.get("datamodule_hyper_parameters") or {}
+    data = data.get("init_args", data) if isinstance(data, dict) else {}
+    for key in ("image_size", "crop_size"):
+        if isinstance(data.get(key), int):
+            return int(data[key]), int(data[key])
+    return None
+
+
 class DAPMModule(L.LightningModule):
     """Train, validate, test and predict DAPM and its ablations; every loss term and metric logged by name.
 
@@ -132,6 +146,8 @@ class DAPMModule(L.LightningModule):
             if self.net_config.use_pose:
                 self.metrics[f"{stage}_pose"] = PoseMetrics(min_error=pose_auc_min_error)
         self.nonfinite_steps = 0
+        self.train_image_size: tuple[int, int] | None = None
+        """``(H, W)`` of the training images (saved in checkpoints; inference runs at the same pixel count)."""
 
     def setup(self, stage: str) -> None:
         datamodule = getattr(self._trainer, "datamodule", None) if self._trainer is not None else None
@@ -187,6 +203,7 @@ class DAPMModule(L.LightningModule):
                 metric.reset()
 
     def training_step(self, batch: dict[str, Any], batch_idx: int) -> Tensor | None:
+        self.train_image_size = (int(batch["image"].shape[-2]), int(batch["image"].shape[-1]))
         loss, _ = self._shared_step(batch, "train")
         if torch.isfinite(loss) or not self.skip_nonfinite_loss:
             return loss
@@ -200,6 +217,8 @@ class DAPMModule(L.LightningModule):
         return None  # Lightning skips backward and the optimiser step
 
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        if self.train_image_size is not None:
+            checkpoint["dapm_train_image_size"] = list(self.train_image_size)
         # every process saves (Lightning calls this hook on all ranks, rank 0 writes): under DDP the RNG
         # states of all ranks are gathered, so that each resumes its own dropout and augmentation draws
         if self._trainer is not None and self.trainer.world_size > 1:
@@ -212,6 +231,7 @@ class DAPMModule(L.LightningModule):
         saved = checkpoint.get("hyper_parameters", {}).get("net")
         if saved is not None:
             check_architecture(saved, self.net_config, "the checkpoint")
+        self.train_image_size = training_image_size(checkpoint)
         if self._trainer is None:
             return
         per_rank = checkpoint.get("dapm_rng_states_per_rank")
@@ -235,16 +255,8 @@ class DAPMModule(L.LightningModule):
     def on_test_epoch_end(self) -> None:
         self._log_metrics("test")
 
-    def predict_step(self, batch: dict[str, Any], batch_idx: int) -> dict[str, Any]:
-        out = self(batch["image"])
-        result: dict[str, Any] = {"name": batch.get("name")}
-        if out.depth_m is not None:
-            result["depth_m"] = out.depth_m
-            if out.sky_prob is not None:
-                result["sky_prob"] = out.sky_prob
-        if out.pose_physical is not None:
-            result["pose"] = out.pose_physical
-        return result
+    def predict_step(self, batch: dict[str, Any], batch_idx: int) -> DAPMOutput:
+        return self(batch["image"])
 
     @property
     def planned_steps(self) -> int:

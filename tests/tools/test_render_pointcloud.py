@@ -3,7 +3,7 @@ import numpy as np
 import torch
 
 from dapm_lightning.geometry import ideal_ground_depth
-from dapm_lightning.tools.predict import make_prediction
+from dapm_lightning.inference.postprocess import make_prediction
 from dapm_lightning.tools.render_pointcloud import render, view_box
 
 

@@ -4,8 +4,9 @@ import torch
 import yaml
 
 from dapm_lightning.cli import main
+from dapm_lightning.inference.onnx import export_onnx
 from dapm_lightning.models import DAPMConfig, DAPMNet
-from dapm_lightning.tools.export import _adaptive_avg_pool2d, export_onnx
+from dapm_lightning.models.blocks import adaptive_avg_pool2d_symbolic
 
 TINY = {"backbone": "resnet18", "decoder_channels": 16, "head_channels": 8, "igd_channels": 4, "pose_hidden": 16,
         "depth_bins": (2, 4), "pose_bins": (4,)}
@@ -22,7 +23,7 @@ def tiny_net(**overrides):
 def test_size_symbolic_pooling_equals_pytorch():
     for shape, n in (((2, 1, 8, 12), 8), ((1, 3, 20, 7), 8), ((1, 1, 64, 64), 8), ((2, 2, 9, 31), (4, 5))):
         x = torch.rand(*shape, dtype=torch.float64)
-        torch.testing.assert_close(_adaptive_avg_pool2d(x, n), torch.nn.functional.adaptive_avg_pool2d(x, n))
+        torch.testing.assert_close(adaptive_avg_pool2d_symbolic(x, n), torch.nn.functional.adaptive_avg_pool2d(x, n))
 
 
 def test_dynamic_onnx_matches_pytorch_at_other_sizes(tmp_path):

@@ -8,19 +8,18 @@ import torch
 from PIL import Image
 
 from dapm_lightning.geometry import depth_to_points, ideal_ground_depth, intrinsics_matrix
-from dapm_lightning.models import DAPMConfig
-from dapm_lightning.tools.predict import (
-    DEPTH16_SCALE,
-    DAPMPredictor,
-    ImageFolderDataset,
-    PredictionWriter,
+from dapm_lightning.geometry.igd import IGDSpec
+from dapm_lightning.inference.inputs import (
+    ImageFilesDataset,
     VideoFramesDataset,
-    make_prediction,
     network_size,
     resolve_source,
     to_rgb8,
-    write_prediction,
 )
+from dapm_lightning.inference.postprocess import make_prediction
+from dapm_lightning.inference.predictor import DAPMPredictor
+from dapm_lightning.inference.writers import DEPTH16_SCALE, PredictionWriter, write_prediction
+from dapm_lightning.models import DAPMConfig
 from dapm_lightning.training.lightning_cli import run_lightning_cli
 from dapm_lightning.training.module import DAPMModule
 from tests.conftest import CONFIGS
@@ -30,7 +29,7 @@ TINY = {"backbone": "resnet18", "decoder_channels": 16, "head_channels": 8, "igd
 
 
 def read_ply_independently(path):
-    """A PLY reader written from the format's specification, independent of dapm_lightning.tools.ply."""
+    """A PLY reader written from the format's specification, independent of dapm_lightning.inference.ply."""
     data = path.read_bytes()
     header, _, body = data.partition(b"end_header\n")
     lines = header.decode("ascii").splitlines()
@@ -65,7 +64,7 @@ def write_video(path, frames=9, size=(36, 48)):
 
 
 def test_any_input_kind_is_handled_or_refused(image_folder):
-    ds = ImageFolderDataset(image_folder, image_width=64)
+    ds = ImageFilesDataset(resolve_source(image_folder)[1], 64)
     for i in range(len(ds)):
         item = ds[i]
         assert item["image"].dtype == torch.uint8 and item["image"].shape[0] == 3
@@ -95,7 +94,7 @@ def test_sources_folder_glob_image_video_and_mistakes(image_folder, tmp_path):
         resolve_source(tmp_path / "notes.txt")
     (tmp_path / "damaged.png").write_bytes(b"not a png")
     with pytest.raises(ValueError, match="damaged.png: cannot be decoded"):
-        ImageFolderDataset(tmp_path / "damaged.png")[0]
+        ImageFilesDataset([tmp_path / "damaged.png"])[0]
     (tmp_path / "broken.mp4").write_bytes(b"\x00" * 64)
     with pytest.raises(ValueError, match="broken.mp4: OpenCV cannot open it"):
         VideoFramesDataset(tmp_path / "broken.mp4")
@@ -103,9 +102,9 @@ def test_sources_folder_glob_image_video_and_mistakes(image_folder, tmp_path):
 
 def test_video_frames_in_order_with_step_limit_and_workers(tmp_path):
     video = write_video(tmp_path / "flight.avi", frames=9)
-    frames = list(VideoFramesDataset(video, image_width=32, frame_step=2, max_frames=4))
+    frames = list(VideoFramesDataset(video, 32, frame_step=2, max_frames=4))
     assert [f["name"] for f in frames] == ["flight_f000000", "flight_f000002", "flight_f000004", "flight_f000006"]
-    assert frames[0]["orig_size"].tolist() == [36, 48]
+    assert frames[0]["meta"]["size"] == (36, 48) and frames[0]["pose"].isnan().all()
     # 2 workers, chunks of the batch size: the loader gives the frames back in video order
     loader = torch.utils.data.DataLoader(VideoFramesDataset(video, 32, chunk=2), batch_size=2, num_workers=2,
                                          collate_fn=lambda items: [i["name"] for i in items])
@@ -138,14 +137,15 @@ def test_cli_predict_writes_every_output(checkpoint, image_folder, tmp_path, mon
         assert sky.shape == shape and sky.dtype == np.uint8
         camera = json.loads((out / f"{name}_camera.json").read_text())
         assert (camera["height"], camera["width"]) == shape
-        fov = camera["pose"]["fov_deg"]
-        assert camera["pose"]["fov_deg"] == pytest.approx(row["fov_deg"], abs=1e-3)
+        fov = camera["pose"]["fov_deg"]["value"]
+        assert camera["pose"]["fov_deg"] == {"value": pytest.approx(row["fov_deg"], abs=1e-3), "source": "network",
+                                             "network": fov}
         k = np.array(camera["K"])
         assert k[0, 0] == pytest.approx(shape[1] / (2 * math.tan(math.radians(fov) / 2)))
         assert (k[0, 2], k[1, 2]) == (shape[1] / 2, shape[0] / 2)
         # the point cloud is the written depth lifted with the written pose, every 3rd pixel, coloured
         ply = read_ply_independently(out / f"{name}_points.ply")
-        pose = torch.tensor([[camera["pose"][k] for k in ("height_m", "pitch_deg", "roll_deg", "fov_deg")]],
+        pose = torch.tensor([[camera["pose"][k]["value"] for k in ("height_m", "pitch_deg", "roll_deg", "fov_deg")]],
                             dtype=torch.float64)
         expected = depth_to_points(torch.from_numpy(depth).double()[None], pose)[0, ::3, ::3]
         seen = depth[::3, ::3] < 1000
@@ -160,8 +160,8 @@ def test_flat_ground_through_the_writer_lies_at_z_zero(tmp_path):
         pose_t = torch.tensor(pose)
         for depth_kind in ("range", "planar"):
             depth = ideal_ground_depth(pose_t[None], (30, 44), depth_kind=depth_kind)[0]
-            prediction = make_prediction("flat", (30, 44), depth, None, pose_t, depth_kind=depth_kind)
-            write_prediction(tmp_path, "flat", prediction, outputs=["points", "camera"], points_stride=1)
+            prediction = make_prediction("flat", (30, 44), depth, None, pose_t, IGDSpec(depth_kind=depth_kind))
+            write_prediction(tmp_path, prediction, outputs=["points", "camera"], points_stride=1)
             ply = read_ply_independently(tmp_path / "flat_points.ply")
             xyz = np.stack([ply["x"], ply["y"], ply["z"]], 1).astype(np.float64)
             distance = np.linalg.norm(xyz - [0.0, 0.0, pose[0]], axis=1)
@@ -200,7 +200,7 @@ def test_python_api_images_batches_and_tensors(checkpoint):
     assert points.xyz.shape[1] == 3 and points.rgb.shape == points.xyz.shape
     with pytest.raises(ValueError, match="precision"):
         DAPMPredictor(predictor.module, precision="8")
-    with pytest.raises(FileNotFoundError, match="no such checkpoint"):
+    with pytest.raises(FileNotFoundError, match="missing.ckpt"):
         DAPMPredictor.from_checkpoint("missing.ckpt")
 
 
@@ -215,14 +215,15 @@ def test_python_api_video_and_single_branch_models(tmp_path):
     assert r.depth_m.shape == (36, 48) and r.pose is None and r.K is None and r.extras["rgb"].shape == (36, 48, 3)
     with pytest.raises(ValueError, match="needs depth and pose"):
         r.points()
-    written = write_prediction(tmp_path, r.name, r)
+    written = write_prediction(tmp_path, r)
     assert {p.name for p in written} == {f"{r.name}_{s}" for s in ("depth.npy", "depth.tif", "depth16.png",
                                                                     "depth_color.png", "sky.png")}
     pose_only = DAPMPredictor(DAPMModule(net=DAPMConfig(**TINY, use_depth=False, use_igd_feature=False)),
                               image_width=32)
     p = pose_only(np.zeros((36, 48, 3), np.uint8))
     assert p.depth_m is None and p.K.shape == (3, 3)
-    assert {q.name for q in write_prediction(tmp_path, "pose_only", p)} == {"pose_only_camera.json"}
+    p.name = "pose_only"
+    assert {q.name for q in write_prediction(tmp_path, p)} == {"pose_only_camera.json"}
     with pytest.raises(ValueError, match="unknown output"):
         PredictionWriter(outputs=["depth_npy", "mesh"])
 
@@ -239,9 +240,10 @@ def test_cli_predict_honours_precision_and_a_video_source(checkpoint, tmp_path, 
     names = [p["name"] for p in json.loads((out / "poses.json").read_text())]
     assert names == ["clip_f000000", "clip_f000002", "clip_f000004"]
     assert sorted(p.name for p in out.iterdir()) == sorted(
-        [f"{n}_{s}" for n in names for s in ("depth.npy", "camera.json")] + ["poses.csv", "poses.json"])
+        [f"{n}_{s}" for n in names for s in ("depth.npy", "camera.json")]
+        + ["poses.csv", "poses.json", "contact_sheet.png"])
     fp32 = DAPMPredictor.from_checkpoint(checkpoint, image_width=64)(next(iter(
-        VideoFramesDataset(video, image_width=None, keep_rgb=True)))["rgb"].numpy())
+        VideoFramesDataset(video, None, keep_rgb=True)))["meta"]["rgb"])
     bf16 = np.load(out / "clip_f000000_depth.npy")
     assert bf16.dtype == np.float32 and not np.array_equal(bf16, fp32.depth_m)  # bf16 ran, not float32
     np.testing.assert_allclose(bf16, fp32.depth_m, rtol=0.1)
@@ -259,3 +261,155 @@ def test_python_api_onnxruntime_backend_matches_pytorch(tmp_path):
     for got in (fast(rgb), fast([rgb, rgb])[1]):
         np.testing.assert_allclose(got.depth_m, eager.depth_m, rtol=1e-4, atol=1e-3)
         assert max(abs(got.pose[k] - eager.pose[k]) for k in got.pose) < 1e-3
+
+
+# ------------------------------------------------------------------------------------------------- sky at every size
+def sky_outputs(net_size=(64, 64), sky_rows=24, seed=0):
+    """Network outputs with sky in the top ``sky_rows`` rows (as a sky-override model writes it: depth at the
+    limit where sky_prob > 0.5) and ground below."""
+    rng = torch.Generator().manual_seed(seed)
+    prob = torch.rand(1, 1, *net_size, generator=rng) * 0.4
+    prob[..., :sky_rows, :] += 0.55
+    depth = 20 + 80 * torch.rand(1, 1, *net_size, generator=rng)
+    depth = torch.where(prob > 0.5, torch.full_like(depth, 1000.0), depth)
+    return {"depth_m": depth, "sky_prob": prob, "pose": torch.tensor([[40.0, -20.0, 5.0, 70.0]])}
+
+
+@pytest.mark.parametrize("size", [(64, 64), (30, 40), (200, 300), (120, 24), (7, 5)])
+@pytest.mark.parametrize("sky_rows", [24, 61])  # a third sky, and a frame that is almost all sky
+def test_sky_is_sky_at_every_output_size(size, sky_rows, tmp_path):
+    from dapm_lightning.inference.postprocess import predictions_from_outputs
+
+    (result,) = predictions_from_outputs(sky_outputs(sky_rows=sky_rows), ["f"], [size], IGDSpec())
+    sky = result.sky_prob > 0.5
+    np.testing.assert_array_equal(result.sky, sky)
+    assert sky.any() and ((~sky).any() or size == (7, 5))  # 7 rows of a 61/64-sky frame: all sky
+    assert (result.depth_m[sky] == 1000.0).all() and (result.depth_m[~sky] < 1000.0).all()
+    assert (result.depth_m >= 1000.0).sum() == sky.sum()  # `depth >= max_depth` finds exactly the sky
+    assert (result.depth_m[~sky] <= 100.0 + 1e-3).all()  # resizing mixes no sky into the ground
+    written = {p.name: p for p in write_prediction(tmp_path, result, points_stride=1)}
+    depth16 = cv2.imread(str(written["f_depth16.png"]), cv2.IMREAD_UNCHANGED)
+    assert (depth16[sky] == 64000).all() and (depth16[~sky] < 64000).all()
+    colour = cv2.imread(str(written["f_depth_color.png"]))
+    sky_colour = colour[sky][0]
+    assert (colour[sky] == sky_colour).all() and not (colour[~sky] == sky_colour).all(axis=1).any()
+    assert len(read_ply_independently(written["f_points.ply"])) == (~sky).sum()  # no sky point in the cloud
+
+
+def test_sky_through_the_real_network_at_other_sizes(checkpoint, tmp_path):
+    predictor = DAPMPredictor.from_checkpoint(checkpoint, image_width=64)
+    predictor.module.net.depth_pqb.blocks[0].body[-1].bias.data[0] = 0.0  # sky logits near 0: sky and ground
+    rng = np.random.default_rng(5)
+    for shape in ((37, 53, 3), (300, 180, 3), (64, 64, 3)):
+        result = predictor(rng.integers(0, 255, shape, np.uint8))
+        np.testing.assert_array_equal(result.sky, result.sky_prob > 0.5)
+        assert (result.depth_m[result.sky] == 1000.0).all() and (result.depth_m[~result.sky] < 1000.0).all()
+        assert len(result.points().xyz) == (~result.sky).sum()
+
+
+# --------------------------------------------------------------------------------------------- the network size
+def test_network_size_keeps_the_training_pixel_count_in_each_aspect():
+    assert network_size(3000, 4000, (512, 512)) == (448, 576)
+    assert network_size(4000, 3000, (512, 512)) == (576, 448)
+    assert network_size(480, 640, 512) == (384, 512)
+    assert network_size(45, 70, None) == (32, 64)
+
+
+def test_the_checkpoint_records_its_training_size(checkpoint, tiny_uapd):
+    predictor = DAPMPredictor.from_checkpoint(checkpoint)
+    height, width = cv2.imread(str(next((tiny_uapd / "train").rglob("*.png")))).shape[:2]
+    assert predictor.module.train_image_size == (height, width) == predictor.target
+    loaded = torch.load(checkpoint, weights_only=True)
+    assert loaded["dapm_train_image_size"] == [height, width]
+    older = tmp = checkpoint.with_name("older.ckpt")
+    del loaded["dapm_train_image_size"]
+    torch.save(loaded, tmp)
+    with pytest.warns(UserWarning, match="does not record its training image size"):
+        assert DAPMPredictor.from_checkpoint(older).target == (512, 512)
+
+
+def test_tiny_inputs_are_warned_about(checkpoint):
+    predictor = DAPMPredictor.from_checkpoint(checkpoint, image_width=64)
+    with pytest.warns(UserWarning, match="5x7 pixels enlarged 14x"):
+        result = predictor(np.zeros((7, 5, 3), np.uint8))
+    assert result.depth_m.shape == (7, 5)
+
+
+# ------------------------------------------------------------------------------------------------ one line to run
+def test_one_line_predict_on_a_folder_of_mixed_sizes(checkpoint, image_folder, tmp_path, capsys):
+    from dapm_lightning.cli import main
+
+    out = tmp_path / "out"
+    main(["predict", str(image_folder), "--ckpt_path", str(checkpoint), "--out", str(out), "--device", "cpu",
+          "--outputs", "depth_npy", "points", "npz"])
+    summary = capsys.readouterr().out.strip().splitlines()[-1]
+    assert summary == (f"predicted 3 images: depth_npy, points, npz per image; poses.csv, contact_sheet.png "
+                       f"in {out}/")
+    for name, shape in (("colour", (45, 70)), ("grey", (30, 30)), ("rgba16", (40, 52))):
+        packed = np.load(out / f"{name}.npz")
+        assert set(packed.files) == {"depth", "sky_prob", "K", "pose", "pose_network", "camera_to_world"}
+        np.testing.assert_array_equal(packed["depth"], np.load(out / f"{name}_depth.npy"))
+        assert packed["depth"].shape == shape and packed["K"].shape == (3, 3) and packed["pose"].shape == (4,)
+    sheet = cv2.imread(str(out / "contact_sheet.png"))
+    assert sheet.shape[0] >= 3 * 160
+    # a second run into the same folder adds its rows to poses.csv, replacing those of the same name
+    other = tmp_path / "other"
+    other.mkdir()
+    cv2.imwrite(str(other / "new.png"), np.full((40, 60, 3), 90, np.uint8))
+    cv2.imwrite(str(other / "grey.png"), np.full((30, 30), 10, np.uint8))
+    main(["predict", str(other), "--ckpt", str(checkpoint), "--out", str(out), "--device", "cpu",
+          "--outputs", "depth_npy", "--contact_sheet", "0"])
+    rows = (out / "poses.csv").read_text().splitlines()
+    assert [r.split(",")[0] for r in rows] == ["name", "colour", "grey", "rgba16", "new"]
+    assert [p["name"] for p in json.loads((out / "poses.json").read_text())] == ["colour", "grey", "rgba16", "new"]
+
+
+def test_one_line_predict_errors_and_help(checkpoint, image_folder, tmp_path, capsys):
+    from dapm_lightning.cli import main
+
+    with pytest.raises(SystemExit) as info:
+        main(["predict", str(image_folder), "--ckpt_path", str(checkpoint), "--ot", str(tmp_path)])
+    err = capsys.readouterr().err
+    assert info.value.code == 2 and "did you mean --out" in err and len(err.splitlines()) <= 3
+    with pytest.raises(SystemExit) as info:
+        main(["predict", str(image_folder), "--ckpt_path", str(checkpoint), "--outputs", "depth_np"])
+    assert info.value.code == 2 and "did you mean depth_npy" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as info:
+        main(["predict", str(tmp_path / "nothing"), "--ckpt_path", str(checkpoint)])
+    assert info.value.code == 1 and "nothing: no such file or folder" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as info:
+        main(["predict", "--help"])
+    head = capsys.readouterr().out.splitlines()[:12]
+    assert info.value.code == 0 and any("source" in line for line in head) and any("--out" in line for line in head)
+
+
+def test_lightning_form_finds_the_packaged_config_and_short_class_names(tmp_path, monkeypatch, capsys):
+    from dapm_lightning.cli import main
+
+    monkeypatch.chdir(tmp_path)  # no configs/ folder here: the package's own predict.yaml is read
+    with pytest.raises(SystemExit) as info:
+        main(["predict", "--config", "configs/predict.yaml", "--print_config"])
+    assert info.value.code == 0 and "PredictDataModule" in capsys.readouterr().out
+    with pytest.raises(SystemExit) as info:
+        main(["predict", "--data.help", "PredictDataModule"])
+    help_text = capsys.readouterr().out
+    assert info.value.code == 0 and "--data.source" in help_text and "a folder of images" in help_text
+
+
+def test_horizon_segment_lies_on_horizontal_rays():
+    from dapm_lightning.geometry.camera import camera_rays, horizon_segment
+
+    for pitch, roll, fov in ((-10.0, 0.0, 60.0), (-25.0, 20.0, 90.0), (5.0, -35.0, 50.0), (-5.0, 80.0, 70.0)):
+        (x0, y0), (x1, y1) = horizon_segment(pitch, roll, fov, (240, 320))
+        for t in (0.0, 0.3, 1.0):
+            x, y = x0 + t * (x1 - x0), y0 + t * (y1 - y0)
+            u, v = x - 160, y - 120
+            f = 320 / (2 * math.tan(math.radians(fov) / 2))
+            p, r = math.radians(pitch), math.radians(roll)
+            d_z = -(u / f) * math.sin(r) * math.cos(p) - (v / f) * math.cos(r) * math.cos(p) + math.sin(p)
+            assert abs(d_z) < 1e-9
+    assert horizon_segment(-90.0, 0.0, 60.0, (240, 320)) is None
+    # the pixel rows above the segment see the sky, those below the ground (pitch -10, no roll)
+    rays = camera_rays(torch.tensor([-10.0]), torch.tensor([0.0]), torch.tensor([60.0]), (240, 320))
+    row = int(horizon_segment(-10.0, 0.0, 60.0, (240, 320))[0][1])
+    assert (rays[0, row - 2, :, 2] > 0).all() and (rays[0, row + 2, :, 2] < 0).all()

@@ -1,0 +1,77 @@
+"""``PredictDataModule``: images, folders, glob patterns or a video for ``dapm-lightning predict``."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from torch.utils.data import DataLoader, Dataset
+
+from dapm_lightning.data.datamodules import DAPMDataModule, collate_samples
+from dapm_lightning.data.sample import Sample
+from dapm_lightning.inference.inputs import (
+    ImageFilesDataset,
+    NetworkSize,
+    SizeBatchSampler,
+    VideoFramesDataset,
+    resolve_source,
+)
+
+
+class PredictDataModule(DAPMDataModule):
+    """Predict on images or a video of any size and aspect; no depth or pose needed.
+
+    Args:
+        source: a folder of images, a glob pattern ('flight/**/*.jpg', quoted), one image, or a video
+            file (.mp4, .avi, .mov, ...).
+        image_width: network input width (height from each image's aspect); None: the checkpoint's training
+            size (the same pixel count in each image's aspect; 512 x 512 for checkpoints that do not record it).
+        batch_size: images per forward pass (images of one network size are batched together).
+        num_workers: decoding processes.
+        frame_step: videos: keep every frame_step-th frame.
+        max_frames: videos: stop after this many kept frames.
+        keep_rgb: ship the original pixels with each batch (point-cloud colours, the contact sheet).
+        pin_memory: DataLoader setting (GPUs).
+    """
+
+    def __init__(self, source: str = "images", image_width: int | None = None, batch_size: int = 4,
+                 num_workers: int = 0, frame_step: int = 1, max_frames: int | None = None,
+                 keep_rgb: bool = True, pin_memory: bool = False) -> None:
+        super().__init__(batch_size=batch_size, num_workers=num_workers, augment=False, pin_memory=pin_memory)
+        self.source, self.image_width = source, image_width
+        self.frame_step, self.max_frames, self.keep_rgb = frame_step, max_frames, keep_rgb
+
+    def setup(self, stage: str | None = None) -> None:
+        if stage not in (None, "predict"):
+            raise ValueError(f"{type(self).__name__} serves predict only (no labels), not {stage!r}; "
+                             "use a labelled data module (e.g. UAPDDataModule) to validate or test")
+
+    def network_target(self) -> NetworkSize:
+        """The network size: ``image_width`` if set, else the model's training size."""
+        if self.image_width is not None:
+            return self.image_width
+        from dapm_lightning.inference.predictor import checkpoint_network_size
+
+        module = self.trainer.lightning_module if self.trainer is not None else None
+        return checkpoint_network_size(module)
+
+    def dataset(self) -> Dataset[Sample]:
+        """The images' or the video's data set."""
+        kind, paths = resolve_source(self.source)
+        target = self.network_target()
+        if kind == "video":
+            video = VideoFramesDataset(paths[0], target, self.frame_step, self.max_frames, chunk=self.batch_size,
+                                       keep_rgb=self.keep_rgb)
+            if self.trainer is not None:
+                video.rank, video.world_size = self.trainer.global_rank, self.trainer.world_size
+            return video
+        return ImageFilesDataset(paths, target, self.keep_rgb)
+
+    def predict_dataloader(self) -> DataLoader[dict[str, Any]]:
+        dataset = self.dataset()
+        if isinstance(dataset, ImageFilesDataset):
+            world_size, rank = self._processes()
+            sampler = SizeBatchSampler(dataset.network_sizes(), self.batch_size, rank, world_size)
+            return DataLoader(dataset, batch_sampler=sampler, num_workers=self.num_workers,
+                              collate_fn=collate_samples, pin_memory=self.pin_memory)
+        return DataLoader(dataset, batch_size=self.batch_size, num_workers=self.num_workers,
+                          collate_fn=collate_samples, pin_memory=self.pin_memory)

@@ -1,0 +1,294 @@
+"""Prediction inputs: image files, folders, glob patterns and videos as data sets of the data layer's samples.
+
+Each sample is a :class:`~dapm_lightning.data.sample.Sample` without labels: ``image`` uint8 ``[3, h, w]`` at
+the network size, ``pose`` the pose prior (``[4]``, NaN where unknown: telemetry), ``has_pose`` False, ``name``
+(the file stem, or ``STEM_f<frame>`` for a video) and ``meta`` with ``size`` (the input's ``(H, W)``), ``source``
+(the file) and, when asked for, ``rgb`` (the input's ``[H, W, 3]`` uint8 pixels).
+"""
+
+from __future__ import annotations
+
+import glob
+import math
+import warnings
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+from typing import Any, Literal
+
+import cv2
+import numpy as np
+import torch
+from torch.utils.data import Dataset, IterableDataset, Sampler, get_worker_info
+
+from dapm_lightning.data.sample import Sample
+from dapm_lightning.data.uapd import IMAGE_SUFFIXES
+
+VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg", ".wmv")
+SIZE_MULTIPLE = 32
+"""Network input heights and widths are multiples of this (the encoder's total stride)."""
+DEFAULT_NETWORK_SIZE = (512, 512)
+"""The network size for checkpoints that do not record their training size (the paper's 512 x 512)."""
+MAX_UPSCALE = 4.0
+"""An input enlarged more than this for the network is warned about (little detail to see)."""
+
+NetworkSize = tuple[int, int] | int | None
+"""How big the network input is: ``(H, W)`` (the pixel count kept, each image's aspect), a width (height
+from the aspect), or None (the image's own size, rounded)."""
+
+
+def to_rgb8(image: np.ndarray, source: str = "image", *, bgr: bool = True) -> np.ndarray:
+    """Any grey, grey+alpha, colour or colour+alpha image of 8 or 16 bits to ``[H, W, 3]`` uint8 RGB.
+
+    ``bgr``: colour channels in OpenCV's order (as ``cv2.imread`` gives); False for RGB arrays.
+    Anything else (float pixels, other channel counts) is refused with a message naming ``source``.
+    """
+    if image.dtype == np.uint16:
+        image = (image // 257).astype(np.uint8)
+    elif image.dtype != np.uint8:
+        raise ValueError(f"{source}: unsupported pixel type {image.dtype} (use 8- or 16-bit images)")
+    if image.ndim == 2:
+        return np.repeat(image[..., None], 3, axis=2)
+    if image.ndim != 3:
+        raise ValueError(f"{source}: expected an [H, W] or [H, W, C] image, got shape {image.shape}")
+    channels = image.shape[2]
+    if channels == 1:
+        return np.repeat(image, 3, axis=2)
+    if channels == 2:
+        return np.repeat(image[..., :1], 3, axis=2)  # grey + alpha
+    if channels in (3, 4):
+        return cv2.cvtColor(image[..., :3], cv2.COLOR_BGR2RGB) if bgr else np.ascontiguousarray(image[..., :3])
+    raise ValueError(f"{source}: unsupported number of channels {channels}")
+
+
+def _round(value: float) -> int:
+    return max(SIZE_MULTIPLE, int(round(value / SIZE_MULTIPLE)) * SIZE_MULTIPLE)
+
+
+def network_size(height: int, width: int, target: NetworkSize) -> tuple[int, int]:
+    """The network input ``(h, w)`` for an ``height x width`` image, both multiples of 32.
+
+    ``target`` ``(H, W)``: about ``H * W`` pixels in the image's aspect (a model trained on 64 x 64 images sees
+    a 4:3 photo at 64 x 96 after rounding: the scale of what it learnt on). An int: that width, the height
+    from the aspect. None: the image's own size.
+    """
+    if target is None:
+        return _round(height), _round(width)
+    if isinstance(target, int):
+        return _round(height * target / width), _round(target)
+    scale = math.sqrt(target[0] * target[1] / (height * width))
+    return _round(height * scale), _round(width * scale)
+
+
+def upscale_note(name: str, size: Sequence[int], net: Sequence[int]) -> str | None:
+    """A warning when the network size enlarges an image more than :data:`MAX_UPSCALE` times."""
+    factor = max(net[0] / size[0], net[1] / size[1])
+    if factor <= MAX_UPSCALE:
+        return None
+    return (f"{name}: {size[1]}x{size[0]} pixels enlarged {factor:.0f}x to the network's {net[1]}x{net[0]}; "
+            "predictions from so little detail are unreliable (give larger images)")
+
+
+def prepare_image(rgb: np.ndarray, target: NetworkSize) -> torch.Tensor:
+    """``[H, W, 3]`` uint8 RGB -> ``[3, h, w]`` uint8 tensor at the network size."""
+    size = network_size(rgb.shape[0], rgb.shape[1], target)
+    if size != rgb.shape[:2]:
+        shrink = size[0] < rgb.shape[0]
+        rgb = cv2.resize(rgb, (size[1], size[0]), interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR)
+    return torch.from_numpy(np.ascontiguousarray(rgb.transpose(2, 0, 1)))
+
+
+def _has_magic(text: str) -> bool:
+    return any(c in text for c in "*?[")
+
+
+def resolve_source(source: str | Path) -> tuple[Literal["images", "video"], list[Path]]:
+    """What ``source`` names: ``("images", paths)`` or ``("video", [path])``.
+
+    A folder (its images, sorted), a glob pattern (``**`` recursive) or an image file give images; a video file
+    gives video. Raises ``FileNotFoundError`` / ``ValueError`` saying what to give instead.
+    """
+    text = str(source)
+    path = Path(text).expanduser()
+    if path.is_dir():
+        paths = sorted(p for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+        if not paths:
+            videos = sorted(p.name for p in path.iterdir() if p.suffix.lower() in VIDEO_SUFFIXES)
+            hint = f" (it holds video(s) {', '.join(videos[:3])}: give the video file itself)" if videos else ""
+            raise ValueError(f"{path}: no images ({', '.join(IMAGE_SUFFIXES)}){hint}")
+        return "images", paths
+    if path.is_file():
+        if path.suffix.lower() in VIDEO_SUFFIXES:
+            return "video", [path]
+        if path.suffix.lower() in IMAGE_SUFFIXES:
+            return "images", [path]
+        raise ValueError(f"{path}: neither an image ({', '.join(IMAGE_SUFFIXES)}) nor a video "
+                         f"({', '.join(VIDEO_SUFFIXES)})")
+    if _has_magic(text):
+        matches = sorted(Path(p) for p in glob.glob(str(path), recursive=True))
+        paths = [p for p in matches if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES]
+        if not paths:
+            raise FileNotFoundError(f"{text}: the pattern matches no image ({len(matches)} other path(s)); "
+                                    "quote it so that the shell leaves it to dapm-lightning, e.g. 'frames/*.jpg'")
+        return "images", paths
+    raise FileNotFoundError(f"{text}: no such file or folder (give a folder of images, a glob pattern such as "
+                            "'flight/**/*.jpg', an image or a video file)")
+
+
+def read_image(path: Path) -> np.ndarray:
+    """``[H, W, 3]`` uint8 RGB from any 8/16-bit grey, colour or RGBA image file (named in errors)."""
+    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if raw is None:
+        raise ValueError(f"{path}: cannot be decoded as an image (damaged, or not an image)")
+    return to_rgb8(raw, str(path))
+
+
+def image_size(path: Path) -> tuple[int, int]:
+    """``(H, W)`` of an image file from its header (Pillow reads no pixels), else by decoding it."""
+    try:
+        from PIL import Image
+
+        with Image.open(path) as image:
+            return int(image.height), int(image.width)
+    except Exception:  # a format Pillow lacks (OpenCV may still read it), or a damaged file named later
+        return tuple(read_image(path).shape[:2])  # type: ignore[return-value]
+
+
+def predict_sample(rgb: np.ndarray, name: str, source: str, target: NetworkSize, keep_rgb: bool,
+                   prior: np.ndarray | None = None) -> Sample:
+    """One unlabelled :class:`Sample` at the network size; ``prior``: ``[4]`` pose prior, NaN where unknown."""
+    meta: dict[str, Any] = {"size": (int(rgb.shape[0]), int(rgb.shape[1])), "source": source}
+    if keep_rgb:
+        meta["rgb"] = rgb
+    pose = torch.full((4,), float("nan")) if prior is None else torch.as_tensor(prior, dtype=torch.float32)
+    return Sample(image=prepare_image(rgb, target), pose=pose, has_pose=torch.tensor(False), name=name, meta=meta)
+
+
+class ImageFilesDataset(Dataset[Sample]):
+    """Image files (png, jpg, tif, bmp, webp; grey, RGBA and 16-bit handled) as unlabelled samples.
+
+    Args:
+        paths: the files. target: the network size (:data:`NetworkSize`). keep_rgb: also return the original
+            pixels (to colour point clouds). priors: ``[N, 4]`` pose priors (NaN where unknown), one per path.
+    """
+
+    def __init__(self, paths: Sequence[Path], target: NetworkSize = DEFAULT_NETWORK_SIZE, keep_rgb: bool = False,
+                 priors: np.ndarray | None = None) -> None:
+        self.paths, self.target, self.keep_rgb = list(paths), target, keep_rgb
+        if priors is not None and len(priors) != len(self.paths):
+            raise ValueError(f"{len(priors)} pose priors for {len(self.paths)} images")
+        self.priors = priors
+        stems: dict[str, Path] = {}
+        for p in self.paths:
+            if p.stem in stems:
+                raise ValueError(f"{p} and {stems[p.stem]} would write the same output files (same name "
+                                 f"{p.stem!r}): predict them in separate runs or rename one")
+            stems[p.stem] = p
+        self._sizes: list[tuple[int, int]] | None = None
+
+    def __len__(self) -> int:
+        return len(self.paths)
+
+    def sizes(self) -> list[tuple[int, int]]:
+        """Each image's ``(H, W)``, read from the file headers once."""
+        if self._sizes is None:
+            self._sizes = [image_size(p) for p in self.paths]
+        return self._sizes
+
+    def network_sizes(self) -> list[tuple[int, int]]:
+        """Each image's network input ``(h, w)``; warns once about images enlarged too much."""
+        sizes = self.sizes()
+        nets = [network_size(*size, self.target) for size in sizes]
+        notes = [n for n in (upscale_note(p.name, s, t) for p, s, t in zip(self.paths, sizes, nets)) if n]
+        if notes:
+            more = f" (and {len(notes) - 1} more)" if len(notes) > 1 else ""
+            warnings.warn(notes[0] + more, stacklevel=2)
+        return nets
+
+    def __getitem__(self, index: int) -> Sample:
+        path = self.paths[index]
+        prior = None if self.priors is None else self.priors[index]
+        return predict_sample(read_image(path), path.stem, str(path), self.target, self.keep_rgb, prior)
+
+
+class SizeBatchSampler(Sampler[list[int]]):
+    """Batches of images of one network size (folders of mixed sizes and aspects), in file order within a size.
+
+    Under several processes each takes every ``world_size``-th batch, starting at its ``rank``.
+    """
+
+    def __init__(self, sizes: Sequence[tuple[int, int]], batch_size: int, rank: int = 0, world_size: int = 1) -> None:
+        groups: dict[tuple[int, int], list[int]] = {}
+        for index, size in enumerate(sizes):
+            groups.setdefault(tuple(size), []).append(index)  # type: ignore[arg-type]
+        batches = [indices[k:k + batch_size] for indices in groups.values()
+                   for k in range(0, len(indices), batch_size)]
+        self.batches = batches[rank::world_size]
+
+    def __iter__(self) -> Iterator[list[int]]:
+        return iter(self.batches)
+
+    def __len__(self) -> int:
+        return len(self.batches)
+
+
+class VideoFramesDataset(IterableDataset[Sample]):
+    """Frames of a video file (anything OpenCV's FFmpeg back-end reads), named ``STEM_f<frame number>``.
+
+    Args:
+        path: the video. target: the network size. frame_step: keep every ``frame_step``-th frame.
+        max_frames: stop after this many kept frames. chunk: frames a loader worker takes in a row (the
+            batch size keeps the frames in order with several workers; each worker decodes the whole video
+            but converts only its own frames). keep_rgb: also return the frame's pixels.
+        priors: frame number -> ``[4]`` pose prior (NaN where unknown), e.g. from the video's SRT telemetry.
+
+    Under DDP each process takes its own share of the chunks.
+    """
+
+    def __init__(self, path: str | Path, target: NetworkSize = DEFAULT_NETWORK_SIZE, frame_step: int = 1,
+                 max_frames: int | None = None, chunk: int = 1, keep_rgb: bool = False,
+                 priors: dict[int, np.ndarray] | None = None) -> None:
+        self.path, self.target, self.keep_rgb = Path(path), target, keep_rgb
+        if frame_step < 1 or chunk < 1:
+            raise ValueError(f"frame_step and chunk must be >= 1, got {frame_step} and {chunk}")
+        self.frame_step, self.max_frames, self.chunk = frame_step, max_frames, chunk
+        self.priors = priors or {}
+        self.rank, self.world_size = 0, 1
+        capture = self._open()
+        self.frame_count = int(capture.get(cv2.CAP_PROP_FRAME_COUNT))
+        self.frame_size = (int(capture.get(cv2.CAP_PROP_FRAME_HEIGHT)), int(capture.get(cv2.CAP_PROP_FRAME_WIDTH)))
+        capture.release()
+        note = upscale_note(self.path.name, self.frame_size, network_size(*self.frame_size, target))
+        if note and min(self.frame_size) > 0:
+            warnings.warn(note, stacklevel=2)
+
+    def _open(self) -> Any:
+        capture = cv2.VideoCapture(str(self.path))
+        if not capture.isOpened():
+            raise ValueError(f"{self.path}: OpenCV cannot open it as a video (damaged, or a codec its FFmpeg "
+                             "lacks: convert it, e.g. ffmpeg -i IN -c:v libx264 OUT.mp4, or extract frames)")
+        return capture
+
+    def __iter__(self) -> Iterator[Sample]:
+        info = get_worker_info()
+        workers, worker = (info.num_workers, info.id) if info is not None else (1, 0)
+        shards, shard = workers * self.world_size, self.rank * workers + worker
+        capture = self._open()
+        try:
+            frame, kept = -1, 0
+            while self.max_frames is None or kept < self.max_frames:
+                if not capture.grab():  # grab only: frames of other workers are never converted
+                    break
+                frame += 1
+                if frame % self.frame_step:
+                    continue
+                mine = (kept // self.chunk) % shards == shard
+                kept += 1
+                if not mine:
+                    continue
+                ok, bgr = capture.retrieve()
+                if not ok:
+                    break
+                yield predict_sample(to_rgb8(bgr, f"{self.path} frame {frame}"), f"{self.path.stem}_f{frame:06d}",
+                                     f"{self.path}#{frame}", self.target, self.keep_rgb, self.priors.get(frame))
+        finally:
+            capture.release()

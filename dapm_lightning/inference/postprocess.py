@@ -1,0 +1,218 @@
+"""From the network's outputs to per-image predictions at each input's own size.
+
+:func:`predictions_from_outputs` is the one post-processing step: the Lightning prediction writer, the Python
+API and the ONNX runtime path all call it with the :data:`~dapm_lightning.models.dapm.INFERENCE_OUTPUTS` of a
+batch. It resizes depth in the log space without mixing sky into the ground, keeps the sky exactly at the depth
+limit where the model sees sky (``sky_prob > 0.5``) and strictly below it elsewhere, and derives the intrinsics
+and the camera-to-world transform of the pose at the input's size.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from dapm_lightning.geometry.camera import intrinsics_matrix
+from dapm_lightning.geometry.constants import MAX_DEPTH_M, POSE_KEYS
+from dapm_lightning.geometry.depth_codec import decode_log_depth, encode_log_depth
+from dapm_lightning.geometry.igd import IGDSpec
+from dapm_lightning.geometry.pointcloud import camera_to_world, depth_to_points, valid_points
+from dapm_lightning.inference.ply import write_ply
+
+SKY_THRESHOLD = 0.5
+"""A pixel is sky where the sky probability exceeds this (the network's own depth override uses the same)."""
+POSE_UNITS = {"height": "m", "pitch": "deg", "roll": "deg", "fov": "deg"}
+
+
+def pose_field(key: str) -> str:
+    """File column / JSON key of a pose component: ``height_m``, ``pitch_deg``, ..."""
+    return f"{key}_{POSE_UNITS[key]}"
+
+
+def _resize(values: Tensor, size: tuple[int, int]) -> Tensor:
+    """``[N, C, h, w]`` bilinearly to ``size`` (unchanged when already there)."""
+    if tuple(values.shape[-2:]) == size:
+        return values
+    return F.interpolate(values, size=size, mode="bilinear", align_corners=False)
+
+
+def resize_depth(depth_m: Tensor, size: Sequence[int], max_depth: float = MAX_DEPTH_M,
+                 sky: Tensor | None = None) -> Tensor:
+    """``[1, h, w]`` metres to ``[1, H, W]``, interpolated in the log space from non-sky pixels only.
+
+    ``sky``: ``[1, h, w]`` bool at the network size (default: ``depth_m >= max_depth``). Sky pixels take no part
+    in the interpolation, so no point half-way to the sky appears along a skyline; where only sky is near, the
+    plain interpolation is kept (the caller's sky mask decides those pixels).
+    """
+    size = (int(size[0]), int(size[1]))
+    if tuple(depth_m.shape[-2:]) == size:
+        return depth_m
+    sky = depth_m >= max_depth if sky is None else sky
+    norm = encode_log_depth(depth_m[None].float(), max_depth)
+    ground = (~sky[None]).float()
+    weight = _resize(ground, size)
+    mixed = _resize(norm * ground, size) / weight.clamp_min(1e-6)
+    plain = _resize(norm, size)
+    return decode_log_depth(torch.where(weight > 1e-3, mixed, plain), max_depth)[0]
+
+
+@dataclass
+class PointCloud:
+    """Points ``xyz`` ``[N, 3]`` float32 metres in the world frame, optional colours ``rgb`` ``[N, 3]`` uint8."""
+
+    xyz: np.ndarray
+    rgb: np.ndarray | None = None
+
+    def write_ply(self, path: str | Path) -> Path:
+        """Binary PLY (opens in MeshLab, CloudCompare, Open3D, trimesh)."""
+        return write_ply(path, self.xyz, self.rgb)
+
+
+@dataclass
+class Prediction:
+    """One image's prediction at the input's size.
+
+    Attributes:
+        depth_m: ``[H, W]`` float32 metres: exactly ``max_depth`` on sky, below it elsewhere; None for DAPM(P).
+        sky: ``[H, W]`` bool: ``sky_prob > 0.5`` (models without a sky stage: depth at the limit).
+        pose: ``{height, pitch, roll, fov}`` (m, deg) used for K, the transform and the points; None for DAPM(D).
+        sky_prob: ``[H, W]`` float32 probability of "beyond max depth", None without a sky stage.
+        K: ``[3, 3]`` intrinsics for the input's size from the FoV (pixel ``(i, j)`` centre at
+            ``(j + 0.5, i + 0.5)``), None without a pose.
+        camera_to_world: ``[4, 4]`` camera (x right, y down, z forward) to world (origin on the ground
+            under the camera, Z up), None without a pose.
+        depth_kind: ``"range"`` or ``"planar"``: what ``depth_m`` measures (the model's setting).
+        max_depth: the model's depth limit (sky).
+        pose_network: the network's own estimate per component (equal to ``pose`` without a prior).
+        pose_source: per component, where ``pose`` comes from: ``"network"``, ``"telemetry"`` or ``"fused"``.
+    """
+
+    depth_m: np.ndarray | None
+    sky: np.ndarray | None
+    pose: dict[str, float] | None
+    sky_prob: np.ndarray | None = None
+    K: np.ndarray | None = None
+    camera_to_world: np.ndarray | None = None
+    depth_kind: str = "range"
+    max_depth: float = MAX_DEPTH_M
+    name: str = ""
+    extras: dict[str, Any] = field(default_factory=dict)
+    pose_network: dict[str, float] | None = None
+    pose_source: dict[str, str] | None = None
+
+    @property
+    def size(self) -> tuple[int, int]:
+        """``(H, W)`` of the input."""
+        return tuple(self.extras["size"])  # type: ignore[return-value]
+
+    def points(self, stride: int = 1, max_depth: float | None = None, rgb: np.ndarray | None = None) -> PointCloud:
+        """Metric point cloud of the non-sky pixels, every ``stride``-th row and column, in the world frame.
+
+        Args:
+            stride: subsampling step in pixels. max_depth: drop points farther than this (metres).
+            rgb: ``[H, W, 3]`` uint8 image of the input's size to colour the points.
+        """
+        if self.depth_m is None or self.pose is None:
+            raise ValueError("a point cloud needs depth and pose: DAPM(D) and DAPM(P) models predict only one")
+        if stride < 1:
+            raise ValueError(f"stride must be >= 1, got {stride}")
+        depth = torch.from_numpy(np.ascontiguousarray(self.depth_m, np.float32))[None, None]
+        pose = torch.tensor([[self.pose[k] for k in POSE_KEYS]], dtype=torch.float64)
+        xyz = depth_to_points(depth.double(), pose, depth_kind=self.depth_kind)[0, ::stride, ::stride]
+        keep = valid_points(depth, min(self.max_depth, max_depth or math.inf))[0]
+        if self.sky is not None:
+            keep &= ~torch.from_numpy(self.sky)
+        keep = keep[::stride, ::stride]
+        colours = None
+        if rgb is not None:
+            if rgb.shape[:2] != self.depth_m.shape:
+                raise ValueError(f"rgb is {rgb.shape[:2]}, depth {self.depth_m.shape}: give the input image")
+            colours = np.asarray(rgb)[::stride, ::stride][keep.numpy()].astype(np.uint8)
+        return PointCloud(xyz[keep].float().numpy(), colours)
+
+    def camera_dict(self) -> dict[str, Any]:
+        """What ``NAME_camera.json`` holds: image size, K, camera-to-world, pose per component, conventions."""
+        height, width = self.size
+        pose = None
+        if self.pose is not None:
+            network = self.pose_network or self.pose
+            sources = self.pose_source or {}
+            pose = {pose_field(k): {"value": v, "source": sources.get(k, "network"),
+                                    "network": network.get(k)} for k, v in self.pose.items()}
+        return {"name": self.name, "width": int(width), "height": int(height),
+                "K": None if self.K is None else self.K.tolist(),
+                "camera_to_world": None if self.camera_to_world is None else self.camera_to_world.tolist(),
+                "pose": pose, "depth_kind": self.depth_kind, "max_depth_m": self.max_depth,
+                "conventions": "pixel (i, j) centre at (j + 0.5, i + 0.5); camera x right, y down, z forward; world "
+                               "origin on the ground under the camera, X horizontal along the optical axis, Y left, "
+                               "Z up (docs/conventions.md)"}
+
+
+def _pose_dict(pose: Tensor | None) -> dict[str, float] | None:
+    return None if pose is None else {k: float(v) for k, v in zip(POSE_KEYS, pose.detach().double().cpu())}
+
+
+def make_prediction(name: str, size: Sequence[int], depth_m: Tensor | None, sky_prob: Tensor | None,
+                    pose: Tensor | None, spec: IGDSpec | None = None, *, pose_network: Tensor | None = None,
+                    pose_source: Mapping[str, str] | None = None) -> Prediction:
+    """One image's :class:`Prediction` at the input size ``(H, W)`` from the network's outputs for it.
+
+    Args:
+        depth_m: ``[1, h, w]`` metres at the network size. sky_prob: ``[1, h, w]``. pose: ``[4]`` physical, the
+            one used (telemetry or fused, when there is a prior). spec: the model's IGD settings (depth limit
+            and kind). pose_network: ``[4]`` the network's own estimate. pose_source: per component.
+    """
+    spec = spec or IGDSpec()
+    size = (int(size[0]), int(size[1]))
+    depth = sky = prob = None
+    if sky_prob is not None:
+        prob_t = _resize(sky_prob.detach().float().cpu()[None], size)[0].clamp(0, 1)
+        prob = prob_t[0].numpy()
+        sky_t = prob_t > SKY_THRESHOLD
+        sky_net = sky_prob.detach().float().cpu() > SKY_THRESHOLD
+    elif depth_m is not None:
+        sky_net = depth_m.detach().float().cpu() >= spec.max_depth
+        sky_t = _resize(sky_net[None].float(), size)[0] > SKY_THRESHOLD
+    if depth_m is not None:
+        resized = resize_depth(depth_m.detach().float().cpu(), size, spec.max_depth, sky_net)
+        below = float(np.nextafter(np.float32(spec.max_depth), np.float32(0)))
+        depth_t = torch.where(sky_t, torch.full_like(resized, spec.max_depth), resized.clamp(max=below))
+        depth, sky = depth_t[0].numpy(), sky_t[0].numpy()
+    pose_dict = _pose_dict(pose)
+    k = c2w = None
+    if pose is not None:
+        pose64 = pose.detach().double().cpu()[None]
+        k = intrinsics_matrix(pose64[:, 3], size)[0].numpy()
+        c2w = camera_to_world(pose64)[0].numpy()
+    return Prediction(depth, sky, pose_dict, prob, k, c2w, spec.depth_kind, spec.max_depth, name, {"size": size},
+                      _pose_dict(pose_network) or pose_dict, dict(pose_source) if pose_source else None)
+
+
+def predictions_from_outputs(outputs: Mapping[str, Tensor], names: Sequence[str], sizes: Sequence[Sequence[int]],
+                             spec: IGDSpec | None = None, *, pose_network: Tensor | None = None,
+                             pose_sources: Sequence[Mapping[str, str]] | None = None) -> list[Prediction]:
+    """A batch's :class:`Prediction` per image, each at its input size.
+
+    Args:
+        outputs: ``{depth_m, sky_prob, pose}`` (those the model has) at the network size, as
+            :meth:`~dapm_lightning.models.dapm.DAPMOutput.inference_outputs` gives them.
+        names, sizes: per image, its name and ``(H, W)``. spec: the model's IGD settings.
+        pose_network: ``[B, 4]`` the network's own pose where ``outputs["pose"]`` holds the pose used.
+        pose_sources: per image, per component, where the pose used comes from.
+    """
+    def row(key: str, k: int) -> Tensor | None:
+        value = outputs.get(key)
+        return None if value is None else value[k]
+
+    return [make_prediction(names[k], sizes[k], row("depth_m", k), row("sky_prob", k), row("pose", k), spec,
+                            pose_network=None if pose_network is None else pose_network[k],
+                            pose_source=None if pose_sources is None else pose_sources[k])
+            for k in range(len(names))]

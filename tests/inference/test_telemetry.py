@@ -1,0 +1,438 @@
+"""Telemetry -> project pose conventions, on real files: JPEG XMP/EXIF written by Pillow, CSVs, DJI SRTs."""
+
+from __future__ import annotations
+
+import math
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from PIL import ExifTags, Image
+from PIL.TiffImagePlugin import IFDRational
+
+from dapm_lightning.geometry.camera import camera_rays
+from dapm_lightning.inference.telemetry import (
+    PoseTelemetry,
+    TelemetryError,
+    TelemetryWarning,
+    horizontal_fov_from_focal,
+    horizontal_fov_from_focal_35mm,
+    read_srt,
+    read_telemetry_csv,
+    telemetry_for_images,
+    telemetry_from_image,
+)
+
+NAN = math.nan
+FOV_24MM_4_3 = 71.5915  # 2 atan(43.267 * 4/5 / 48) = 2 atan(34.613 / 48): f35 = 24 mm on a 4:3 image
+FOV_24MM_3_2 = 73.740  # 2 atan(36 / 48): on 3:2 the diagonal definition gives exactly 36 mm of width
+
+RDF = "http://www.w3.org/1999/02/22-rdf-syntax-ns#"
+DJI = "http://www.dji.com/drone-dji/1.0/"
+
+
+def xmp_attributes(**tags: str) -> bytes:
+    attrs = " ".join(f'drone-dji:{k}="{v}"' for k, v in tags.items())
+    return (f'<?xpacket begin="\ufeff" id="W5M0MpCehiHzreSzNTczkc9d"?>'
+            f'<x:xmpmeta xmlns:x="adobe:ns:meta/"><rdf:RDF xmlns:rdf="{RDF}">'
+            f'<rdf:Description rdf:about="DJI Meta Data" xmlns:drone-dji="{DJI}" {attrs}/>'
+            f'</rdf:RDF></x:xmpmeta><?xpacket end="w"?>').encode()
+
+
+def xmp_elements(**tags: str) -> bytes:
+    children = "".join(f"<drone-dji:{k}>{v}</drone-dji:{k}>" for k, v in tags.items())
+    return (f'<x:xmpmeta xmlns:x="adobe:ns:meta/"><rdf:RDF xmlns:rdf="{RDF}">'
+            f'<rdf:Description rdf:about="" xmlns:drone-dji="{DJI}">{children}</rdf:Description>'
+            f'</rdf:RDF></x:xmpmeta>').encode() + b"\x00" * 8
+
+
+def write_jpeg(path: Path, size=(400, 300), xmp: bytes | None = None, f35: int | None = None,
+               focal: IFDRational | None = None) -> Path:
+    exif = Image.Exif()
+    exif[ExifTags.Base.Make] = "DJI"
+    ifd = exif.get_ifd(ExifTags.IFD.Exif)
+    if f35 is not None:
+        ifd[ExifTags.Base.FocalLengthIn35mmFilm] = f35
+    if focal is not None:
+        ifd[ExifTags.Base.FocalLength] = focal
+    kwargs = {"exif": exif} | ({"xmp": xmp} if xmp is not None else {})
+    Image.new("RGB", size, (90, 120, 60)).save(path, **kwargs)
+    return path
+
+
+def assert_pose(t: PoseTelemetry, expected) -> None:
+    np.testing.assert_allclose(t.values(), np.asarray(expected, float), atol=1e-3, equal_nan=True)
+
+
+def record(fn, *args, **kwargs):
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        out = fn(*args, **kwargs)
+    return out, [w for w in caught if issubclass(w.category, TelemetryWarning)]
+
+
+# ------------------------------------------------------------------------------------------------ FoV
+
+
+def test_fov_from_35mm_uses_the_diagonal_definition():
+    assert horizontal_fov_from_focal_35mm(24, 4000, 3000) == pytest.approx(71.6, abs=0.01)
+    assert horizontal_fov_from_focal_35mm(24, 4000, 3000) == pytest.approx(
+        math.degrees(2 * math.atan(43.27 * 4000 / math.hypot(4000, 3000) / 48)), abs=0.01)
+    assert horizontal_fov_from_focal_35mm(24, 4000, 3000) == pytest.approx(FOV_24MM_4_3, abs=1e-3)
+    assert horizontal_fov_from_focal_35mm(24, 5472, 3648) == pytest.approx(FOV_24MM_3_2, abs=1e-3)
+    # only the aspect matters; a portrait image is narrower across its width
+    assert horizontal_fov_from_focal_35mm(24, 400, 300) == pytest.approx(FOV_24MM_4_3, abs=1e-3)
+    assert horizontal_fov_from_focal_35mm(24, 3000, 4000) == pytest.approx(
+        math.degrees(2 * math.atan(43.2666 * 0.6 / 48)), abs=1e-3)
+
+
+def test_fov_from_focal_and_sensor_width():
+    assert horizontal_fov_from_focal(8.8, 13.2) == pytest.approx(FOV_24MM_3_2, abs=1e-3)  # Phantom 4 Pro
+    assert horizontal_fov_from_focal(10.0, 20.0) == pytest.approx(90.0)
+
+
+@pytest.mark.parametrize("args", [(0, 400, 300), (-24, 400, 300), (NAN, 400, 300), (24, 0, 300)])
+def test_fov_from_35mm_rejects_impossible_input(args):
+    with pytest.raises(ValueError):
+        horizontal_fov_from_focal_35mm(*args)
+
+
+def test_fov_from_focal_rejects_impossible_input():
+    with pytest.raises(ValueError, match="focal"):
+        horizontal_fov_from_focal(0, 13.2)
+    with pytest.raises(ValueError, match="sensor"):
+        horizontal_fov_from_focal(8.8, -1)
+
+
+# -------------------------------------------------------------------------------------- PoseTelemetry
+
+
+def test_pose_telemetry_values_known_and_merge():
+    a = PoseTelemetry(height_m=45.2, roll_deg=-3.0, source="flight.csv line 2")
+    b = PoseTelemetry(height_m=10.0, pitch_deg=-90.0, fov_deg=71.6, source="DJI_0001.JPG XMP/EXIF")
+    assert a.values().dtype == np.float64 and a.values().shape == (4,)
+    assert_pose(a, [45.2, NAN, -3.0, NAN])
+    assert a.known() == (True, False, True, False)
+    m = a.merged(b)
+    assert_pose(m, [45.2, -90.0, -3.0, 71.6])  # own known components win
+    assert m.source == "flight.csv line 2 (height, roll); DJI_0001.JPG XMP/EXIF (pitch, fov)"
+    assert PoseTelemetry().merged(b) == b
+    assert a.merged(PoseTelemetry()) == a
+    assert PoseTelemetry().merged(PoseTelemetry()) == PoseTelemetry()
+    assert PoseTelemetry(pitch_deg=float("nan")) == PoseTelemetry()  # NaN equals NaN here
+    assert len({PoseTelemetry(), PoseTelemetry(fov_deg=float("nan"))}) == 1
+
+
+@pytest.mark.parametrize("kwargs", [{"height_m": 0.0}, {"height_m": math.inf}, {"pitch_deg": 181.0},
+                                    {"roll_deg": -200.0}, {"fov_deg": 180.0}, {"fov_deg": 0.0}])
+def test_pose_telemetry_rejects_impossible_values(kwargs):
+    with pytest.raises(ValueError, match=next(iter(kwargs))):
+        PoseTelemetry(**kwargs)
+
+
+# ------------------------------------------------------------------------------------- image metadata
+
+
+def test_dji_xmp_attributes_and_exif_35mm(tmp_path):
+    path = write_jpeg(tmp_path / "DJI_0001.JPG", (400, 300), f35=24, xmp=xmp_attributes(
+        RelativeAltitude="+45.20", AbsoluteAltitude="+120.50", GimbalPitchDegree="-90.00",
+        GimbalRollDegree="+2.50", GimbalYawDegree="+10.30"))
+    t = telemetry_from_image(path)
+    assert_pose(t, [45.2, -90.0, 2.5, FOV_24MM_4_3])  # DJI pitch -90 = nadir = project -90; roll as is
+    assert t.source == "DJI_0001.JPG XMP/EXIF"
+
+
+def test_dji_xmp_child_elements(tmp_path):
+    path = write_jpeg(tmp_path / "DJI_0002.jpg", (342, 228), f35=24, xmp=xmp_elements(
+        RelativeAltitude="+30.0", GimbalPitchDegree="-45.0", GimbalRollDegree="-1.5"))
+    assert_pose(telemetry_from_image(path), [30.0, -45.0, -1.5, FOV_24MM_3_2])
+
+
+def test_focal_length_with_sensor_width_wins_over_35mm(tmp_path):
+    path = write_jpeg(tmp_path / "p4p.jpg", (342, 228), f35=20, focal=IFDRational(88, 10))
+    with_sensor = telemetry_from_image(path, sensor_width_mm=13.2)
+    assert_pose(with_sensor, [NAN, NAN, NAN, FOV_24MM_3_2])  # 2 atan(13.2 / 17.6)
+    assert with_sensor.source == "p4p.jpg EXIF"
+    without = telemetry_from_image(path)
+    assert without.fov_deg == pytest.approx(math.degrees(2 * math.atan(36 / 40)), abs=1e-3)  # from f35 = 20
+
+
+def test_focal_length_without_sensor_width_or_35mm_is_unknown(tmp_path):
+    path = write_jpeg(tmp_path / "f.jpg", focal=IFDRational(88, 10))
+    assert telemetry_from_image(path) == PoseTelemetry()
+    assert telemetry_from_image(write_jpeg(tmp_path / "zero.jpg", f35=0)) == PoseTelemetry()  # 0 = unknown
+
+
+def test_image_without_metadata_and_non_image(tmp_path):
+    Image.new("RGB", (40, 30)).save(tmp_path / "plain.png")
+    assert telemetry_from_image(tmp_path / "plain.png") == PoseTelemetry()
+    (tmp_path / "notes.jpg").write_text("not an image")
+    assert telemetry_from_image(tmp_path / "notes.jpg") == PoseTelemetry()
+    with pytest.raises(FileNotFoundError, match="missing.jpg"):
+        telemetry_from_image(tmp_path / "missing.jpg")
+
+
+@pytest.mark.parametrize(("tags", "match"), [
+    ({"GimbalPitchDegree": "abc"}, r"GimbalPitchDegree = 'abc' is not a number"),
+    ({"GimbalRollDegree": "200"}, r"GimbalRollDegree = 200 must be within \[-180, 180\]"),
+    ({"RelativeAltitude": "nan"}, r"RelativeAltitude = nan is not finite"),
+])
+def test_malformed_xmp_values_are_errors_naming_the_file_and_tag(tmp_path, tags, match):
+    path = write_jpeg(tmp_path / "DJI_0009.JPG", xmp=xmp_attributes(**tags))
+    with pytest.raises(TelemetryError, match=match) as info:
+        telemetry_from_image(path)
+    assert "DJI_0009.JPG" in str(info.value) and "read_metadata=False" in str(info.value)
+
+
+def test_broken_xmp_packet_is_an_error(tmp_path):
+    path = write_jpeg(tmp_path / "broken.jpg", xmp=b"<x:xmpmeta><rdf:RDF>")
+    with pytest.raises(TelemetryError, match="broken.jpg.*not well-formed"):
+        telemetry_from_image(path)
+    path = write_jpeg(tmp_path / "dtd.jpg", xmp=b'<!DOCTYPE x [<!ENTITY a "b">]><x>&a;</x>')
+    with pytest.raises(TelemetryError, match="dtd.jpg.*DTD"):
+        telemetry_from_image(path)
+
+
+def test_relative_altitude_at_or_below_zero_is_unknown_with_a_warning(tmp_path):
+    path = write_jpeg(tmp_path / "low.jpg", xmp=xmp_attributes(RelativeAltitude="-3.10", GimbalPitchDegree="-30"))
+    t, caught = record(telemetry_from_image, path)
+    assert_pose(t, [NAN, -30.0, NAN, NAN])
+    assert len(caught) == 1 and "low.jpg" in str(caught[0].message) and "-3.10" in str(caught[0].message)
+
+
+def test_dji_roll_sign_equals_project_roll_sign(tmp_path):
+    """DJI gimbal roll is aerospace roll: positive = right side down = clockwise seen from behind.
+
+    Aerospace body axes (x forward, y right, z down): rolling by phi about x turns y into
+    (0, cos phi, sin phi), so the right axis gains a *down* component sin(phi) > 0 for phi > 0.
+    The project's camera with the same roll must also look down on its right edge (and up on its
+    left edge): then the horizon's right end is up in the image, as design.md §1 says.
+    """
+    phi = 10.0
+    aerospace_right_down_component = math.sin(math.radians(phi))
+    assert aerospace_right_down_component > 0
+    path = write_jpeg(tmp_path / "roll.jpg", xmp=xmp_attributes(GimbalPitchDegree="0.0", GimbalRollDegree=f"{phi}"))
+    t = telemetry_from_image(path)
+    assert t.roll_deg == phi
+    h, w = 31, 41
+    rays = camera_rays(torch.tensor([t.pitch_deg]), torch.tensor([t.roll_deg]), torch.tensor([60.0]), (h, w))[0]
+    right, left = rays[h // 2, -1], rays[h // 2, 0]
+    assert right[2] < 0 < left[2]  # right edge looks below the horizon, left edge above: right side down
+    # the right axis R' (from the right-edge ray minus the centre ray) dips by exactly phi below the horizontal
+    r_axis = right - rays[h // 2, w // 2]
+    dip = math.degrees(math.atan2(-float(r_axis[2]), float(torch.linalg.norm(r_axis[:2]))))
+    assert dip == pytest.approx(phi, abs=1e-4)
+
+
+# ------------------------------------------------------------------------------------------------ CSV
+
+
+def write_csv(path: Path, text: str) -> Path:
+    path.write_text(text)
+    return path
+
+
+def test_csv_names_with_and_without_extension_empty_cells_and_missing_column(tmp_path):
+    csv_path = write_csv(tmp_path / "flight.csv", "name,height_m,pitch_deg,roll_deg\n"
+                                                  "DJI_0001.JPG,45.2,-90,\n"
+                                                  "\n"
+                                                  "DJI_0002, 30 ,,1.5\n"
+                                                  "sub/dir/frame.001.png,12,-20,0\n"
+                                                  "frame.002,,,\n")
+    rows = read_telemetry_csv(csv_path)
+    assert set(rows) == {"DJI_0001", "DJI_0002", "frame.001", "frame.002"}
+    assert_pose(rows["DJI_0001"], [45.2, -90.0, NAN, NAN])  # no fov column: unknown
+    assert_pose(rows["DJI_0002"], [30.0, NAN, 1.5, NAN])
+    assert_pose(rows["frame.001"], [12.0, -20.0, 0.0, NAN])
+    assert rows["frame.002"] == PoseTelemetry(source="flight.csv line 6")
+    assert rows["DJI_0001"].source == "flight.csv line 2"
+    assert rows["DJI_0002"].source == "flight.csv line 4"  # file line numbers, header = line 1
+
+
+def test_csv_columns_in_any_order_bom_and_extra_column_warning(tmp_path):
+    csv_path = tmp_path / "t.csv"
+    csv_path.write_text("\ufefffov_deg, Name ,lat,pitch_deg\n71.6,a.jpg,22.5,-45\n", encoding="utf-8")
+    rows, caught = record(read_telemetry_csv, csv_path)
+    assert_pose(rows["a"], [NAN, -45.0, NAN, 71.6])
+    assert len(caught) == 1 and "lat" in str(caught[0].message)
+
+
+@pytest.mark.parametrize(("cell", "column", "match"), [
+    ("abc", "pitch_deg", r"'abc' is not a number"),
+    ("0", "height_m", "must be > 0 m"),
+    ("-5", "height_m", "must be > 0 m"),
+    ("inf", "height_m", "not finite"),
+    ("nan", "roll_deg", "not finite"),
+    ("-181", "pitch_deg", r"within \[-180, 180\]"),
+    ("190", "roll_deg", r"within \[-180, 180\]"),
+    ("180", "fov_deg", r"within \(0, 180\)"),
+    ("0", "fov_deg", r"within \(0, 180\)"),
+])
+def test_csv_bad_values_are_errors_naming_file_line_column_and_fix(tmp_path, cell, column, match):
+    values = {"height_m": "40", "pitch_deg": "-60", "roll_deg": "0", "fov_deg": "70", column: cell}
+    csv_path = write_csv(tmp_path / "bad.csv", "name,height_m,pitch_deg,roll_deg,fov_deg\n"
+                                               "ok.jpg,40,-60,0,70\n"
+                                               f"img.jpg,{values['height_m']},{values['pitch_deg']},"
+                                               f"{values['roll_deg']},{values['fov_deg']}\n")
+    with pytest.raises(TelemetryError, match=match) as info:
+        read_telemetry_csv(csv_path)
+    message = str(info.value)
+    assert str(csv_path) in message and "line 3" in message and f"column {column}" in message
+    assert "leave the cell empty for unknown" in message
+
+
+def test_csv_duplicates(tmp_path):
+    same = write_csv(tmp_path / "same.csv", "name,height_m\na.jpg,40\na,40.0\n")
+    assert_pose(read_telemetry_csv(same)["a"], [40.0, NAN, NAN, NAN])
+    different = write_csv(tmp_path / "diff.csv", "name,height_m\na.jpg,40\nb.jpg,1\na,41\n")
+    with pytest.raises(TelemetryError, match=r"diff.csv, line 4: `a` is already on line 2 with different values"):
+        read_telemetry_csv(different)
+
+
+def test_csv_header_errors(tmp_path):
+    with pytest.raises(TelemetryError, match=r"nohdr.csv: no `name` column.*name,height_m,pitch_deg,roll_deg,fov_deg"):
+        read_telemetry_csv(write_csv(tmp_path / "nohdr.csv", "DJI_0001.JPG,45,-90,0,70\n"))
+    with pytest.raises(TelemetryError, match="';'-separated"):
+        read_telemetry_csv(write_csv(tmp_path / "semi.csv", "name;height_m\na;4\n"))
+    with pytest.raises(TelemetryError, match="empty.csv: the file is empty"):
+        read_telemetry_csv(write_csv(tmp_path / "empty.csv", ""))
+    with pytest.raises(TelemetryError, match="twice.csv, line 2: empty `name`"):
+        read_telemetry_csv(write_csv(tmp_path / "twice.csv", "name,height_m\n,40\n"))
+
+
+# ---------------------------------------------------------------------------------- images + CSV
+
+
+def test_telemetry_for_images_csv_first_metadata_per_component_and_unmatched_warning(tmp_path):
+    a = write_jpeg(tmp_path / "DJI_0001.JPG", f35=24, xmp=xmp_attributes(
+        RelativeAltitude="+45.20", GimbalPitchDegree="-90.0", GimbalRollDegree="0.0"))
+    b = write_jpeg(tmp_path / "DJI_0002.JPG", f35=24)
+    c = write_jpeg(tmp_path / "other.jpg")
+    csv_path = write_csv(tmp_path / "flight.csv", "name,height_m,pitch_deg,roll_deg,fov_deg\n"
+                                                  "DJI_0001,50,,,\n"        # height from CSV, rest from XMP/EXIF
+                                                  "DJI_0002.JPG,,-60,2,\n"  # fov from EXIF
+                                                  + "".join(f"ghost_{i}.jpg,10,,,\n" for i in range(7)))
+    out, caught = record(telemetry_for_images, [a, b, c], csv_path)
+    assert_pose(out[0], [50.0, -90.0, 0.0, FOV_24MM_4_3])
+    assert out[0].source == "flight.csv line 2 (height); DJI_0001.JPG XMP/EXIF (pitch, roll, fov)"
+    assert_pose(out[1], [NAN, -60.0, 2.0, FOV_24MM_4_3])
+    assert out[2] == PoseTelemetry()
+    assert len(caught) == 1
+    message = str(caught[0].message)
+    assert str(csv_path) in message and "7 of 9 name(s) match no image" in message
+    assert "ghost_0, ghost_1, ghost_2, ghost_3, ghost_4 (and 2 more)" in message
+
+    only_csv, caught = record(telemetry_for_images, [a, b], csv_path, read_metadata=False)
+    assert_pose(only_csv[0], [50.0, NAN, NAN, NAN])
+    assert_pose(only_csv[1], [NAN, -60.0, 2.0, NAN])
+    assert len(caught) == 1  # the unmatched names again
+
+
+def test_telemetry_for_images_without_csv_and_metadata_warnings_only_where_used(tmp_path):
+    low = write_jpeg(tmp_path / "low.jpg", xmp=xmp_attributes(RelativeAltitude="0.0"))
+    low2 = write_jpeg(tmp_path / "low2.jpg", xmp=xmp_attributes(RelativeAltitude="-1.0"))
+    out, caught = record(telemetry_for_images, [low, low2])
+    assert out == [PoseTelemetry(), PoseTelemetry()]
+    assert len(caught) == 1 and "2 image(s)" in str(caught[0].message)
+    csv_path = write_csv(tmp_path / "h.csv", "name,height_m\nlow,20\nlow2,25\n")
+    out, caught = record(telemetry_for_images, [low, low2], csv_path)
+    assert [t.height_m for t in out] == [20.0, 25.0] and not caught  # the CSV gives the heights
+
+
+def test_telemetry_for_images_skips_metadata_when_the_csv_row_is_complete(tmp_path):
+    csv_path = write_csv(tmp_path / "all.csv", "name,height_m,pitch_deg,roll_deg,fov_deg\ngone.jpg,40,-60,0,70\n")
+    (out,) = telemetry_for_images([tmp_path / "gone.jpg"], csv_path)
+    assert_pose(out, [40.0, -60.0, 0.0, 70.0])
+
+
+# ------------------------------------------------------------------------------------------------ SRT
+
+SRT_BLOCK = ("{k}\n00:00:00,{t0:03d} --> 00:00:00,{t1:03d}\n"
+             '<font size="28">FrameCnt: {k}, DiffTime: 33ms\n2023-05-01 10:00:00.123\n'
+             "[iso: 100] [shutter: 1/1000.0] [fnum: 2.8] [ev: 0] [focal_len: 24.00] [latitude: 22.5] "
+             "[longitude: 113.9] {alt} {gb}</font>\n")
+
+
+def srt_text(rows) -> str:
+    return "\n".join(SRT_BLOCK.format(k=k, t0=33 * (k - 1), t1=33 * k, alt=alt, gb=gb) for k, alt, gb in rows)
+
+
+def test_srt_per_frame_values(tmp_path):
+    path = tmp_path / "DJI_0002.SRT"
+    path.write_text(srt_text([
+        (1, "[rel_alt: 45.200 abs_alt: 120.500]", "[gb_yaw: 10.0 gb_pitch: -45.0 gb_roll: 0.0]"),
+        (2, "[rel_alt: 46.000 abs_alt: 121.300]", "[gb_yaw: 10.0 gb_pitch: -90.0 gb_roll: 1.5]"),
+        (3, "[rel_alt: 47.5 abs_alt: 122.800]", ""),  # no gimbal fields
+    ]).replace("\n", "\r\n"))
+    frames, caught = record(read_srt, path, width=4000, height=3000)
+    assert sorted(frames) == [0, 1, 2] and not caught
+    assert_pose(frames[0], [45.2, -45.0, 0.0, FOV_24MM_4_3])
+    assert_pose(frames[1], [46.0, -90.0, 1.5, FOV_24MM_4_3])
+    assert_pose(frames[2], [47.5, NAN, NAN, FOV_24MM_4_3])
+    assert frames[1].source == "DJI_0002.SRT frame 1"
+    assert_pose(read_srt(path)[0], [45.2, -45.0, 0.0, NAN])  # no video size: fov unknown
+    with pytest.raises(ValueError, match="both width and height"):
+        read_srt(path, width=4000)
+
+
+def test_srt_fixed_point_format_altitude_and_ground_frames(tmp_path):
+    """Air 2S style: `SrtCnt`, `focal_len: 240` (0.1 mm), `fnum: 280` (0.01), `altitude` instead of rel_alt."""
+    blocks = []
+    for k, alt in ((1, "0.000000"), (2, "117.000000")):
+        blocks.append(f'{k}\n00:00:00,{33 * (k - 1):03d} --> 00:00:00,{33 * k:03d}\n'
+                      f'<font size="36">SrtCnt : {k}, DiffTime : 33ms\n2022-08-07 13:40:40,774,808\n'
+                      f'[iso : 100] [shutter : 1/80.0] [fnum : 280] [ev : 0] [ct : 5744] [color_md : default] '
+                      f'[focal_len : 240] [latitude: 41.424724] [longitude: 2.234156] [altitude: {alt}] </font>\n')
+    path = tmp_path / "air2s.srt"
+    path.write_text("\n".join(blocks))
+    frames, caught = record(read_srt, path, 3840, 2160)
+    assert_pose(frames[0], [NAN, NAN, NAN, horizontal_fov_from_focal_35mm(24.0, 3840, 2160)])
+    assert_pose(frames[1], [117.0, NAN, NAN, horizontal_fov_from_focal_35mm(24.0, 3840, 2160)])
+    assert len(caught) == 1
+    message = str(caught[0].message)
+    assert "air2s.srt" in message and "1 subtitle(s) with a height <= 0" in message and "`altitude`" in message
+
+
+def test_srt_integer_focal_without_integer_fnum_is_unknown(tmp_path):
+    path = tmp_path / "x.srt"
+    path.write_text("1\n00:00:00,000 --> 00:00:00,033\n[focal_len: 24] [rel_alt: 10.0 abs_alt: 50]\n")
+    frames, caught = record(read_srt, path, 4000, 3000)
+    assert_pose(frames[0], [10.0, NAN, NAN, NAN])
+    assert len(caught) == 1 and "focal_len" in str(caught[0].message)
+
+
+@pytest.mark.parametrize(("gb", "match"), [
+    ("[gb_yaw: 1 gb_pitch: -4x5.0 gb_roll: 0.0]", r"subtitle 2 \(line \d+\): `gb_pitch` = '-4x5.0' is not a number"),
+    ("[gb_yaw: 1 gb_pitch: -45 gb_roll: 270]", r"subtitle 2 \(line \d+\): `gb_roll` = 270 must be within"),
+])
+def test_srt_malformed_numbers_are_errors_naming_file_and_subtitle(tmp_path, gb, match):
+    path = tmp_path / "bad.SRT"
+    path.write_text(srt_text([(1, "[rel_alt: 45.2 abs_alt: 1]", ""), (2, "[rel_alt: 45.2 abs_alt: 1]", gb)]))
+    with pytest.raises(TelemetryError, match=match) as info:
+        read_srt(path)
+    assert "bad.SRT" in str(info.value)
+
+
+def test_srt_structure_errors(tmp_path):
+    path = tmp_path / "dup.srt"
+    path.write_text(srt_text([(1, "[rel_alt: 4]", ""), (1, "[rel_alt: 5]", "")]))
+    with pytest.raises(TelemetryError, match="dup.srt, subtitle 1.*appears twice"):
+        read_srt(path)
+    path = tmp_path / "notiming.srt"
+    path.write_text("1\n[rel_alt: 4]\n")
+    with pytest.raises(TelemetryError, match="notiming.srt, subtitle 1.*timing line"):
+        read_srt(path)
+    path = tmp_path / "text.srt"
+    path.write_text("hello\nworld\n")
+    with pytest.raises(TelemetryError, match="text.srt, line 1: expected a subtitle number"):
+        read_srt(path)
+    path = tmp_path / "per_second.srt"  # Matrice-300 style timing, one subtitle per second
+    path.write_text("1\n00:00:00,000 --> 00:00:01,000\n[rel_alt: 45.0 abs_alt: 80]\n")
+    with pytest.raises(TelemetryError, match="per_second.srt, subtitle 1.*lasts 1.000 s"):
+        read_srt(path)
+    path = tmp_path / "m300.srt"  # no field read here: harmless, all unknown
+    path.write_text("1\n00:00:00,000 --> 00:00:01,000\n2022.06.21 16:06:17\nGPS(36.6146,-6.1120,0.0M) "
+                    "BAROMETER:0.3M\n")
+    assert read_srt(path) == {0: PoseTelemetry()}
