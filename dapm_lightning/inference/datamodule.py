@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Literal
 
 from torch.utils.data import DataLoader, Dataset
 
@@ -11,9 +11,9 @@ from dapm_lightning.data.sample import Sample
 from dapm_lightning.inference.inputs import (
     ImageFilesDataset,
     NetworkSize,
+    PriorSettings,
     SizeBatchSampler,
     VideoFramesDataset,
-    resolve_source,
 )
 
 
@@ -31,14 +31,29 @@ class PredictDataModule(DAPMDataModule):
         max_frames: videos: stop after this many kept frames.
         keep_rgb: ship the original pixels with each batch (point-cloud colours, the contact sheet).
         pin_memory: DataLoader setting (GPUs).
+        telemetry: the flight's pose per image: a CSV with columns name,height_m,pitch_deg,roll_deg,fov_deg (name:
+            the image's file name, with or without extension; an empty cell or a missing column: unknown), or
+            for a video a DJI SRT file (default: the video's own .SRT beside it).
+        read_metadata: also read each JPEG's DJI XMP (relative altitude, gimbal pitch and roll) and EXIF focal
+            length, for what the CSV does not give.
+        sensor_width_mm: sensor width, to turn an EXIF FocalLength into a FoV when no 35 mm equivalent is given.
+        telemetry_mode: condition (the known pose enters the network's IGD feature), scale (the depth is fitted
+            to the known pose's ground afterwards; any checkpoint) or both.
+        telemetry_sigma: σ of the telemetry (height m, pitch, roll, fov deg): 0 replaces the network's value,
+            more fuses the two (docs/predict.md).
     """
 
     def __init__(self, source: str = "images", image_width: int | None = None, batch_size: int = 4,
                  num_workers: int = 0, frame_step: int = 1, max_frames: int | None = None,
-                 keep_rgb: bool = True, pin_memory: bool = False) -> None:
+                 keep_rgb: bool = True, pin_memory: bool = False, telemetry: str | None = None,
+                 read_metadata: bool = True, sensor_width_mm: float | None = None,
+                 telemetry_mode: Literal["condition", "scale", "both"] = "condition",
+                 telemetry_sigma: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)) -> None:
         super().__init__(batch_size=batch_size, num_workers=num_workers, augment=False, pin_memory=pin_memory)
         self.source, self.image_width = source, image_width
         self.frame_step, self.max_frames, self.keep_rgb = frame_step, max_frames, keep_rgb
+        self.telemetry, self.read_metadata, self.sensor_width_mm = telemetry, read_metadata, sensor_width_mm
+        self.prior_settings = PriorSettings(telemetry_mode, tuple(float(v) for v in telemetry_sigma))  # type: ignore[arg-type]
 
     def setup(self, stage: str | None = None) -> None:
         if stage not in (None, "predict"):
@@ -56,15 +71,14 @@ class PredictDataModule(DAPMDataModule):
 
     def dataset(self) -> Dataset[Sample]:
         """The images' or the video's data set."""
-        kind, paths = resolve_source(self.source)
-        target = self.network_target()
-        if kind == "video":
-            video = VideoFramesDataset(paths[0], target, self.frame_step, self.max_frames, chunk=self.batch_size,
-                                       keep_rgb=self.keep_rgb)
-            if self.trainer is not None:
-                video.rank, video.world_size = self.trainer.global_rank, self.trainer.world_size
-            return video
-        return ImageFilesDataset(paths, target, self.keep_rgb)
+        from dapm_lightning.inference.predictor import source_dataset
+
+        dataset = source_dataset(self.source, self.network_target(), self.frame_step, self.max_frames,
+                                 self.batch_size, self.keep_rgb, self.telemetry, self.read_metadata,
+                                 self.sensor_width_mm, self.prior_settings)
+        if isinstance(dataset, VideoFramesDataset) and self.trainer is not None:
+            dataset.rank, dataset.world_size = self.trainer.global_rank, self.trainer.world_size
+        return dataset
 
     def predict_dataloader(self) -> DataLoader[dict[str, Any]]:
         dataset = self.dataset()

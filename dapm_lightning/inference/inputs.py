@@ -1,9 +1,10 @@
 """Prediction inputs: image files, folders, glob patterns and videos as data sets of the data layer's samples.
 
 Each sample is a :class:`~dapm_lightning.data.sample.Sample` without labels: ``image`` uint8 ``[3, h, w]`` at
-the network size, ``pose`` the pose prior (``[4]``, NaN where unknown: telemetry), ``has_pose`` False, ``name``
-(the file stem, or ``STEM_f<frame>`` for a video) and ``meta`` with ``size`` (the input's ``(H, W)``), ``source``
-(the file) and, when asked for, ``rgb`` (the input's ``[H, W, 3]`` uint8 pixels).
+the network size, ``pose`` the pose prior (``[4]``, NaN where unknown: telemetry) and ``pose_sigma`` its
+uncertainty, ``has_pose`` False, ``name`` (the file stem, or ``STEM_f<frame>`` for a video) and ``meta`` with
+``size`` (the input's ``(H, W)``), ``source`` (the file), ``prior_mode`` (how the prior is used, see
+:mod:`dapm_lightning.inference.prior`) and, when asked for, ``rgb`` (the input's ``[H, W, 3]`` uint8 pixels).
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ import glob
 import math
 import warnings
 from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
@@ -153,14 +155,29 @@ def image_size(path: Path) -> tuple[int, int]:
         return tuple(read_image(path).shape[:2])  # type: ignore[return-value]
 
 
+@dataclass(frozen=True)
+class PriorSettings:
+    """How a data set's pose priors are used.
+
+    ``mode``: condition, scale or both (:mod:`dapm_lightning.inference.prior`); ``sigma`` per component (height m,
+    pitch, roll, fov deg; 0: the prior replaces the network's value).
+    """
+
+    mode: str = "condition"
+    sigma: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
+
+
 def predict_sample(rgb: np.ndarray, name: str, source: str, target: NetworkSize, keep_rgb: bool,
-                   prior: np.ndarray | None = None) -> Sample:
+                   prior: np.ndarray | None = None, settings: PriorSettings = PriorSettings()) -> Sample:  # noqa: B008
     """One unlabelled :class:`Sample` at the network size; ``prior``: ``[4]`` pose prior, NaN where unknown."""
-    meta: dict[str, Any] = {"size": (int(rgb.shape[0]), int(rgb.shape[1])), "source": source}
+    meta: dict[str, Any] = {"size": (int(rgb.shape[0]), int(rgb.shape[1])), "source": source,
+                            "prior_mode": settings.mode}
     if keep_rgb:
         meta["rgb"] = rgb
     pose = torch.full((4,), float("nan")) if prior is None else torch.as_tensor(prior, dtype=torch.float32)
-    return Sample(image=prepare_image(rgb, target), pose=pose, has_pose=torch.tensor(False), name=name, meta=meta)
+    sample = Sample(image=prepare_image(rgb, target), pose=pose, has_pose=torch.tensor(False), name=name, meta=meta)
+    sample["pose_sigma"] = torch.tensor(settings.sigma, dtype=torch.float32)  # type: ignore[typeddict-unknown-key]
+    return sample
 
 
 class ImageFilesDataset(Dataset[Sample]):
@@ -169,14 +186,15 @@ class ImageFilesDataset(Dataset[Sample]):
     Args:
         paths: the files. target: the network size (:data:`NetworkSize`). keep_rgb: also return the original
             pixels (to colour point clouds). priors: ``[N, 4]`` pose priors (NaN where unknown), one per path.
+        prior_settings: how the priors are used.
     """
 
     def __init__(self, paths: Sequence[Path], target: NetworkSize = DEFAULT_NETWORK_SIZE, keep_rgb: bool = False,
-                 priors: np.ndarray | None = None) -> None:
+                 priors: np.ndarray | None = None, prior_settings: PriorSettings = PriorSettings()) -> None:  # noqa: B008
         self.paths, self.target, self.keep_rgb = list(paths), target, keep_rgb
         if priors is not None and len(priors) != len(self.paths):
             raise ValueError(f"{len(priors)} pose priors for {len(self.paths)} images")
-        self.priors = priors
+        self.priors, self.prior_settings = priors, prior_settings
         stems: dict[str, Path] = {}
         for p in self.paths:
             if p.stem in stems:
@@ -207,7 +225,8 @@ class ImageFilesDataset(Dataset[Sample]):
     def __getitem__(self, index: int) -> Sample:
         path = self.paths[index]
         prior = None if self.priors is None else self.priors[index]
-        return predict_sample(read_image(path), path.stem, str(path), self.target, self.keep_rgb, prior)
+        return predict_sample(read_image(path), path.stem, str(path), self.target, self.keep_rgb, prior,
+                              self.prior_settings)
 
 
 class SizeBatchSampler(Sampler[list[int]]):
@@ -240,14 +259,17 @@ class VideoFramesDataset(IterableDataset[Sample]):
             batch size keeps the frames in order with several workers; each worker decodes the whole video
             but converts only its own frames). keep_rgb: also return the frame's pixels.
         priors: frame number -> ``[4]`` pose prior (NaN where unknown), e.g. from the video's SRT telemetry.
+        prior_settings: how the priors are used.
 
     Under DDP each process takes its own share of the chunks.
     """
 
     def __init__(self, path: str | Path, target: NetworkSize = DEFAULT_NETWORK_SIZE, frame_step: int = 1,
                  max_frames: int | None = None, chunk: int = 1, keep_rgb: bool = False,
-                 priors: dict[int, np.ndarray] | None = None) -> None:
+                 priors: dict[int, np.ndarray] | None = None,
+                 prior_settings: PriorSettings = PriorSettings()) -> None:  # noqa: B008
         self.path, self.target, self.keep_rgb = Path(path), target, keep_rgb
+        self.prior_settings = prior_settings
         if frame_step < 1 or chunk < 1:
             raise ValueError(f"frame_step and chunk must be >= 1, got {frame_step} and {chunk}")
         self.frame_step, self.max_frames, self.chunk = frame_step, max_frames, chunk
@@ -289,6 +311,7 @@ class VideoFramesDataset(IterableDataset[Sample]):
                 if not ok:
                     break
                 yield predict_sample(to_rgb8(bgr, f"{self.path} frame {frame}"), f"{self.path.stem}_f{frame:06d}",
-                                     f"{self.path}#{frame}", self.target, self.keep_rgb, self.priors.get(frame))
+                                     f"{self.path}#{frame}", self.target, self.keep_rgb, self.priors.get(frame),
+                                     self.prior_settings)
         finally:
             capture.release()

@@ -11,14 +11,14 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
-from torch.utils.data import DataLoader, Dataset
+from torch.utils.data import DataLoader
 
 from dapm_lightning.data.datamodules import collate_samples
-from dapm_lightning.data.sample import Sample
 from dapm_lightning.inference.inputs import (
     DEFAULT_NETWORK_SIZE,
     ImageFilesDataset,
     NetworkSize,
+    PriorSettings,
     SizeBatchSampler,
     VideoFramesDataset,
     network_size,
@@ -27,7 +27,10 @@ from dapm_lightning.inference.inputs import (
     to_rgb8,
     upscale_note,
 )
-from dapm_lightning.inference.postprocess import Prediction, predictions_from_outputs
+from dapm_lightning.inference.postprocess import Prediction
+from dapm_lightning.inference.prior import PRIOR_MODES, PriorMode, as_prior
+from dapm_lightning.inference.writers import predictions_with_prior
+from dapm_lightning.models.prior import PosePrior
 
 Precision = Literal["32", "bf16", "16"]
 
@@ -66,7 +69,11 @@ class DAPMPredictor:
         batch_size: images per forward pass when given several.
         channels_last: channels-last memory (NHWC convolutions). compile: ``torch.compile`` the network.
         onnx_path: run the network in onnxruntime from this ONNX file instead of PyTorch; exported from
-            ``module`` first when the file does not exist. float32 only.
+            ``module`` first when the file does not exist. float32 only (pose priors: ``scale`` mode only).
+        telemetry_mode: how pose priors (telemetry) are used: ``condition`` (into the network's IGD feature),
+            ``scale`` (the depth fitted to the known pose's ground afterwards; any checkpoint) or ``both``.
+        telemetry_sigma: σ of the telemetry (height m, pitch, roll, fov deg) where a prior gives none; 0: the
+            telemetry replaces the network's value, > 0: fused with it.
 
     Example:
         >>> predictor = DAPMPredictor.from_checkpoint("last.ckpt")                  # doctest: +SKIP
@@ -74,11 +81,14 @@ class DAPMPredictor:
         >>> result.depth_m.shape, result.pose["pitch"], result.K                    # doctest: +SKIP
         >>> results = predictor([frame0, frame1])          # list in, list out      # doctest: +SKIP
         >>> for r in predictor.predict_source("flight.mp4"): r.points(4).write_ply(f"{r.name}.ply")  # doctest: +SKIP
+        >>> predictor(image, prior={"height_m": 45.2, "pitch_deg": -40.0})  # height, gimbal pitch # doctest: +SKIP
+        >>> predictor.predict_source("flight/", telemetry="flight.csv")  # CSV, else XMP/EXIF  # doctest: +SKIP
     """
 
     def __init__(self, module: torch.nn.Module, image_width: int | None = None, device: str = "cpu",
                  precision: Precision = "32", batch_size: int = 8, channels_last: bool = False,
-                 compile: bool = False, onnx_path: str | Path | None = None) -> None:
+                 compile: bool = False, onnx_path: str | Path | None = None, telemetry_mode: PriorMode = "condition",
+                 telemetry_sigma: Sequence[float] = (0.0, 0.0, 0.0, 0.0)) -> None:
         if str(precision) not in ("32", "bf16", "16"):
             raise ValueError(f"precision must be '32', 'bf16' or '16', got {precision!r}")
         device = resolve_device(device)
@@ -93,6 +103,11 @@ class DAPMPredictor:
         self.target: NetworkSize = image_width if image_width is not None else checkpoint_network_size(module)
         self.device, self.batch_size = torch.device(device), max(1, batch_size)
         self.precision, self.channels_last = str(precision), channels_last
+        if telemetry_mode not in PRIOR_MODES:
+            raise ValueError(f"telemetry_mode must be one of {', '.join(PRIOR_MODES)}, got {telemetry_mode!r}")
+        if self.session is not None and telemetry_mode != "scale":
+            telemetry_mode = "scale"  # the ONNX model takes no prior: the known pose is applied afterwards
+        self.prior_settings = PriorSettings(str(telemetry_mode), tuple(float(v) for v in telemetry_sigma))  # type: ignore[arg-type]
         config = getattr(module, "net_config", None) or getattr(module, "config", None)
         from dapm_lightning.geometry.igd import IGDSpec
 
@@ -115,8 +130,11 @@ class DAPMPredictor:
         return torch.autocast(self.device.type, dtype=torch.bfloat16 if self.precision == "bf16" else torch.float16)
 
     @torch.no_grad()
-    def network_outputs(self, images: Tensor) -> dict[str, Tensor]:
-        """``images [B, 3, h, w]`` (uint8, or float in [0, 1]) at the network size -> ``{depth_m, sky_prob, pose}``."""
+    def network_outputs(self, images: Tensor, prior: PosePrior | None = None) -> dict[str, Tensor]:
+        """``images [B, 3, h, w]`` (uint8, or float in [0, 1]) at the network size -> the network's outputs.
+
+        ``{depth_m, sky_prob, pose}``, and ``pose_network`` when ``prior`` conditions the network.
+        """
         images = images.to(self.device, non_blocking=True)
         if self.channels_last:
             images = images.contiguous(memory_format=torch.channels_last)
@@ -126,12 +144,24 @@ class DAPMPredictor:
             values = self.session.run(None, {"image": feed.cpu().numpy()})
             return {n: torch.from_numpy(v) for n, v in zip(names, values)}
         with self._autocast():
-            out = self.module(images)
+            out = self.module(images, prior.to(self.device)) if prior is not None else self.module(images)
         return out.inference_outputs()
 
-    def forward_batch(self, images: Tensor, names: Sequence[str], sizes: Sequence[Sequence[int]]) -> list[Prediction]:
-        """``images [B, 3, h, w]`` at the network size -> predictions at ``sizes``."""
-        return predictions_from_outputs(self.network_outputs(images), names, sizes, self.spec)
+    def forward_batch(self, images: Tensor, names: Sequence[str], sizes: Sequence[Sequence[int]],
+                      priors: Tensor | None = None) -> list[Prediction]:
+        """``images [B, 3, h, w]`` at the network size -> predictions at ``sizes``.
+
+        ``priors``: ``[B, 4]`` known pose components (NaN where unknown), used as ``telemetry_mode`` says.
+        """
+        batch: dict[str, Any] = {"name": list(names), "meta": [{"size": tuple(size), "prior_mode":
+                                                                self.prior_settings.mode} for size in sizes]}
+        prior = None
+        if priors is not None and torch.isfinite(priors).any():
+            batch["pose"] = priors.float()
+            batch["pose_sigma"] = torch.tensor(self.prior_settings.sigma).expand(len(names), 4)
+            prior = PosePrior(batch["pose"], batch["pose_sigma"])
+        conditioned = prior if self.prior_settings.mode != "scale" else None
+        return predictions_with_prior(self.network_outputs(images, conditioned), batch, self.spec)
 
     def _network_input(self, image: Any, index: int) -> tuple[Tensor, tuple[int, int]]:
         """One image (numpy RGB, PIL, or tensor ``[3, H, W]``) -> ``[3, h, w]`` network input and ``(H, W)``."""
@@ -156,13 +186,16 @@ class DAPMPredictor:
             warnings.warn(note, stacklevel=3)
         return image, size
 
-    def __call__(self, images: Any) -> Prediction | list[Prediction]:
+    def __call__(self, images: Any, prior: Any = None) -> Prediction | list[Prediction]:
         """Predict one image or several.
 
         Args:
             images: one image: ``[H, W]`` / ``[H, W, 3|4]`` numpy array in RGB order (uint8 or uint16), a PIL
                 image, or a ``[3, H, W]`` tensor (uint8, or float RGB in [0, 1]); or several: a list of those,
                 a ``[B, H, W, 3]`` numpy array or a ``[B, 3, H, W]`` tensor.
+            prior: what is known of the pose (telemetry): for one image a dict (``height_m``, ``pitch_deg``,
+                ``roll_deg``, ``fov_deg``, any subset), a ``[4]`` array with NaN where unknown, or a
+                ``PoseTelemetry``; for several, a list of those (None for an image without).
 
         Returns:
             a :class:`Prediction` for one image, a list of them for several (in order), at each input's size.
@@ -171,50 +204,94 @@ class DAPMPredictor:
                   or (isinstance(images, np.ndarray) and images.ndim in (2, 3))
                   or not isinstance(images, (list, tuple, np.ndarray, Tensor)))
         items = [images] if single else list(images)
+        priors = [prior] if single else list(prior) if prior is not None else [None] * len(items)
+        if len(priors) != len(items):
+            raise ValueError(f"{len(priors)} priors for {len(items)} images: give one per image (None: unknown)")
+        known = as_prior(priors)
+        values = known.value if known is not None else torch.full((len(items), 4), float("nan"))
         results: list[Prediction] = []
-        pending: list[tuple[Tensor, tuple[int, int]]] = []
+        pending: list[tuple[Tensor, tuple[int, int], int]] = []
 
         def flush() -> None:
             if pending:
                 names = [str(len(results) + k) for k in range(len(pending))]
                 results.extend(self.forward_batch(torch.stack([p[0] for p in pending]), names,
-                                                  [p[1] for p in pending]))
+                                                  [p[1] for p in pending], values[[p[2] for p in pending]]))
                 pending.clear()
 
         for index, image in enumerate(items):
-            prepared = self._network_input(image, index)
-            if pending and (len(pending) >= self.batch_size or prepared[0].shape != pending[0][0].shape
-                            or prepared[0].dtype != pending[0][0].dtype):
+            tensor, size = self._network_input(image, index)
+            if pending and (len(pending) >= self.batch_size or tensor.shape != pending[0][0].shape
+                            or tensor.dtype != pending[0][0].dtype):
                 flush()
-            pending.append(prepared)
+            pending.append((tensor, size, index))
         flush()
         return results[0] if single else results
 
     def loader(self, source: str | Path, frame_step: int = 1, max_frames: int | None = None,
-               keep_rgb: bool = False, num_workers: int = 0) -> DataLoader[dict[str, Any]]:
-        """Batches of a folder, glob pattern, image or video at the network size (mixed sizes by size)."""
-        kind, paths = resolve_source(source)
-        dataset: Dataset[Sample]
-        if kind == "video":
-            dataset = VideoFramesDataset(paths[0], self.target, frame_step, max_frames, self.batch_size, keep_rgb)
+               keep_rgb: bool = False, num_workers: int = 0, telemetry: str | Path | None = None,
+               read_metadata: bool = True, sensor_width_mm: float | None = None) -> DataLoader[dict[str, Any]]:
+        """Batches of a folder, glob pattern, image or video at the network size, with their telemetry.
+
+        Mixed sizes are batched by size; telemetry as :func:`source_dataset` finds it.
+        """
+        dataset = source_dataset(source, self.target, frame_step, max_frames, self.batch_size, keep_rgb,
+                                 telemetry, read_metadata, sensor_width_mm, self.prior_settings)
+        if isinstance(dataset, VideoFramesDataset):
             return DataLoader(dataset, batch_size=self.batch_size, num_workers=num_workers,
                               collate_fn=collate_samples)
-        images = ImageFilesDataset(paths, self.target, keep_rgb)
+        images = dataset
         sampler = SizeBatchSampler(images.network_sizes(), self.batch_size)
         return DataLoader(images, batch_sampler=sampler, num_workers=num_workers, collate_fn=collate_samples)
 
     def predict_source(self, source: str | Path, frame_step: int = 1, max_frames: int | None = None,
-                       keep_rgb: bool = False, num_workers: int = 0) -> Iterator[Prediction]:
+                       keep_rgb: bool = False, num_workers: int = 0, telemetry: str | Path | None = None,
+                       read_metadata: bool = True, sensor_width_mm: float | None = None) -> Iterator[Prediction]:
         """Predictions for a folder, glob pattern, image or video file, one at a time (constant memory).
 
         With ``keep_rgb`` each prediction's ``extras["rgb"]`` holds the input pixels (for coloured points).
+        ``telemetry``, ``read_metadata``, ``sensor_width_mm``: where pose priors come from (:func:`source_dataset`).
         """
-        for batch in self.loader(source, frame_step, max_frames, keep_rgb, num_workers):
+        for batch in self.loader(source, frame_step, max_frames, keep_rgb, num_workers, telemetry, read_metadata,
+                                 sensor_width_mm):
             sizes = [meta["size"] for meta in batch["meta"]]
-            for meta, prediction in zip(batch["meta"], self.forward_batch(batch["image"], batch["name"], sizes)):
+            predictions = self.forward_batch(batch["image"], batch["name"], sizes, batch["pose"])
+            for meta, prediction in zip(batch["meta"], predictions):
                 if keep_rgb:
                     prediction.extras["rgb"] = meta["rgb"]
                 yield prediction
+
+
+def source_dataset(source: str | Path, target: NetworkSize, frame_step: int = 1, max_frames: int | None = None,
+                   chunk: int = 1, keep_rgb: bool = False, telemetry: str | Path | None = None,
+                   read_metadata: bool = True, sensor_width_mm: float | None = None,
+                   prior_settings: PriorSettings = PriorSettings()) -> ImageFilesDataset | VideoFramesDataset:  # noqa: B008
+    """The data set of a source, each image with its pose prior from telemetry.
+
+    Images: ``telemetry`` a CSV (``name,height_m,pitch_deg,roll_deg,fov_deg``; see
+    :func:`~dapm_lightning.inference.telemetry.read_telemetry_csv`), each component it lacks taken from the
+    image's own DJI XMP / EXIF when ``read_metadata``. Videos: ``telemetry`` a DJI SRT file; without it, the
+    video's own ``.SRT`` beside it when ``read_metadata``.
+    """
+    from dapm_lightning.inference import telemetry as flight
+
+    kind, paths = resolve_source(source)
+    if kind == "video":
+        video = VideoFramesDataset(paths[0], target, frame_step, max_frames, chunk, keep_rgb,
+                                   prior_settings=prior_settings)
+        srt = Path(telemetry) if telemetry is not None else next(
+            (p for p in (paths[0].with_suffix(".SRT"), paths[0].with_suffix(".srt")) if p.is_file()), None)
+        if srt is not None and (telemetry is not None or read_metadata):
+            height, width = video.frame_size
+            video.priors = {frame: t.values() for frame, t in flight.read_srt(srt, width=width, height=height).items()}
+        return video
+    priors = None
+    if telemetry is not None or read_metadata:
+        found = flight.telemetry_for_images(paths, telemetry, read_metadata=read_metadata,
+                                            sensor_width_mm=sensor_width_mm)
+        rows = np.stack([t.values() for t in found])
+        priors = rows if np.isfinite(rows).any() else None
+    return ImageFilesDataset(paths, target, keep_rgb, priors, prior_settings)
 
 
 def resolve_device(device: str) -> str:

@@ -29,6 +29,8 @@ from dapm_lightning.geometry.camera import horizon_segment
 from dapm_lightning.geometry.constants import POSE_KEYS
 from dapm_lightning.geometry.igd import IGDSpec
 from dapm_lightning.inference.postprocess import Prediction, pose_field, predictions_from_outputs
+from dapm_lightning.inference.prior import apply_pose_prior
+from dapm_lightning.models.prior import PosePrior
 from dapm_lightning.training.visualize import colorize_depth
 
 Output = Literal["depth_npy", "depth_tiff", "depth16", "depth_color", "sky", "camera", "points", "npz"]
@@ -300,13 +302,25 @@ class PredictionWriter(BasePredictionWriter):
 
 
 def predictions_from_batch(output: Any, batch: dict[str, Any], spec: IGDSpec) -> list[Prediction]:
-    """The predictions of one predict batch from the module's output (a ``DAPMOutput``)."""
-    sizes = [meta["size"] for meta in batch["meta"]]
-    pose_network = getattr(output, "pose_network", None)
-    sources = getattr(output, "pose_sources", None)
-    outputs = output.inference_outputs()
-    return predictions_from_outputs(outputs, batch["name"], sizes, spec, pose_network=pose_network,
-                                    pose_sources=sources)
+    """The predictions of one predict batch from the module's output (a ``DAPMOutput``), its prior applied."""
+    outputs = output.inference_outputs() if hasattr(output, "inference_outputs") else dict(output)
+    return predictions_with_prior(outputs, batch, spec)
+
+
+def predictions_with_prior(outputs: dict[str, Any], batch: dict[str, Any], spec: IGDSpec) -> list[Prediction]:
+    """Per-image predictions of a batch's network outputs, with the batch's pose prior applied (telemetry)."""
+    metas = batch["meta"]
+    prior = None
+    if "pose" in batch and torch.isfinite(batch["pose"]).any():
+        prior = PosePrior(batch["pose"].float(), batch.get("pose_sigma", torch.zeros(4)))
+    mode = metas[0].get("prior_mode", "condition") if metas else "condition"
+    outputs, sources, methods = apply_pose_prior(outputs, prior, mode, spec)
+    predictions = predictions_from_outputs(outputs, batch["name"], [meta["size"] for meta in metas], spec,
+                                           pose_network=outputs.get("pose_network"),
+                                           pose_sources=sources if prior is not None else None)
+    for prediction, method in zip(predictions, methods):
+        prediction.extras["scale_from"] = method
+    return predictions
 
 
 def summary_line(images: int, outputs: Sequence[str], out: Path, extra: Sequence[str] = ()) -> str:

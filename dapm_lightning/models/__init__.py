@@ -3,7 +3,8 @@
 from dapm_lightning.models.config import EFFICIENT_NETWORK, PAPER_NETWORK, DAPMConfig
 from dapm_lightning.models.dapm import DAPMNet, DAPMOutput, DepthPrediction, PosePrediction
 from dapm_lightning.models.encoder import Encoder
+from dapm_lightning.models.prior import PosePrior, fuse_pose
 from dapm_lightning.models.teacher_forcing import TeacherForcing, predicted_share_at
 
 __all__ = ["EFFICIENT_NETWORK", "PAPER_NETWORK", "DAPMConfig", "DAPMNet", "DAPMOutput", "DepthPrediction", "Encoder",
-           "PosePrediction", "TeacherForcing", "predicted_share_at"]
+           "PosePrediction", "PosePrior", "TeacherForcing", "fuse_pose", "predicted_share_at"]

@@ -23,7 +23,8 @@ class DAPMConfig:
     setting), ``use_pose=False`` (DAPM(D)), ``use_depth=False`` (DAPM(P)).
 
     Args:
-        backbone: timm model name (``resnet50`` in the paper, ``resnet18`` for CPU runs).
+        backbone: timm model name (``resnet50`` in the paper, ``resnet18`` for CPU runs); an unknown name is
+            refused when the config is built, with the closest names.
         pretrained: load ImageNet weights for the backbone (from the hub, or ``weights_path``).
         weights_path: local backbone weights file (``.safetensors``/``.pth``) for machines without internet.
         use_depth: build the depth branch.
@@ -94,6 +95,9 @@ class DAPMConfig:
         object.__setattr__(self, "pose_bins", tuple(int(n) for n in self.pose_bins))
         if isinstance(self.igd, Mapping):
             object.__setattr__(self, "igd", IGDSpec(**self.igd))
+        from dapm_lightning.models.encoder import check_backbone  # timm, imported when a config is built
+
+        check_backbone(self.backbone)
         if not (self.use_depth or self.use_pose):
             raise ValueError("model.net: needs use_depth or use_pose (or both)")
         if self.use_igd_feature and not (self.use_depth and self.use_pose):

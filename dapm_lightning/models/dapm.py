@@ -15,6 +15,7 @@ from dapm_lightning.models.decoders import DepthDecoder, PoseDecoder
 from dapm_lightning.models.encoder import Encoder
 from dapm_lightning.models.igd_branch import IGDFeature
 from dapm_lightning.models.pqb import DepthPQB, EncoderPosePQB, PosePQB
+from dapm_lightning.models.prior import PosePrior, bins_spread, fuse_pose
 from dapm_lightning.models.teacher_forcing import TeacherForcing
 from dapm_lightning.models.upsample import ConvexUpsample
 
@@ -44,8 +45,10 @@ class DepthPrediction(NamedTuple):
 class PosePrediction(NamedTuple):
     """Pose branch output.
 
-    ``pose_norm``/``pose_init_norm`` ``[B, 4]`` in [0, 1], ``pose`` ``[B, 4]`` physical (m, deg, deg, deg),
-    ``bin_logits`` ``[B, 4, n]`` per bins stage, ``refined`` as for depth.
+    ``pose_norm``/``pose_init_norm`` ``[B, 4]`` in [0, 1], ``pose`` ``[B, 4]`` physical (m, deg, deg, deg): the
+    network's own estimate (what the losses train); ``bin_logits`` ``[B, 4, n]`` per bins stage, ``refined`` as
+    for depth. With a pose prior, ``used_norm``/``used``: the pose fused with it, which the IGD feature sees and
+    inference reports (None without a prior: the network's own).
     """
 
     pose_norm: Tensor
@@ -53,10 +56,13 @@ class PosePrediction(NamedTuple):
     pose: Tensor
     bin_logits: tuple[Tensor, ...]
     refined: bool
+    used_norm: Tensor | None = None
+    used: Tensor | None = None
 
 
-INFERENCE_OUTPUTS = ("depth_m", "sky_prob", "pose")
-"""What inference returns per image, by name: the predict step, the Python API and the ONNX model's outputs."""
+INFERENCE_OUTPUTS = ("depth_m", "sky_prob", "pose", "pose_network")
+"""What inference returns per image, by name: the predict step, the Python API and the ONNX model's outputs
+(``pose_network`` only with a pose prior)."""
 
 
 class DAPMOutput(NamedTuple):
@@ -69,9 +75,13 @@ class DAPMOutput(NamedTuple):
         """The :data:`INFERENCE_OUTPUTS` this model has, by name.
 
         ``depth_m [B, 1, H, W]`` metres (sky at the depth limit), ``sky_prob [B, 1, H, W]``, ``pose [B, 4]``
-        (height m, pitch, roll, fov deg).
+        (height m, pitch, roll, fov deg; fused with the prior where one was given) and, with a prior,
+        ``pose_network [B, 4]``: the network's own estimate.
         """
-        values = {"depth_m": self.depth_m, "sky_prob": self.sky_prob, "pose": self.pose_physical}
+        used = None if self.pose is None else self.pose.used
+        values = {"depth_m": self.depth_m, "sky_prob": self.sky_prob,
+                  "pose": self.pose_physical if used is None else used,
+                  "pose_network": None if used is None else self.pose_physical}
         return {name: values[name] for name in INFERENCE_OUTPUTS if values[name] is not None}
 
     @property
@@ -139,13 +149,16 @@ class DAPMNet(nn.Module):
         """Whether a depth head refines the initial depth (depth bins stages or the IGD feature)."""
         return self.config.use_depth and (bool(self.config.depth_bins) or self.config.use_igd_feature)
 
-    def forward(self, image: Tensor, teacher_forcing: TeacherForcing | None = None) -> DAPMOutput:
+    def forward(self, image: Tensor, teacher_forcing: TeacherForcing | None = None,
+                prior: PosePrior | None = None) -> DAPMOutput:
         """Predict depth and pose.
 
         Args:
             image: ``[B, 3, H, W]`` RGB in [0, 1] (any H, W).
             teacher_forcing: in training, the true pose and the predicted share the IGD feature sees;
                 None: the predicted pose alone.
+            prior: known pose components (telemetry), fused with the network's pose (:func:`fuse_pose`) before
+                the IGD feature and reported as ``pose.used``; ignored by a network without a pose branch.
         """
         if image.ndim != 4 or image.shape[1] != 3:
             raise ValueError(f"image must be [B, 3, H, W], got {tuple(image.shape)}")
@@ -157,6 +170,10 @@ class DAPMNet(nn.Module):
         pose = None
         if self.pose_decoder is not None:
             pose = self._pose(features, None if depth_coarse is None else depth_coarse.detach())
+            if prior is not None and prior.known.any():
+                spread = bins_spread(pose.bin_logits[-1]) if pose.bin_logits else None
+                used_norm = fuse_pose(pose.pose_norm, prior.to(image.device), self.config.igd, spread)
+                pose = pose._replace(used_norm=used_norm, used=self.config.igd.denormalize(used_norm))
         depth = None
         if depth_feature is not None and depth_coarse is not None:
             depth = self._depth(depth_feature, depth_coarse, size, pose, teacher_forcing)
@@ -190,7 +207,8 @@ class DAPMNet(nn.Module):
         init_head = F.interpolate(depth_coarse, size=head_size, mode="bilinear", align_corners=False)
         igd_norm = igd_feature = None
         if self.igd_feature is not None and pose is not None:
-            pose_norm = pose.pose_norm if self.config.igd_feature_grad else pose.pose_norm.detach()
+            own = pose.pose_norm if pose.used_norm is None else pose.used_norm
+            pose_norm = own if self.config.igd_feature_grad else own.detach()
             if teacher_forcing is not None:
                 pose_norm = teacher_forcing.blend(pose_norm)
             igd_norm = igd.depth_norm(pose_norm, head_size)

@@ -2,11 +2,29 @@
 
 from __future__ import annotations
 
+import difflib
+import re
 from collections.abc import Sequence
 from pathlib import Path
 
 import timm
 from torch import Tensor, nn
+
+
+def check_backbone(name: str, setting: str = "model.net.backbone") -> None:
+    """Raise a ValueError naming ``setting``, the closest timm models and how to list them, unless timm has ``name``.
+
+    Names with a pretrained tag (``resnet50.a1_in1k``) are timm models; hub and local sources
+    (``hf-hub:...``, ``local-dir:...``) are left to ``timm.create_model``.
+    """
+    if ":" in name or timm.is_model(name):
+        return
+    closest = difflib.get_close_matches(name, timm.list_models(), n=4, cutoff=0.5)
+    hint = f" (closest: {', '.join(closest)})" if closest else ""
+    letters = re.match(r"[A-Za-z]+", name)
+    pattern = f"{letters.group(0).lower() if letters else ''}*"
+    raise ValueError(f"{setting}: unknown timm model {name!r}{hint}; list them with "
+                     f"`python -c \"import timm; print(timm.list_models('{pattern}'))\"`")
 
 
 class Encoder(nn.Module):
@@ -24,6 +42,7 @@ class Encoder(nn.Module):
     def __init__(self, backbone: str = "resnet50", *, pretrained: bool = False, weights_path: str | None = None,
                  out_indices: Sequence[int] = (1, 2, 3, 4)) -> None:
         super().__init__()
+        check_backbone(backbone)
         overlay = None
         if weights_path is not None:
             if not Path(weights_path).is_file():

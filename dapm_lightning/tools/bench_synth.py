@@ -92,22 +92,47 @@ def median_scaled(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     return scaled
 
 
+TELEMETRY_SUBSETS = {"full": (True, True, True, True), "height": (True, False, False, False),
+                     "gravity": (False, True, True, False), "fov": (False, False, False, True)}
+"""Which pose components the telemetry rows know: all, the height, pitch and roll, the FoV."""
+TELEMETRY_NOISE = (3.0, 1.0, 1.0, 2.0)
+"""Telemetry noise of the benchmark, also the σ the model is told: height 3 m, angles 1°, FoV 2°."""
+TELEMETRY_ROWS = tuple(f"{subset}/{mode}" for subset in TELEMETRY_SUBSETS for mode in ("cond", "scale"))
+
+
+def telemetry_prior(pose: torch.Tensor, subset: str, generator: torch.Generator) -> Any:
+    """Noisy telemetry of the true poses ``[B, 4]``: the subset's components known, the rest NaN."""
+    from dapm_lightning.models.prior import PosePrior
+
+    sigma = torch.tensor(TELEMETRY_NOISE, dtype=torch.float64)
+    noisy = pose + torch.randn(pose.shape, generator=generator, dtype=torch.float64) * sigma
+    known = torch.tensor(TELEMETRY_SUBSETS[subset]).expand_as(pose)
+    return PosePrior(torch.where(known, noisy, torch.full_like(noisy, float("nan"))).float(), sigma.float())
+
+
 @torch.no_grad()
 def evaluate(module: torch.nn.Module | None, root: Path, mean_pose: torch.Tensor,
-             batch: int = 32) -> dict[str, dict[str, float]]:
+             batch: int = 32, telemetry: bool = True) -> dict[str, dict[str, float]]:
     """Metrics on ``root/val`` per row (depth and pose keys).
 
     Rows: ``model``; ``scale_fixed``: the model's depth rescaled per image to the true median (how much
     of the depth error is metric scale); ``mean_pose``: the mean training pose and its IGD (no
-    learning); ``true_pose``: the IGD of each image's true pose (what a perfect pose alone gives).
+    learning); ``true_pose``: the IGD of each image's true pose (what a perfect pose alone gives);
+    with ``telemetry``, ``SUBSET/cond`` and ``SUBSET/scale``: the model given noisy telemetry of the
+    subset (:data:`TELEMETRY_SUBSETS`, :data:`TELEMETRY_NOISE`) into its IGD feature (conditioning), or
+    after it (the depth fitted to the ground of the known pose), see :mod:`dapm_lightning.inference.prior`.
     """
     from dapm_lightning.data.uapd import UAPDDataset
     from dapm_lightning.geometry.igd import ideal_ground_depth
+    from dapm_lightning.inference.prior import apply_pose_prior
     from dapm_lightning.metrics import DepthMetrics, PoseMetrics
 
     data = UAPDDataset(root, "val")
-    metrics = {name: (DepthMetrics(), PoseMetrics()) for name in ("model", "scale_fixed", "mean_pose", "true_pose")}
+    names = ["model", "scale_fixed", "mean_pose", "true_pose"]
+    names += list(TELEMETRY_ROWS) if module is not None and telemetry else []
+    metrics = {name: (DepthMetrics(), PoseMetrics()) for name in names}
     poses: dict[str, list[torch.Tensor]] = {"true": [], "model": [], "mean_pose": []}
+    generator = torch.Generator().manual_seed(0)
     for start in range(0, len(data), batch):
         samples = [data[i] for i in range(start, min(start + batch, len(data)))]
         image = torch.stack([s["image"] for s in samples])
@@ -129,6 +154,16 @@ def evaluate(module: torch.nn.Module | None, root: Path, mean_pose: torch.Tensor
             metrics["scale_fixed"][0].update(median_scaled(out.depth_m.float(), depth), depth)
             metrics["scale_fixed"][1].update(out.pose_physical.double(), pose)
             poses["model"].append(out.pose_physical.double())
+            spec = module.net_config.igd
+            for subset in TELEMETRY_SUBSETS if telemetry else ():
+                prior = telemetry_prior(pose, subset, generator)  # the same telemetry for both ways of using it
+                for mode, way in (("cond", "condition"), ("scale", "scale")):
+                    outputs = (module(image, prior) if mode == "cond" else out).inference_outputs()
+                    outputs, _, _ = apply_pose_prior(outputs, prior, way, spec)  # type: ignore[arg-type]
+                    row = f"{subset}/{mode}"
+                    metrics[row][0].update(outputs["depth_m"].float(), depth)
+                    metrics[row][1].update(outputs["pose"].double(), pose)
+                    poses.setdefault(row, []).append(outputs["pose"].double())
     result = {}
     for name, (depth_m, pose_m) in metrics.items():
         if name in ("model", "scale_fixed") and module is None:
@@ -220,13 +255,13 @@ def transfer(args: argparse.Namespace) -> dict[str, Any]:
     train_minutes = (time.time() - start) / 60 - render_minutes
     print("[3/3] testing on every family")
     results = {family: evaluate(module, root, mean_pose) for family, root in test_roots.items()}
-    header = f"{'family':<13}{'row':<11}" + "".join(f"{title:>9}" for _, title in COLUMNS)
+    header = f"{'family':<13}{'row':<14}" + "".join(f"{title:>9}" for _, title in COLUMNS)
     lines = [header, "-" * len(header)]
     for family, rows in results.items():
         label = family + (" *" if family in args.held_out else "")
         for name, values in rows.items():
             depth_only = name in DEPTH_ONLY_ROWS
-            lines.append(f"{label:<13}{name:<11}" + "".join(
+            lines.append(f"{label:<13}{name:<14}" + "".join(
                 f"{'-':>9}" if (depth_only and k not in ("d1", "abs_rel")) or k not in values else f"{values[k]:>9.3f}"
                 for k, _ in COLUMNS))
             label = ""
@@ -234,7 +269,9 @@ def transfer(args: argparse.Namespace) -> dict[str, Any]:
           "(d1 higher, AbsRel lower), pose medians in m / deg (lower); h rel, foot rel: median relative errors "
           "of the height and of the footprint height * tan(fov / 2). scale_fixed: the model's depth rescaled "
           "per image to the true median; mean_pose: the mean training pose and its IGD; true_pose: the IGD of "
-          "the true pose.\n")
+          "the true pose; SUBSET/cond, SUBSET/scale: noisy telemetry (height 3 m, angles 1 deg, FoV 2 deg) of "
+          "all components (full), the height, pitch and roll (gravity) or the FoV, into the network (cond) or "
+          "fitted to its depth afterwards (scale).\n")
     print("\n".join(lines))
     summary: dict[str, Any] = {"trained_on": trained, "held_out": args.held_out, "results": results,
                                "render_minutes": render_minutes, "train_minutes": train_minutes,

@@ -35,6 +35,8 @@ class _Parser(argparse.ArgumentParser):
 def build_parser() -> argparse.ArgumentParser:
     """The one-line form's options."""
     parser = _Parser(prog="dapm-lightning predict", allow_abbrev=False, description=__doc__,
+                     usage="%(prog)s SOURCE --ckpt_path CKPT [--out DIR] [--device cpu|cuda|auto] "
+                           "[--outputs KIND ...] [--telemetry FILE] [options]",
                      formatter_class=argparse.RawDescriptionHelpFormatter,
                      epilog="Every Lightning setting (devices, precision, DDP): "
                             "dapm-lightning predict --config configs/predict.yaml --help")
@@ -54,6 +56,19 @@ def build_parser() -> argparse.ArgumentParser:
                         help="contact_sheet.png of the first N images; 0: none (default: %(default)s)")
     parser.add_argument("--points_stride", type=int, default=2, help="point clouds: every N-th row and column")
     parser.add_argument("--num_workers", type=int, default=0, help="decoding processes (default: 0)")
+    flight = parser.add_argument_group("telemetry (docs/predict.md): the pose the drone knows, for metric depth")
+    flight.add_argument("--telemetry", default=None, metavar="FILE",
+                        help="CSV name,height_m,pitch_deg,roll_deg,fov_deg (empty cell: unknown), or a video's SRT")
+    flight.add_argument("--no_metadata", action="store_true",
+                        help="ignore the images' DJI XMP / EXIF and a video's own .SRT")
+    flight.add_argument("--sensor_width_mm", type=float, default=None,
+                        help="sensor width, for an EXIF FocalLength without a 35 mm equivalent")
+    flight.add_argument("--telemetry_mode", choices=("condition", "scale", "both"), default="condition",
+                        help="into the network's IGD (condition), depth fitted afterwards (scale), or both "
+                             "(default: %(default)s)")
+    flight.add_argument("--telemetry_sigma", type=float, nargs=4, default=(0.0, 0.0, 0.0, 0.0),
+                        metavar=("HEIGHT_M", "PITCH", "ROLL", "FOV"),
+                        help="telemetry uncertainty; 0 replaces the network's value (default: 0 0 0 0)")
     return parser
 
 
@@ -82,9 +97,12 @@ def predict_main(argv: Sequence[str]) -> None:
     args = parse(argv)
     files = PredictionFiles(Path(args.out), args.outputs, args.points_stride, contact_sheet=args.contact_sheet)
     predictor = DAPMPredictor.from_checkpoint(args.ckpt_path, args.image_width, args.device,
-                                              precision=args.precision, batch_size=args.batch_size)
+                                              precision=args.precision, batch_size=args.batch_size,
+                                              telemetry_mode=args.telemetry_mode,
+                                              telemetry_sigma=args.telemetry_sigma)
     keep_rgb = "points" in files.outputs or files.contact_images > 0
     for prediction in predictor.predict_source(args.source, args.frame_step, args.max_frames, keep_rgb,
-                                               args.num_workers):
+                                               args.num_workers, args.telemetry, not args.no_metadata,
+                                               args.sensor_width_mm):
         files.add(prediction, prediction.extras.get("rgb"))
     print(files.finish(), file=sys.stdout, flush=True)

@@ -16,6 +16,7 @@ from dapm_lightning.data.sample import depth_masks
 from dapm_lightning.metrics import AuthorsDepthMetrics, DepthMetrics, PoseMetrics
 from dapm_lightning.models.config import DAPMConfig
 from dapm_lightning.models.dapm import DAPMNet, DAPMOutput
+from dapm_lightning.models.prior import PosePrior
 from dapm_lightning.models.teacher_forcing import TeacherForcing
 from dapm_lightning.training.checkpointing import (
     check_architecture,
@@ -61,6 +62,48 @@ class OptimizerConfig:
     schedule_steps: int | None = None
 
 
+@dataclass(frozen=True)
+class PriorTraining:
+    """Pose priors during training, so that one checkpoint serves flights with full, partial or no telemetry.
+
+    Each training image gets a prior with probability ``image_fraction``; each of its four components is then
+    known with probability ``component_probability``: the true value plus Gaussian noise of ``noise`` (height m,
+    pitch, roll, fov deg), given to the network with that σ. The network fuses it with its own pose
+    (:func:`~dapm_lightning.models.prior.fuse_pose`) before the IGD feature; the pose losses keep training its
+    own estimate. Draws come from the trainer's random state, which checkpoints carry (exact resume, each DDP
+    process its own). Off in the paper configs; ``model.prior_training`` in configs.
+
+    Args:
+        enabled: give priors at all.
+        image_fraction: share of training images with a prior.
+        component_probability: chance that each component of such an image is known.
+        noise: σ of the noise on (height m, pitch deg, roll deg, fov deg), the σ the network is told.
+    """
+
+    enabled: bool = False
+    image_fraction: float = 0.5
+    component_probability: float = 0.5
+    noise: tuple[float, float, float, float] = (3.0, 1.0, 1.0, 2.0)
+
+    def __post_init__(self) -> None:
+        if not (0.0 <= self.image_fraction <= 1.0 and 0.0 <= self.component_probability <= 1.0):
+            raise ValueError("model.prior_training: image_fraction and component_probability must be in [0, 1]")
+        if len(self.noise) != 4 or min(self.noise) < 0:
+            raise ValueError("model.prior_training.noise: four standard deviations >= 0 (height m, pitch, roll, "
+                             "fov deg)")
+
+    def sample(self, pose: Tensor, has_pose: Tensor) -> PosePrior | None:
+        """A training prior from the true poses ``[B, 4]`` (only images with a pose get one), or None."""
+        if not self.enabled:
+            return None
+        batch = pose.shape[0]
+        with_prior = (torch.rand(batch, 1, device=pose.device) < self.image_fraction) & has_pose.view(-1, 1)
+        known = with_prior & (torch.rand(batch, 4, device=pose.device) < self.component_probability)
+        sigma = torch.tensor(self.noise, device=pose.device, dtype=torch.float32)
+        noisy = pose.float() + torch.randn(batch, 4, device=pose.device) * sigma
+        return PosePrior(torch.where(known, noisy, torch.full_like(noisy, float("nan"))), sigma)
+
+
 def _as_config(value: Any, kind: type[Any]) -> Any:
     """A settings dataclass from itself, a mapping (checkpoint hyper-parameters) or None (defaults)."""
     if value is None:
@@ -72,9 +115,24 @@ def _as_config(value: Any, kind: type[Any]) -> Any:
     raise TypeError(f"expected {kind.__name__} or a mapping, got {type(value).__name__}")
 
 
+def batch_prior(batch: dict[str, Any]) -> PosePrior | None:
+    """The pose prior a predict batch gives the network (``pose``, NaN where unknown, and ``pose_sigma``).
+
+    None when nothing is known, or when its ``meta`` asks for ``prior_mode`` ``scale`` (applied afterwards).
+    """
+    value = batch.get("pose")
+    metas = batch.get("meta") or [{}]
+    if value is None or not torch.isfinite(value).any() or metas[0].get("prior_mode") == "scale":
+        return None
+    sigma = batch.get("pose_sigma")
+    return PosePrior(value.float(), torch.zeros(4, device=value.device) if sigma is None else sigma.float())
+
+
 def training_image_size(checkpoint: dict[str, Any]) -> tuple[int, int] | None:
-    """``(H, W)`` a checkpoint was trained at: recorded by :class:`DAPMModule`, else (older checkpoints) the
-    saved data module's ``image_size`` or ``crop_size``; None when neither says."""
+    """``(H, W)`` a checkpoint was trained at; None when it does not say.
+
+    Recorded by :class:`DAPMModule`; older checkpoints: the saved data module's ``image_size`` or ``crop_size``.
+    """
     recorded = checkpoint.get("dapm_train_image_size")
     if recorded is not None:
         return int(recorded[0]), int(recorded[1])
@@ -101,6 +159,8 @@ class DAPMModule(L.LightningModule):
         pose_auc_min_error: pose errors at or below it count as perfect in the AUC (GeoCalib passes 1).
         skip_nonfinite_loss: skip a training step whose loss is NaN or Inf (with a warning and
             ``train_nonfinite_steps``) instead of corrupting the weights.
+        prior_training: pose priors drawn from the true pose during training (:class:`PriorTraining`), so
+            that the model learns to use telemetry; off by default.
 
     :attr:`igd_predicted_share` (the IGD teacher-forcing weight) is set by
     :class:`~dapm_lightning.training.callbacks.IGDTeacherForcing` during training; validation, test and
@@ -118,18 +178,21 @@ class DAPMModule(L.LightningModule):
     def __init__(self, net: DAPMConfig = DAPMConfig(), loss: LossConfig = LossConfig(),  # noqa: B008 (frozen)
                  optimizer: OptimizerConfig = OptimizerConfig(), log_space_metrics: bool = True,  # noqa: B008
                  pose_auc_min_error: float | None = None, skip_nonfinite_loss: bool = True,
-                 authors_depth_metrics: bool = True) -> None:
+                 authors_depth_metrics: bool = True,
+                 prior_training: PriorTraining = PriorTraining()) -> None:  # noqa: B008
         super().__init__()
         # settings arrive as dataclasses (CLI, Python) or as plain mappings (a checkpoint's hyper-parameters)
         self.net_config: DAPMConfig = _as_config(net, DAPMConfig)
         self.loss_config: LossConfig = _as_config(loss, LossConfig)
         self.optimizer_config: OptimizerConfig = _as_config(optimizer, OptimizerConfig)
+        self.prior_training: PriorTraining = _as_config(prior_training, PriorTraining)
         self.save_hyperparameters({  # plain values: checkpoints load with weights_only=True
             "net": self.net_config.to_dict(), "loss": {**asdict(self.loss_config),
                                                         "weights": dict(self.loss_config.weights)},
             "optimizer": {**asdict(self.optimizer_config), "betas": list(self.optimizer_config.betas)},
             "log_space_metrics": log_space_metrics, "pose_auc_min_error": pose_auc_min_error,
-            "skip_nonfinite_loss": skip_nonfinite_loss, "authors_depth_metrics": authors_depth_metrics})
+            "skip_nonfinite_loss": skip_nonfinite_loss, "authors_depth_metrics": authors_depth_metrics,
+            "prior_training": {**asdict(self.prior_training), "noise": list(self.prior_training.noise)}})
         self.net = DAPMNet(self.net_config)
         igd = self.net_config.igd
         self.criterion = DAPMLoss(self.loss_config, igd)
@@ -157,9 +220,12 @@ class DAPMModule(L.LightningModule):
             raise ValueError(f"the data holds {data_kind} depth but the model's IGD computes {model_kind} depth: set "
                              f"model.net.igd.depth_kind: {data_kind} (or fix data.init_args.depth_kind)")
 
-    def forward(self, image: Tensor) -> DAPMOutput:
-        """``image [B, 3, H, W]`` (uint8 or float in [0, 1]) -> :class:`DAPMOutput` (predictions only)."""
-        return self.net(self._image(image))
+    def forward(self, image: Tensor, prior: PosePrior | None = None) -> DAPMOutput:
+        """``image [B, 3, H, W]`` (uint8 or float in [0, 1]) -> :class:`DAPMOutput` (predictions only).
+
+        ``prior``: known pose components (telemetry), see :class:`~dapm_lightning.models.prior.PosePrior`.
+        """
+        return self.net(self._image(image), prior=prior)
 
     @staticmethod
     def _image(image: Tensor) -> Tensor:
@@ -170,7 +236,8 @@ class DAPMModule(L.LightningModule):
         teacher_forcing = None
         if stage == "train" and self.igd_predicted_share < 1.0:
             teacher_forcing = TeacherForcing(self.net_config.igd.normalize(batch["pose"]), self.igd_predicted_share)
-        out = self.net(image, teacher_forcing)
+        prior = self.prior_training.sample(batch["pose"], batch["has_pose"]) if stage == "train" else None
+        out = self.net(image, teacher_forcing, prior)
         sky, valid = depth_masks(batch["depth"], self.net_config.igd.max_depth)
         terms = self.criterion(out, {**batch, "sky": sky, "valid": valid})
         batch_size = image.shape[0]
@@ -256,7 +323,8 @@ class DAPMModule(L.LightningModule):
         self._log_metrics("test")
 
     def predict_step(self, batch: dict[str, Any], batch_idx: int) -> DAPMOutput:
-        return self(batch["image"])
+        """The batch's ``pose`` (NaN where unknown) and ``pose_sigma``, when given, are its pose prior."""
+        return self(batch["image"], batch_prior(batch))
 
     @property
     def planned_steps(self) -> int:

@@ -5,7 +5,7 @@ import json
 import pytest
 import torch
 
-from dapm_lightning.tools.bench_synth import main, median_scaled, scale_errors, target_check
+from dapm_lightning.tools.bench_synth import TELEMETRY_ROWS, main, median_scaled, scale_errors, target_check
 
 TINY = ["transfer", "--held-out", "water", "--train", "6", "--val", "2", "--test", "2", "--size", "32",
         "--batch-size", "2", "--workers", "1"]
@@ -18,7 +18,9 @@ def test_transfer_trains_with_the_extra_fit_arguments_and_reports_every_family(t
     report = json.loads((out / "transfer.json").read_text())
     assert report["held_out"] == ["water"] and "water" not in report["trained_on"]
     assert set(report["results"]) == {"downtown", "suburb", "industrial", "farmland", "forest", "water"}
-    assert all(set(rows) == {"model", "scale_fixed", "mean_pose", "true_pose"} for rows in report["results"].values())
+    expected = {"model", "scale_fixed", "mean_pose", "true_pose", *TELEMETRY_ROWS}
+    assert all(set(rows) == expected for rows in report["results"].values())
+    assert len(TELEMETRY_ROWS) == 8 and all(0 <= rows["full/scale"]["d1"] <= 1 for rows in report["results"].values())
     for rows in report["results"].values():  # the true pose's IGD is exact on every ground pixel
         assert rows["true_pose"]["d1"] >= rows["mean_pose"]["d1"] and rows["true_pose"]["height_median"] == 0
         assert {"height_rel", "footprint_rel"} <= set(rows["model"]) and "footprint_rel" in rows["mean_pose"]

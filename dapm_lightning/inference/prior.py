@@ -1,0 +1,146 @@
+"""Telemetry in prediction: pose priors into the network (conditioning) and metric scale from a known pose.
+
+Two ways to use what the drone knows, and both together (:data:`PriorMode`):
+
+- ``condition``: the prior enters the network (:class:`~dapm_lightning.models.prior.PosePrior`): fused with its
+  pose before the IGD feature, so the depth head sees the ground of the known pose;
+- ``scale``: the network runs without it; its depth is then rescaled so that the pixels it sees as ground match
+  the ideal ground depth of the known pose (:func:`ground_scale`): works with any checkpoint, no retraining;
+- ``both``: conditioning, then the scale fit.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from typing import Any, Literal
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from dapm_lightning.geometry.constants import POSE_KEYS
+from dapm_lightning.geometry.igd import IGDSpec
+from dapm_lightning.inference.postprocess import pose_field
+from dapm_lightning.models.prior import PosePrior, fuse_pose
+
+PriorMode = Literal["condition", "scale", "both"]
+PRIOR_MODES: tuple[str, ...] = ("condition", "scale", "both")
+GROUND_AGREEMENT = 0.25
+"""A pixel is ground to the model where its depth is within 25 % of the flat ground of its own pose."""
+MIN_GROUND_SHARE = 0.02
+"""Below this share of ground pixels, the scale comes from the heights (known / predicted) instead."""
+
+
+def as_prior(values: Sequence[Any], sigma: Sequence[float] | Tensor = (0.0, 0.0, 0.0, 0.0)) -> PosePrior | None:
+    """A :class:`PosePrior` from one entry per image, or None when nothing is known.
+
+    An entry: None; a ``[4]`` array / sequence (height m, pitch, roll, fov deg; NaN unknown); a mapping with
+    any of ``height``/``height_m``, ``pitch``/``pitch_deg``, ``roll``/``roll_deg``, ``fov``/``fov_deg``; or a
+    :class:`~dapm_lightning.inference.telemetry.PoseTelemetry`.
+    """
+    rows = np.full((len(values), 4), np.nan)
+    for k, value in enumerate(values):
+        if value is None:
+            continue
+        if hasattr(value, "values") and callable(value.values) and not isinstance(value, Mapping):
+            rows[k] = np.asarray(value.values(), dtype=np.float64)
+        elif isinstance(value, Mapping):
+            unknown = set(value) - set(POSE_KEYS) - {pose_field(key) for key in POSE_KEYS}
+            if unknown:
+                raise ValueError(f"pose prior {k}: unknown key(s) {sorted(unknown)}; use height_m, pitch_deg, "
+                                 "roll_deg, fov_deg (or height, pitch, roll, fov)")
+            for i, key in enumerate(POSE_KEYS):
+                got = value.get(key, value.get(pose_field(key)))
+                rows[k, i] = np.nan if got is None else float(got)
+        else:
+            row = np.asarray(value, dtype=np.float64).reshape(-1)
+            if row.shape != (4,):
+                raise ValueError(f"pose prior {k}: expected 4 values (height m, pitch, roll, fov deg), got {row.shape}")
+            rows[k] = row
+    if not np.isfinite(rows).any():
+        return None
+    return PosePrior(torch.from_numpy(rows).float(), torch.as_tensor(sigma, dtype=torch.float32))
+
+
+def pose_sources(prior: PosePrior | None, batch: int) -> list[dict[str, str]]:
+    """Per image and component where the pose used comes from: ``telemetry`` (σ = 0), ``fused`` or ``network``."""
+    if prior is None:
+        return [dict.fromkeys(POSE_KEYS, "network") for _ in range(batch)]
+    known, exact = prior.known.cpu(), (prior.sigma == 0).cpu()
+    return [{key: ("telemetry" if exact[b, i] else "fused") if known[b, i] else "network"
+             for i, key in enumerate(POSE_KEYS)} for b in range(batch)]
+
+
+def ground_scale(depth_m: Tensor, sky: Tensor, igd_used: Tensor, igd_network: Tensor, height_ratio: Tensor,
+                 max_depth: float) -> tuple[Tensor, list[str]]:
+    """Per image the factor that puts the depth on the metric scale of the known pose, and how it was found.
+
+    Args:
+        depth_m, sky: ``[B, 1, h, w]`` the network's depth and sky mask.
+        igd_used: ``[B, 1, h, w]`` the flat ground of the pose used (telemetry where known).
+        igd_network: ``[B, 1, h, w]`` the flat ground of the network's own pose.
+        height_ratio: ``[B]`` known / predicted height (NaN where the height is unknown).
+
+    Returns:
+        ``([B] scale, [B] method)``: the median of ``igd_used / depth`` over the pixels the model sees as ground
+        (its depth within :data:`GROUND_AGREEMENT` of its own pose's ground, and both grounds in view) when they
+        are at least :data:`MIN_GROUND_SHARE` of the image (``"ground"``); else the height ratio (``"height"``);
+        else 1 (``"none"``).
+    """
+    scales, methods = [], []
+    band = math.log1p(GROUND_AGREEMENT)
+    for b in range(depth_m.shape[0]):
+        depth, igd_own, igd_known = depth_m[b].double(), igd_network[b].double(), igd_used[b].double()
+        ground = (~sky[b]) & (igd_own < max_depth) & (igd_known < max_depth) & (depth > 0)
+        ground &= (depth.clamp_min(1e-6) / igd_own.clamp_min(1e-6)).log().abs() < band
+        if ground.float().mean() >= MIN_GROUND_SHARE:
+            scales.append(float((igd_known[ground] / depth[ground]).median()))
+            methods.append("ground")
+        elif math.isfinite(float(height_ratio[b])):
+            scales.append(float(height_ratio[b]))
+            methods.append("height")
+        else:
+            scales.append(1.0)
+            methods.append("none")
+    return torch.tensor(scales, dtype=depth_m.dtype, device=depth_m.device), methods
+
+
+def apply_pose_prior(outputs: Mapping[str, Tensor], prior: PosePrior | None, mode: PriorMode,
+                     spec: IGDSpec) -> tuple[dict[str, Tensor], list[dict[str, str]], list[str]]:
+    """Network outputs with a prior applied as ``mode`` says.
+
+    Args:
+        outputs: ``{depth_m, sky_prob, pose[, pose_network]}`` at the network size; with ``condition`` or
+            ``both`` the network has already fused the prior (``pose`` the pose used, ``pose_network`` its own).
+        prior: the batch's prior (None: nothing known; the outputs come back unchanged).
+
+    Returns:
+        ``(outputs, sources, scale methods)``: with ``scale``/``both``, ``depth_m`` rescaled to the pose used
+        (sky kept at the limit) and ``pose``/``pose_network`` the pose used and the network's own.
+    """
+    result = dict(outputs)
+    batch = next(iter(outputs.values())).shape[0]
+    if prior is None or "pose" not in outputs:
+        return result, pose_sources(None, batch), ["none"] * batch
+    if mode not in PRIOR_MODES:
+        raise ValueError(f"unknown telemetry mode {mode!r}; choose from {', '.join(PRIOR_MODES)}")
+    prior = prior.to(outputs["pose"].device)
+    network = outputs.get("pose_network", outputs["pose"])
+    if "pose_network" not in outputs:  # the network ran without the prior: fuse here (no bins spread at hand)
+        used = spec.denormalize(fuse_pose(spec.normalize(network.double()), prior, spec, None)).to(network.dtype)
+        result.update(pose=used, pose_network=network)
+    methods = ["none"] * batch
+    if mode in ("scale", "both") and "depth_m" in outputs:
+        depth = outputs["depth_m"]
+        size = (depth.shape[-2], depth.shape[-1])
+        sky = (outputs["sky_prob"] > 0.5) if "sky_prob" in outputs else depth >= spec.max_depth
+        height_known = prior.known[:, 0]
+        ratio = torch.where(height_known, prior.value[:, 0].to(network.dtype) / network[:, 0].clamp_min(1e-3),
+                            torch.full_like(network[:, 0], float("nan")))
+        scale, methods = ground_scale(depth, sky, spec.depth(result["pose"].float(), size),
+                                      spec.depth(network.float(), size), ratio, spec.max_depth)
+        below = float(np.nextafter(np.float32(spec.max_depth), np.float32(0)))
+        scaled = (depth * scale.view(-1, 1, 1, 1)).clamp(max=below)
+        result["depth_m"] = torch.where(sky, torch.full_like(depth, spec.max_depth), scaled)
+    return result, pose_sources(prior, batch), methods

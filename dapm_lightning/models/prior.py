@@ -1,0 +1,90 @@
+"""Pose priors: what the drone already knows (telemetry: altitude, gimbal pitch and roll, focal length).
+
+A :class:`PosePrior` holds per image and per component a value in physical units (NaN: unknown) and its
+uncertainty σ. :func:`fuse_pose` combines it with the network's own estimate: σ = 0 replaces the component,
+σ > 0 weighs the two by their inverse variances, the network's variance being the spread of its last pose
+bins distribution (the PQB's own uncertainty; a fixed spread without pose bins). The fused pose is what the
+IGD feature sees and what inference reports; the losses keep training the network's own estimate.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from dapm_lightning.geometry.constants import POSE_KEYS
+from dapm_lightning.geometry.igd import IGDSpec
+
+NETWORK_SPREAD_WITHOUT_BINS = 0.05
+"""Normalised standard deviation assumed for a network without pose bins (about 4.5 m of height, 5.5° of pitch)."""
+MIN_NETWORK_SPREAD = 1e-3
+"""Lower bound of the network's normalised standard deviation (a bins distribution can be one-hot)."""
+
+
+@dataclass(frozen=True)
+class PosePrior:
+    """Known pose components, per image.
+
+    Args:
+        value: ``[B, 4]`` (height m, pitch deg, roll deg, fov deg); NaN where unknown.
+        sigma: ``[B, 4]`` standard deviation in the same units, >= 0 (0: exact, replaces the network's value);
+            broadcastable (``[4]`` for one σ per component).
+    """
+
+    value: Tensor
+    sigma: Tensor
+
+    def __post_init__(self) -> None:
+        if self.value.ndim != 2 or self.value.shape[-1] != 4:
+            raise ValueError(f"a pose prior's value must be [B, 4], got {tuple(self.value.shape)}")
+        sigma = torch.as_tensor(self.sigma, dtype=self.value.dtype, device=self.value.device)
+        sigma = torch.nan_to_num(sigma, nan=0.0).expand_as(self.value)
+        if (sigma < 0).any():
+            raise ValueError("a pose prior's sigma must be >= 0")
+        object.__setattr__(self, "sigma", sigma)
+
+    @classmethod
+    def unknown(cls, batch: int, device: torch.device | None = None) -> PosePrior:
+        """A prior that knows nothing (the network's pose is used unchanged)."""
+        return cls(torch.full((batch, 4), float("nan"), device=device), torch.zeros(4, device=device))
+
+    @property
+    def known(self) -> Tensor:
+        """``[B, 4]`` bool: which components are given."""
+        return torch.isfinite(self.value)
+
+    def to(self, device: torch.device | str) -> PosePrior:
+        """The same prior on ``device``."""
+        return PosePrior(self.value.to(device), self.sigma.to(device))
+
+
+def bins_spread(bin_logits: Tensor) -> Tensor:
+    """``[B, 4, n]`` logits over ``n`` equal bins of [0, 1] -> ``[B, 4]`` standard deviation of the distribution."""
+    n = bin_logits.shape[-1]
+    centres = (torch.arange(n, device=bin_logits.device, dtype=torch.float32) + 0.5) / n
+    probs = bin_logits.float().softmax(dim=-1)
+    mean = (probs * centres).sum(-1, keepdim=True)
+    variance = (probs * (centres - mean) ** 2).sum(-1)
+    return variance.clamp_min(0).sqrt().clamp_min(MIN_NETWORK_SPREAD)
+
+
+def fuse_pose(pose_norm: Tensor, prior: PosePrior, spec: IGDSpec, network_spread: Tensor | None) -> Tensor:
+    """The network's normalised pose ``[B, 4]`` combined with a prior, normalised ``[B, 4]``.
+
+    Unknown components keep the network's value; σ = 0 takes the prior's; σ > 0 the inverse-variance mean
+    of the two (``network_spread``: ``[B, 4]`` normalised standard deviation of the network's estimate).
+    """
+    known = prior.known
+    if not known.any():
+        return pose_norm
+    ranges = torch.tensor([spec.pose_ranges[k][1] - spec.pose_ranges[k][0] for k in POSE_KEYS],
+                          device=pose_norm.device, dtype=pose_norm.dtype)
+    prior_norm = spec.normalize(torch.nan_to_num(prior.value.to(pose_norm.dtype), nan=0.0))
+    prior_spread = prior.sigma.to(pose_norm.dtype) / ranges
+    spread = (torch.full_like(pose_norm, NETWORK_SPREAD_WITHOUT_BINS) if network_spread is None
+              else network_spread.to(pose_norm.dtype))
+    weight = spread**2 / (spread**2 + prior_spread**2)  # 1 where the prior is exact
+    fused = pose_norm + weight * (prior_norm - pose_norm)
+    return torch.where(known, fused, pose_norm)
