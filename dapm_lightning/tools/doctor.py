@@ -2,16 +2,19 @@
 
 Counts, pose distribution against the UAPD ranges, depth range and sky fraction, unreadable or
 unpaired files, and the agreement of each file's depth with the Ideal Ground Depth of its own
-pose: pixels that see flat ground match the IGD exactly, so a pose whose roll sign is wrong, or
-whose fields are swapped, explains the depth worse than the corrected pose would. Exit status 1
-when a file is broken or a sample is flagged. The report is printed, and written as JSON only where
-asked (--json FILE; nothing is written into the data set). Settings can come from a YAML file
-(--config FILE; --print_config shows one).
+pose: pixels that see flat ground match the IGD to the grey level, and nothing is ever seen deeper
+than the ground. A sample is flagged when a plausible annotation mistake (roll or pitch sign,
+pitch and roll swapped, another FoV) explains clearly more of its depth as flat ground without
+being contradicted more by depth beyond its ground. Exit status 0 when no problem is found, 1 when
+a file is broken or a sample is flagged, 2 when ROOT is not a data set (or on a usage error). The
+report is printed, and written as JSON only where asked (--json FILE; nothing is written into the
+data set). Settings can come from a YAML file (--config FILE; --print_config shows one).
 """
 
 from __future__ import annotations
 
 import math
+import sys
 from collections.abc import Sequence
 from json import dumps
 from pathlib import Path
@@ -24,62 +27,105 @@ import torch
 from dapm_lightning.data.errors import DatasetError
 from dapm_lightning.data.uapd import UAPDDataset, read_depth_grey
 from dapm_lightning.geometry.constants import MAX_DEPTH_M, POSE_KEYS, POSE_RANGES, SKY_GREY
-from dapm_lightning.geometry.depth_codec import grey_to_depth
+from dapm_lightning.geometry.depth_codec import depth_to_grey, grey_to_depth
 from dapm_lightning.geometry.igd import DepthKind, ideal_ground_depth
 
-AGREE_TOLERANCE = 0.05
-"""A pixel agrees with the flat ground when ``|depth / IGD - 1| < 5 %`` (two 8-bit grey levels)."""
+EXIT_CLEAN, EXIT_PROBLEMS, EXIT_NOT_A_DATA_SET = 0, 1, 2
+"""Exit statuses: no problem; a broken file or a flagged sample; ROOT (or a split asked for) is not a data set."""
+AGREE_LEVELS = 2
+"""A pixel agrees with the flat ground of a pose when its grey level is within 2 of the grey level of the
+pose's IGD (one 8-bit level is a depth factor of 1.027: about 5 %)."""
+BEYOND_LEVELS = 1
+"""A pixel lies beyond the ground of a pose when it is deeper than the pose's IGD by more than one grey level
+(more than the 8-bit rounding). Nothing is seen through the ground: such pixels contradict the pose."""
 FLAG_MARGIN = 0.1
-"""A sample is flagged when an alternative annotation makes this much more of its pixels agree."""
+"""An alternative pose must make this share of the non-sky pixels more agree than the annotated pose, counted
+only where the two can be told apart (their IGDs differ by more than both tolerance windows: no pixel can
+agree with both), so a near-identical alternative (pitch close to roll, a FoV close to the annotated one)
+never wins by the objects that happen to lie near its ground."""
+MIN_GROUND_PIXELS = 32
+"""... and at least this many pixels (at the checked resolution), however small the image or its ground."""
 MIN_AGREEMENT = 0.02
-"""Below this share no flat ground is visible (e.g. a street canyon): such a sample is listed as unchecked."""
+"""Below this share (or MIN_GROUND_PIXELS) no pose makes flat ground visible (e.g. a street canyon): such a
+sample is listed as unchecked."""
 CHECK_WIDTH = 128
 """Depth maps are checked at this width at most (nearest-neighbour downsampling keeps grey levels)."""
+FOV_STEP = 2.5
+"""The FoVs tried as alternatives: the UAPD range in steps of this many degrees."""
 
 
 def alternatives(pose: np.ndarray) -> dict[str, np.ndarray]:
-    """Plausible annotation mistakes to test against: roll sign, pitch sign, swapped pitch/roll."""
+    """Plausible annotation mistakes to test against: roll sign, pitch sign, swapped pitch/roll, another FoV."""
     height, pitch, roll, fov = pose
-    return {"roll negated": np.array([height, pitch, -roll, fov]),
+    alts = {"roll negated": np.array([height, pitch, -roll, fov]),
             "pitch negated": np.array([height, -pitch, roll, fov]),
             "pitch and roll swapped": np.array([height, roll, pitch, fov])}
+    lo, hi = POSE_RANGES["fov"]
+    for other in np.arange(lo, hi + FOV_STEP / 2, FOV_STEP):
+        alts[f"FoV {other:g}"] = np.array([height, pitch, roll, other])
+    return alts
 
 
-def agreement(depth_m: np.ndarray, poses: np.ndarray, depth_kind: DepthKind) -> tuple[np.ndarray, np.ndarray]:
-    """Share of non-sky pixels matching the IGD of each pose, and the median depth/IGD ratio on the lower half.
+def ground_evidence(depth_grey: np.ndarray, poses: np.ndarray,
+                    depth_kind: DepthKind) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per pose, the grey level of its IGD, the pixels that agree with that ground, those that lie beyond it.
 
     Args:
-        depth_m: ``[H, W]`` metres. poses: ``[K, 4]``.
+        depth_grey: ``[H, W]`` uint8, the data set's encoding. poses: ``[K, 4]``.
+
+    Returns:
+        ``(igd_grey [K, H, W] int16, agree [K, H, W] bool, beyond [K, H, W] bool)``: ``agree`` counts non-sky
+        pixels only; ``beyond`` includes sky (seen where the pose has ground nearer than MAX_DEPTH_M).
     """
-    size = depth_m.shape
-    igd = ideal_ground_depth(torch.from_numpy(poses).double(), size, depth_kind=depth_kind)[:, 0].numpy()
-    seen = depth_m < MAX_DEPTH_M  # not sky in the label
-    ratio = depth_m[None] / np.maximum(igd, 1e-6)
-    agree = (np.abs(ratio - 1.0) < AGREE_TOLERANCE) & seen[None] & (igd < MAX_DEPTH_M)
-    share = agree.reshape(len(poses), -1).sum(1) / max(int(seen.sum()), 1)
-    lower = np.zeros(size, bool)
-    lower[size[0] // 2:] = True
-    usable = lower & seen
-    median = np.array([float(np.median(r[usable & (g < MAX_DEPTH_M)])) if (usable & (g < MAX_DEPTH_M)).any()
-                       else math.nan for r, g in zip(ratio, igd)])
-    return share, median
+    igd = ideal_ground_depth(torch.from_numpy(poses).double(), depth_grey.shape, depth_kind=depth_kind)[:, 0]
+    igd_grey = depth_to_grey(igd.numpy()).astype(np.int16)
+    above = depth_grey.astype(np.int16)[None] - igd_grey  # > 0: deeper than the ground of the pose
+    ground = igd_grey < SKY_GREY  # the pose has ground nearer than MAX_DEPTH_M there
+    agree = (np.abs(above) <= AGREE_LEVELS) & ground & (depth_grey < SKY_GREY)[None]
+    beyond = (above > BEYOND_LEVELS) & ground
+    return igd_grey, agree, beyond
+
+
+def lower_median_ratio(depth_m: np.ndarray, pose: np.ndarray, depth_kind: DepthKind) -> float:
+    """Median depth/IGD ratio of the pose on the non-sky pixels of the lower half of the image (NaN without any)."""
+    igd = ideal_ground_depth(torch.from_numpy(pose[None]).double(), depth_m.shape, depth_kind=depth_kind)[0, 0]
+    igd = igd.numpy()
+    usable = (depth_m < MAX_DEPTH_M) & (igd < MAX_DEPTH_M)
+    usable[: depth_m.shape[0] // 2] = False
+    return float(np.median(depth_m[usable] / np.maximum(igd[usable], 1e-6))) if usable.any() else math.nan
 
 
 def check_sample(depth_grey: np.ndarray, pose: np.ndarray, depth_kind: DepthKind) -> dict[str, Any]:
-    """Agreement of one sample with its pose and with each alternative; the flag and why."""
+    """Agreement of one sample with its pose and with each alternative; the flag and why.
+
+    An alternative is preferred, and the sample flagged, only when (1) on the pixels where the two poses'
+    IGDs differ by more than ``2 * AGREE_LEVELS`` grey levels it agrees with at least
+    ``max(FLAG_MARGIN * non-sky pixels, MIN_GROUND_PIXELS)`` more pixels than the annotated pose, and (2) no more
+    pixels lie beyond its ground than beyond the annotated pose's: a raised surface (a forest canopy, roofs)
+    is fitted by a steeper or wider pose, whose ground the real ground then lies beyond.
+    """
     if depth_grey.shape[1] > CHECK_WIDTH:
         scale = CHECK_WIDTH / depth_grey.shape[1]
         depth_grey = cv2.resize(depth_grey, (CHECK_WIDTH, max(1, round(depth_grey.shape[0] * scale))),
-                                interpolation=cv2.INTER_NEAREST)
-    depth = grey_to_depth(depth_grey).astype(np.float64)
+                                interpolation=cv2.INTER_NEAREST_EXACT)  # the pixel at each new pixel's centre
     alts = alternatives(pose)
-    shares, medians = agreement(depth, np.stack([pose, *alts.values()]), depth_kind)
-    best_name, best_share = max(zip(alts, shares[1:]), key=lambda item: item[1])
+    igd_grey, agree, beyond = ground_evidence(depth_grey, np.stack([pose, *alts.values()]), depth_kind)
+    seen = max(int((depth_grey < SKY_GREY).sum()), 1)
+    n_agree, n_beyond = agree.sum((1, 2)), beyond.sum((1, 2))
+    apart = np.abs(igd_grey[1:] - igd_grey[:1]) > 2 * AGREE_LEVELS  # no pixel can agree with both poses
+    gain = (agree[1:] & apart).sum((1, 2)) - (agree[:1] & apart).sum((1, 2))
+    needed = max(FLAG_MARGIN * seen, MIN_GROUND_PIXELS)
+    admissible = (gain >= needed) & (n_beyond[1:] <= n_beyond[0])
     reason = None
-    if best_share > shares[0] + FLAG_MARGIN:
-        reason = f"{best_name} fits the depth better ({best_share:.2f} vs {shares[0]:.2f} of pixels agree)"
-    return {"agreement": float(shares[0]), "lower_median_ratio": float(medians[0]), "flag": reason,
-            "unchecked": bool(max(shares) < MIN_AGREEMENT)}
+    if admissible.any():
+        k = int(np.argmax(np.where(admissible, gain, -1)))
+        reason = (f"{list(alts)[k]} fits the depth better ({n_agree[k + 1] / seen:.2f} vs {n_agree[0] / seen:.2f} "
+                  f"of pixels agree; {n_beyond[0] / depth_grey.size:.2f} vs {n_beyond[k + 1] / depth_grey.size:.2f} "
+                  "lie beyond its ground)")
+    depth = grey_to_depth(depth_grey).astype(np.float64)
+    return {"agreement": float(n_agree[0] / seen), "beyond": float(n_beyond[0] / depth_grey.size),
+            "lower_median_ratio": lower_median_ratio(depth, pose, depth_kind), "flag": reason,
+            "unchecked": bool(n_agree.max() < max(MIN_AGREEMENT * seen, MIN_GROUND_PIXELS))}
 
 
 def diagnose_split(root: Path, split: str, depth_kind: DepthKind) -> dict[str, Any]:
@@ -167,14 +213,26 @@ def doctor(root: Path, splits: list[str] | None = None, depth_kind: DepthKind = 
         json: also write the report as JSON to this file (nothing is written otherwise).
 
     Returns:
-        the exit status: 0 clean, 1 a broken file or a flagged sample, 2 no data set at ROOT.
+        the exit status: 0 clean, 1 a broken file or a flagged sample, 2 no data set at ROOT (ROOT is not a
+        folder, holds no split folder, or a split asked for has neither rgb/ nor depth/); the reason is then
+        printed to stderr.
     """
     root = Path(root)
+    problem = None
     if not root.is_dir():
-        raise FileNotFoundError(f"{root}: no such folder (give the data set's root, which holds train/ and val/)")
-    splits = splits or sorted(p.name for p in root.iterdir() if (p / "rgb").is_dir() or (p / "depth").is_dir())
-    if not splits:
-        raise FileNotFoundError(f"{root}: no split folders with rgb/ and depth/ (expected ROOT/train, ROOT/val)")
+        problem = f"{root}: no such folder (give the data set's root, which holds train/ and val/)"
+    else:
+        found = sorted(p.name for p in root.iterdir() if (p / "rgb").is_dir() or (p / "depth").is_dir())
+        missing = [split for split in splits or [] if split not in found]
+        splits = splits or found
+        if not splits:
+            problem = f"{root}: not a data set: no split folders with rgb/ and depth/ (expected ROOT/train, ROOT/val)"
+        elif missing:
+            problem = (f"{root}: no split {', '.join(missing)} (a folder with rgb/ and depth/); "
+                       f"splits found: {', '.join(found) or 'none'}")
+    if problem is not None:
+        print(f"error: {problem}", file=sys.stderr)
+        return EXIT_NOT_A_DATA_SET
     reports = [diagnose_split(root, split, depth_kind) for split in splits]
     print(format_report(reports))
     bad = sum(len(r["errors"]) + len(r["flagged"]) for r in reports)
@@ -184,7 +242,7 @@ def doctor(root: Path, splits: list[str] | None = None, depth_kind: DepthKind = 
         Path(json).write_text(dumps(reports, indent=2) + "\n")
         where = f"report: {json}; "
     print(f"\n{where}{'no problems found' if not bad else f'{bad} problem(s)'}")
-    return 1 if bad else 0
+    return EXIT_PROBLEMS if bad else EXIT_CLEAN
 
 
 def doctor_main(argv: Sequence[str]) -> int:

@@ -1,9 +1,11 @@
 """User errors as short messages: what went wrong with which file, the fix, and a non-zero exit status.
 
 ``dapm-lightning`` runs every subcommand through :func:`run_reporting_errors`: bad paths, bad data
-(:class:`~dapm_lightning.data.errors.DatasetError`), unreadable checkpoints and bad settings end in two or
-three lines on stderr and exit status 1. The Python traceback is shown only with ``--debug`` (anywhere on
-the command line) or ``DAPM_DEBUG=1``.
+(:class:`~dapm_lightning.data.errors.DatasetError`), unreadable checkpoints, files that are not dapm-lightning
+checkpoints and bad settings end in two or three lines on stderr and exit status 1. The Python traceback is
+shown only with ``--debug`` (anywhere on the command line) or ``DAPM_DEBUG=1``. A command line the parser
+refuses (an unknown or abbreviated option, a value of the wrong type) ends in a few lines with the closest
+valid options and exit status 2 (:class:`~dapm_lightning.training.lightning_cli.DAPMArgumentParser`).
 """
 
 from __future__ import annotations
@@ -57,8 +59,8 @@ def describe(error: BaseException) -> tuple[str, bool]:
                 "transfer cannot be read) or pick another one, e.g. the run's last.ckpt."), True
     if isinstance(error, (ValueError, KeyError)) or name in ("ValueError", "DatasetError"):
         return message, True
-    if isinstance(error, (RuntimeError, ImportError, OSError)):
-        return f"{name}: {message}", True
+    if isinstance(error, (RuntimeError, ImportError, OSError)) or name == "MisconfigurationException":
+        return f"{name}: {message}", True  # Lightning's MisconfigurationException: settings it refuses
     return f"{name}: {message}\n(an unexpected error, possibly a bug: rerun with --debug and report the traceback)", \
         False
 

@@ -75,12 +75,8 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     data_root = (args.data_root or out / "data").resolve()
     overrides = out / "quickstart_overrides.yaml"
-    overrides.write_text(json.dumps({
-        "trainer": {"default_root_dir": str(out), "logger": [
-            {"class_path": "lightning.pytorch.loggers.TensorBoardLogger",
-             "init_args": {"save_dir": str(out), "name": "tensorboard"}},
-            {"class_path": "lightning.pytorch.loggers.CSVLogger", "init_args": {"save_dir": str(out), "name": "csv"}}]},
-        "data": {"init_args": {"root": str(data_root)}}}, indent=2))
+    overrides.write_text(json.dumps({  # the config's loggers have no save_dir: they follow default_root_dir
+        "trainer": {"default_root_dir": str(out)}, "data": {"init_args": {"root": str(data_root)}}}, indent=2))
     common = ["--config", str(args.config), "--config", str(overrides)]
     if args.train_size:
         common += ["--data.init_args.train_size", str(args.train_size)]

@@ -57,12 +57,18 @@ class DepthPanelLogger(L.Callback):
 
     Every ``every_n_steps`` training steps and on the first test batch, renders
     ``RGB | true depth | predicted depth | IGD of predicted pose | error``, sends it to the logger
-    (TensorBoard) and writes it under ``<output_dir or log_dir>/panels``.
+    (TensorBoard) and writes it under ``<output_dir or log_dir>/panels``. Without ``output_dir`` it belongs
+    to the logger's run (:attr:`needs_logger`): ``dapm-lightning`` leaves it out when there is no logger.
     """
 
     def __init__(self, every_n_steps: int = 500, max_images: int = 4, output_dir: str | None = None) -> None:
         self.every_n_steps, self.max_images, self.output_dir = every_n_steps, max_images, output_dir
         self.written: list[Path] = []
+
+    @property
+    def needs_logger(self) -> bool:
+        """True without ``output_dir``: the panels go to the logger and its log folder."""
+        return self.output_dir is None
 
     def _render(self, trainer: L.Trainer, pl_module: L.LightningModule, batch: dict[str, Any], tag: str) -> None:
         was_training = pl_module.training

@@ -2,21 +2,158 @@
 
 from __future__ import annotations
 
+import difflib
+import importlib
+import inspect
+import re
+import sys
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import lightning as L
-from lightning.pytorch.cli import LightningCLI, SaveConfigCallback
+import torch
+from lightning.pytorch.callbacks import DeviceStatsMonitor, LearningRateMonitor
+from lightning.pytorch.cli import LightningArgumentParser, LightningCLI, SaveConfigCallback
 from lightning.pytorch.utilities import rank_zero_info
 
 from dapm_lightning.data.datamodules import DAPMDataModule
 from dapm_lightning.models.config import DAPMConfig
-from dapm_lightning.training.checkpointing import SafeCheckpointIO, check_architecture, find_last_checkpoint
+from dapm_lightning.training.checkpointing import (
+    SafeCheckpointIO,
+    check_architecture,
+    check_dapm_checkpoint,
+    find_last_checkpoint,
+)
 from dapm_lightning.training.module import DAPMModule
 
 TRAINER_DEFAULTS = {"plugins": [{"class_path": "dapm_lightning.training.checkpointing.SafeCheckpointIO"}]}
 """Checkpoints load with ``weights_only=True`` and a clear error for damaged files."""
+
+SUBCOMMANDS = ("fit", "validate", "test", "predict")
+EVALUATION_SUBCOMMANDS = ("validate", "test", "predict")
+"""Subcommands that fall back to the CPU when the config asks for GPUs and there are none."""
+
+CPU_FALLBACK = {"accelerator": "cpu", "devices": 1, "strategy": "auto", "sync_batchnorm": False, "num_nodes": 1}
+"""The trainer settings validate/test/predict use instead of a GPU config's on a machine without a GPU."""
+
+EXIT_USAGE = 2
+"""Exit status of a command line the parser refuses (argparse's)."""
+
+_UNKNOWN = re.compile(r"unrecognized arguments: (?P<args>.*)")
+_GROUP_OPTION = re.compile(r"(?:Group|Subcommand) '(?P<group>[\w.]+)' does not accept (?:nested key|option) "
+                           r"'(?P<key>[\w.]+)'")
+_INIT_ARG = re.compile(r"Parser key \"(?P<key>[\w.]+)\":(?:.|\n)*?Problem with given class_path '(?P<class_path>[\w.]+)':"
+                       r"\s*(?:Option|Key) '(?P<name>\w+)' is not (?:accepted|expected)")
+
+
+class DAPMArgumentParser(LightningArgumentParser):
+    """LightningCLI's parser with short errors, no abbreviated options and loggers that follow the run's folder.
+
+    - A command line it refuses ends in a few lines: the error, the closest valid options for an unknown one
+      (``--trainer.max_stpes`` -> ``--trainer.max_steps``) and the ``--help`` to run; not the usage of every
+      option. Exit status 2.
+    - Abbreviations are refused (``allow_abbrev=False``): ``--trainer.max_step`` is not ``--trainer.max_steps``.
+    - A logger without ``save_dir`` (``TensorBoardLogger``, ``CSVLogger``) writes under
+      ``trainer.default_root_dir`` (the current directory when unset), whatever file or option set it.
+    """
+
+    requested_subcommand: str | None = None
+    """The subcommand on the command line (set by :class:`DAPMCLI`), for the ``--help`` an error points to."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        kwargs.setdefault("allow_abbrev", False)
+        super().__init__(*args, **kwargs)
+
+    def error(self, message: str, ex: Exception | None = None) -> NoReturn:  # type: ignore[override]
+        if not self.exit_on_error:  # a nested parse: the parser above reports it
+            super().error(message, ex)
+        parser = getattr(ex, "subcommand_parser", None) or self
+        subcommand = getattr(parser, "subcommand", None) or self.requested_subcommand
+        print(short_parse_error(message, option_strings(parser), subcommand), file=sys.stderr)
+        sys.exit(EXIT_USAGE)
+
+    def validate(self, *args: Any, **kwargs: Any) -> None:  # type: ignore[override]
+        namespace = args[0] if args else kwargs.get("namespace", kwargs.get("cfg"))
+        if namespace is not None:
+            loggers_follow_root_dir(namespace)
+        super().validate(*args, **kwargs)
+
+
+def option_strings(parser: Any) -> list[str]:
+    """Every ``--option`` a parser and its subcommands accept (a subclass' init args are not listed)."""
+    parsers = [parser]
+    subcommands = getattr(parser, "_subcommands_action", None)
+    parsers += list(getattr(subcommands, "_name_parser_map", {}).values())
+    return sorted({s for p in parsers for action in p._actions for s in action.option_strings if s.startswith("--")})
+
+
+def _init_options(class_path: str, key: str) -> list[str]:
+    """``--KEY.init_args.NAME`` for every parameter of the class ``class_path`` ([] when it cannot be imported)."""
+    module_name, _, name = class_path.rpartition(".")
+    try:
+        cls = getattr(importlib.import_module(module_name), name)
+    except (ImportError, AttributeError, ValueError):
+        return []
+    names: list[str] = []
+    for klass in (k for k in cls.__mro__ if "__init__" in vars(k)):  # **kwargs: the base class' parameters too
+        try:
+            parameters = inspect.signature(klass.__init__).parameters.values()
+        except (TypeError, ValueError):
+            break
+        names += [p.name for p in parameters if p.name != "self" and p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)]
+        if not any(p.kind == p.VAR_KEYWORD for p in parameters):
+            break
+    return [f"--{key}.init_args.{n}" for n in dict.fromkeys(names)]
+
+
+def closest(option: str, options: Sequence[str], count: int = 3) -> list[str]:
+    """The valid options nearest to ``option`` (difflib), those nearly as near as the nearest one only."""
+    scored = sorted(((difflib.SequenceMatcher(None, option, o).ratio(), o) for o in options), reverse=True)
+    best = scored[0][0] if scored else 0.0
+    return [o for ratio, o in scored[:count] if ratio >= max(0.6, best - 0.05)]
+
+
+def short_parse_error(message: str, options: Sequence[str], subcommand: str | None) -> str:
+    """``error: ...``, the closest valid options when one is unknown, and the ``--help`` to run."""
+    unknown: list[str] = []
+    options = list(options)
+    if match := _UNKNOWN.search(message):
+        unknown = [word.split("=", 1)[0] for word in match.group("args").split() if word.startswith("-")]
+        message = (f"unknown option{'s' if len(unknown) > 1 else ''} {', '.join(unknown)}" if unknown
+                   else f"unexpected argument(s): {match.group('args')}")
+    elif match := _GROUP_OPTION.search(message):
+        prefix = "" if message.startswith("Subcommand") else match.group("group") + "."
+        unknown = [f"--{prefix}{match.group('key')}"]
+        message = f"unknown setting {unknown[0][2:]} (in a config file or on the command line)"
+    elif match := _INIT_ARG.search(message):
+        key, class_path, name = match.group("key"), match.group("class_path"), match.group("name")
+        unknown = [f"--{key}.init_args.{name}"]
+        options = _init_options(class_path, key)
+        message = f"{key}: {class_path.rpartition('.')[2]} has no setting {name!r} ({unknown[0]})"
+    lines = [f"error: {message.strip()}"]
+    for option in unknown:
+        found = closest(option, options)
+        if found:
+            lines.append(f"  {option}: did you mean {', '.join(found)}?")
+    lines.append(f"see `dapm-lightning {subcommand or 'fit'} --help` for every option")
+    return "\n".join(lines)
+
+
+def loggers_follow_root_dir(config: Any) -> None:
+    """Set the ``save_dir`` of every logger that has none to ``trainer.default_root_dir`` (in place).
+
+    ``config`` is a subcommand's configuration or the whole one (with ``fit``, ``test``... branches).
+    """
+    for prefix in ("", *(f"{name}." for name in SUBCOMMANDS)):
+        trainer = config.get(prefix + "trainer") if hasattr(config, "get") else None
+        if trainer is None or not hasattr(trainer, "get"):
+            continue
+        root = trainer.get("default_root_dir") or "."
+        for logger in _as_list(trainer.get("logger")):
+            init_args = logger.get("init_args") if hasattr(logger, "get") else None
+            if init_args is not None and "save_dir" in init_args and init_args.get("save_dir") is None:
+                init_args["save_dir"] = str(root)
 
 
 class SaveConfigOfRun(SaveConfigCallback):
@@ -31,15 +168,40 @@ class SaveConfigOfRun(SaveConfigCallback):
             super().setup(trainer, pl_module, stage)
 
 
+def needs_logger(callback: Any) -> bool:
+    """Whether a callback fails or does nothing without a logger.
+
+    Lightning's ``LearningRateMonitor`` and ``DeviceStatsMonitor`` raise; a callback with a ``needs_logger``
+    attribute (``DepthPanelLogger`` without ``output_dir``) says so itself.
+    """
+    return isinstance(callback, (LearningRateMonitor, DeviceStatsMonitor)) or bool(getattr(callback, "needs_logger",
+                                                                                            False))
+
+
 class DAPMCLI(LightningCLI):
     """LightningCLI with DAPM's module and any :class:`DAPMDataModule` subclass (``--data.class_path``).
 
-    With ``--ckpt_path``, the checkpoint is read safely (``weights_only``; a damaged file is named).
-    ``validate``, ``test`` and ``predict`` then build the checkpoint's own model (its saved settings
-    override the configuration's). ``fit`` resumes only into the same architecture: what differs is
-    listed with the fix, instead of a shape error deep inside ``load_state_dict`` or a silent switch
-    to the checkpoint's settings.
+    With ``--ckpt_path``, the checkpoint is read safely (``weights_only``; a damaged file is named, and a file
+    that is not a dapm-lightning checkpoint is refused saying what it is). ``validate``, ``test`` and
+    ``predict`` then build the checkpoint's own model (its saved settings override the configuration's).
+    ``fit`` resumes only into the same architecture: what differs is listed with the fix, instead of a shape
+    error deep inside ``load_state_dict`` or a silent switch to the checkpoint's settings.
+
+    Also: short errors for a command line the parser refuses (:class:`DAPMArgumentParser`); ``validate``,
+    ``test`` and ``predict`` of a GPU config run on the CPU of a machine without a GPU (``fit`` refuses,
+    naming the settings); without a logger (``--trainer.logger false``) the callbacks that need one are left
+    out, each run says which.
     """
+
+    def __init__(self, *args: Any, parser_class: type[LightningArgumentParser] = DAPMArgumentParser,
+                 **kwargs: Any) -> None:
+        super().__init__(*args, parser_class=parser_class, **kwargs)
+
+    def parse_arguments(self, parser: LightningArgumentParser, args: Any) -> None:
+        words = list(sys.argv[1:] if args is None else args) if not isinstance(args, dict) else []
+        if isinstance(parser, DAPMArgumentParser):
+            parser.requested_subcommand = next((w for w in words if w in SUBCOMMANDS), None)
+        super().parse_arguments(parser, args)
 
     def _parse_ckpt_path(self) -> None:
         subcommand = self.config.get("subcommand")
@@ -48,12 +210,50 @@ class DAPMCLI(LightningCLI):
             ckpt_path = self._resolve_last(self.config[subcommand])
         if ckpt_path and Path(ckpt_path).is_file():
             checkpoint = SafeCheckpointIO().load_checkpoint(ckpt_path, map_location="cpu")  # names a damaged file
+            check_dapm_checkpoint(checkpoint, ckpt_path)  # another model's, a bare state dict: what it is, the fix
             saved = checkpoint.get("hyper_parameters", {}).get("net")
             net = self.config[subcommand].get("model", {}).get("net")
             if subcommand == "fit" and saved is not None and net is not None:
                 current = DAPMConfig.from_dict(net.as_dict() if hasattr(net, "as_dict") else dict(net))
                 check_architecture(saved, current, str(ckpt_path))
         super()._parse_ckpt_path()
+
+    def before_instantiate_classes(self) -> None:
+        subcommand = self.config.get("subcommand")
+        trainer = self.config[subcommand].get("trainer") if subcommand else self.config.get("trainer")
+        if trainer is not None:
+            self._gpu_config_without_gpu(trainer, subcommand)
+
+    @staticmethod
+    def _gpu_config_without_gpu(trainer: Any, subcommand: str | None) -> None:
+        """validate/test/predict of a GPU config on a machine without one: the CPU, with a note; fit: an error."""
+        accelerator = trainer.get("accelerator")
+        if not (isinstance(accelerator, str) and accelerator.lower() in ("gpu", "cuda")) or torch.cuda.is_available():
+            return
+        asked = ", ".join(f"{key} {trainer.get(key)}" for key in ("accelerator", "devices", "num_nodes", "strategy")
+                          if trainer.get(key) is not None)
+        if subcommand not in EVALUATION_SUBCOMMANDS:
+            raise ValueError(f"trainer.accelerator: {accelerator}, but this machine has no GPU "
+                             "(torch.cuda.is_available() is False).\nFix: train on a GPU machine, or on the CPU with "
+                             "--trainer.accelerator cpu --trainer.devices 1 --trainer.strategy auto "
+                             "--trainer.sync_batchnorm false")
+        for key, value in CPU_FALLBACK.items():
+            trainer[key] = value
+        precision = str(trainer.get("precision"))
+        if precision.startswith("16"):  # half precision is a GPU setting; bf16 and 32 run on the CPU
+            trainer["precision"] = "32-true"
+        rank_zero_info(f"note: no GPU on this machine: {subcommand} runs on the CPU, one process (the config asked "
+                       f"for {asked})")
+
+    def instantiate_trainer(self, **kwargs: Any) -> L.Trainer:
+        trainer = super().instantiate_trainer(**kwargs)
+        if not trainer.loggers:
+            dropped = [callback for callback in trainer.callbacks if needs_logger(callback)]
+            if dropped:
+                trainer.callbacks = [callback for callback in trainer.callbacks if callback not in dropped]
+                names = ", ".join(type(callback).__name__ for callback in dropped)
+                rank_zero_info(f"note: no logger (trainer.logger false): left out {names}, which need one")
+        return trainer
 
     @staticmethod
     def _resolve_last(config: Any) -> str:

@@ -41,3 +41,15 @@ def test_public_names_of_the_design_contract():
     )
     from dapm_lightning.metrics import DepthMetrics, PoseMetrics  # noqa: F401
     assert POSE_RANGES["pitch"] == (-100.0, 10.0)
+
+
+def test_unknown_backbone_names_the_setting_and_the_closest_models():
+    from dapm_lightning.models.config import DAPMConfig
+
+    expected = r"model\.net\.backbone: unknown timm model 'resnet5O' \(closest: resnet50\b.*\); list them with"
+    with pytest.raises(ValueError, match=expected):
+        DAPMConfig(backbone="resnet5O")  # refused when the settings are built, before any network or data
+    with pytest.raises(ValueError, match="unknown timm model 'resnet5O'"):
+        Encoder("resnet5O")
+    DAPMConfig(backbone="resnet18.a1_in1k")  # a pretrained tag is a timm model
+    DAPMConfig(backbone="hf-hub:timm/resnet18.a1_in1k")  # hub sources are left to timm.create_model

@@ -16,7 +16,7 @@ import yaml
 
 from dapm_lightning.data import DatasetError, UAPDDataset
 from dapm_lightning.data.synthetic import generate_uapd
-from dapm_lightning.training.checkpointing import SafeCheckpointIO
+from dapm_lightning.training.checkpointing import EXIT_SIGTERM, SafeCheckpointIO
 from dapm_lightning.training.lightning_cli import run_lightning_cli
 
 HERE = Path(__file__).resolve().parent
@@ -87,6 +87,7 @@ def test_killed_and_terminated_runs_resume_to_the_uninterrupted_weights(data8, t
     terminated.send_signal(signal.SIGTERM)
     code, out = finish(terminated)
     assert "Received SIGTERM" in out and (tmp_path / "termed" / "last.ckpt").is_file(), out[-2000:]
+    assert code == EXIT_SIGTERM == 143, out[-2000:]  # pre-empted, not finished: a job script can requeue
     saved = torch.load(tmp_path / "termed" / "last.ckpt", weights_only=True)
     assert saved["global_step"] == 5
 
@@ -212,6 +213,7 @@ def test_two_process_ddp_resumes_mid_epoch_exactly(data16, tmp_path):
     code, out = finish(terminated, timeout=400)
     saved = torch.load(tmp_path / "termed" / "last.ckpt", weights_only=True)
     assert saved["global_step"] == 3, out[-3000:]
+    assert code == EXIT_SIGTERM, out[-3000:]
     position = next(v for k, v in saved.items() if k.endswith("DataModule"))
     assert position == {"epoch": 0, "samples_seen": 3 * 2 * 2}  # global: 3 batches of 2 on each of 2 processes
 
