@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from typing import Any, Literal
 
 from torch.utils.data import DataLoader, Dataset
@@ -81,6 +82,10 @@ class PredictDataModule(DAPMDataModule):
         return dataset
 
     def predict_dataloader(self) -> DataLoader[dict[str, Any]]:
+        # Lightning's notes on custom batch samplers and on iterable data sets concern writers that need batch
+        # indices; PredictionWriter names its files from the samples, and the size batches return every image
+        warnings.filterwarnings("ignore", message="You are using a custom batch sampler `SizeBatchSampler`")
+        warnings.filterwarnings("ignore", message="Couldn't infer the batch indices fetched from your dataloader")
         dataset = self.dataset()
         if isinstance(dataset, ImageFilesDataset):
             world_size, rank = self._processes()

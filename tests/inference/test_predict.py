@@ -116,7 +116,7 @@ def test_cli_predict_writes_every_output(checkpoint, image_folder, tmp_path, mon
     out = tmp_path / "pred"
     cli = run_lightning_cli(["predict", "--config", str(CONFIGS / "predict.yaml"), "--ckpt_path", str(checkpoint),
                              "--data.init_args.source", str(image_folder), "--data.init_args.image_width", "64",
-                             "--data.init_args.batch_size", "1", "--data.init_args.num_workers", "0",
+                             "--data.init_args.batch_size", "4", "--data.init_args.num_workers", "0",
                              "--trainer.callbacks.output_dir", str(out), "--trainer.callbacks.points_stride", "3"])
     assert cli.trainer.predict_loop.predictions == []  # return_predictions off: nothing kept in memory
     poses = json.loads((out / "poses.json").read_text())
