@@ -22,6 +22,7 @@ from torch import Tensor
 from dapm_lightning.geometry.constants import POSE_KEYS
 from dapm_lightning.geometry.igd import IGDSpec
 from dapm_lightning.inference.postprocess import pose_field
+from dapm_lightning.inference.telemetry import PoseTelemetry
 from dapm_lightning.models.prior import PosePrior, fuse_pose
 
 PriorMode = Literal["condition", "scale", "both"]
@@ -43,8 +44,8 @@ def as_prior(values: Sequence[Any], sigma: Sequence[float] | Tensor = (0.0, 0.0,
     for k, value in enumerate(values):
         if value is None:
             continue
-        if hasattr(value, "values") and callable(value.values) and not isinstance(value, Mapping):
-            rows[k] = np.asarray(value.values(), dtype=np.float64)
+        if isinstance(value, PoseTelemetry):
+            rows[k] = value.values()
         elif isinstance(value, Mapping):
             unknown = set(value) - set(POSE_KEYS) - {pose_field(key) for key in POSE_KEYS}
             if unknown:
@@ -54,7 +55,7 @@ def as_prior(values: Sequence[Any], sigma: Sequence[float] | Tensor = (0.0, 0.0,
                 got = value.get(key, value.get(pose_field(key)))
                 rows[k, i] = np.nan if got is None else float(got)
         else:
-            row = np.asarray(value, dtype=np.float64).reshape(-1)
+            row = np.asarray(value.cpu() if isinstance(value, Tensor) else value, dtype=np.float64).reshape(-1)
             if row.shape != (4,):
                 raise ValueError(f"pose prior {k}: expected 4 values (height m, pitch, roll, fov deg), got {row.shape}")
             rows[k] = row

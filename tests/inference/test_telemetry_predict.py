@@ -106,6 +106,10 @@ def test_python_api_priors_as_dicts_arrays_and_modes(checkpoint):
         assert set(several[1].pose_source.values()) == {"network"} and several[1].pose == several[1].pose_network
     with pytest.raises(ValueError, match="unknown key"):
         as_prior([{"altitude": 3.0}])
+    from dapm_lightning.inference.telemetry import PoseTelemetry
+
+    rows = as_prior([PoseTelemetry(height_m=30.0), torch.tensor([NAN, -50.0, NAN, NAN]), None]).value
+    assert rows[0, 0] == 30.0 and rows[1, 1] == -50.0 and rows[2].isnan().all() and rows[0, 1:].isnan().all()
     with pytest.raises(ValueError, match="telemetry_mode"):
         DAPMPredictor.from_checkpoint(checkpoint, telemetry_mode="guess")
 
