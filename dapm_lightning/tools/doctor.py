@@ -15,7 +15,8 @@ from __future__ import annotations
 
 import math
 import sys
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from json import dumps
 from pathlib import Path
 from typing import Any
@@ -39,46 +40,71 @@ BEYOND_LEVELS = 1
 """A pixel lies beyond the ground of a pose when it is deeper than the pose's IGD by more than one grey level
 (more than the 8-bit rounding). Nothing is seen through the ground: such pixels contradict the pose."""
 FLAG_MARGIN = 0.1
-"""An alternative pose must make this share of the non-sky pixels more agree than the annotated pose, counted
-only where the two can be told apart (their IGDs differ by more than both tolerance windows: no pixel can
-agree with both), so a near-identical alternative (pitch close to roll, a FoV close to the annotated one)
-never wins by the objects that happen to lie near its ground."""
+"""An alternative pose is preferred when its evidence reaches this share of the non-sky pixels. Evidence is
+counted only where the two poses can be told apart (their IGDs differ by more than AGREE_LEVELS there): the
+pixels that agree with the alternative less those that agree with the annotated pose, plus the pixels beyond
+the annotated pose's ground less those beyond the alternative's. A near-identical alternative (pitch close
+to roll, a FoV close to the annotated one) thus never wins by objects that happen to lie near its ground."""
 MIN_GROUND_PIXELS = 32
-"""... and at least this many pixels (at the checked resolution), however small the image or its ground."""
+"""The evidence, and the pixels of flat ground the alternative explains beyond the annotated pose, must also
+reach this many pixels (at the checked resolution), however small the image or its visible ground."""
 MIN_AGREEMENT = 0.02
 """Below this share (or MIN_GROUND_PIXELS) no pose makes flat ground visible (e.g. a street canyon): such a
 sample is listed as unchecked."""
 CHECK_WIDTH = 128
 """Depth maps are checked at this width at most (nearest-neighbour downsampling keeps grey levels)."""
-FOV_STEP = 2.5
+FOV_STEP = 5.0
 """The FoVs tried as alternatives: the UAPD range in steps of this many degrees."""
+FOV_CROP = 0.5
+"""The FoV is judged on the central part of the image, this share of its width and height: radial lens
+distortion (which UAPD randomises, and no file name records) grows with the distance from the centre."""
+LENS_K_MAX, LENS_KCUBE_MAX = 0.5, 0.2
+"""UAPD's lens distortion range (|k|, |kcube|): a pixel at radius r (in half-diagonals) shows the pinhole
+camera's r (1 + k r^2 + kcube r^3). Inside FOV_CROP this rescales radii by at most 15 %, so only FoVs whose
+focal length differs from the annotated one by more than that are tried."""
 
 
 def alternatives(pose: np.ndarray) -> dict[str, np.ndarray]:
-    """Plausible annotation mistakes to test against: roll sign, pitch sign, swapped pitch/roll, another FoV."""
+    """Plausible annotation mistakes to test against, on the whole image: roll sign, pitch sign, swapped pitch/roll."""
     height, pitch, roll, fov = pose
-    alts = {"roll negated": np.array([height, pitch, -roll, fov]),
+    return {"roll negated": np.array([height, pitch, -roll, fov]),
             "pitch negated": np.array([height, -pitch, roll, fov]),
             "pitch and roll swapped": np.array([height, roll, pitch, fov])}
+
+
+def fov_alternatives(pose: np.ndarray) -> dict[str, np.ndarray]:
+    """Other FoVs to test against, on the image's centre.
+
+    The UAPD range in FOV_STEP steps, less the FoVs whose focal length is within the lens distortion's reach
+    (LENS_K_MAX, LENS_KCUBE_MAX) of the annotated one.
+    """
+    height, pitch, roll, fov = pose
     lo, hi = POSE_RANGES["fov"]
+    reach = 1.0 + LENS_K_MAX * (FOV_CROP ** 2) + LENS_KCUBE_MAX * (FOV_CROP ** 3)
+    alts = {}
     for other in np.arange(lo, hi + FOV_STEP / 2, FOV_STEP):
-        alts[f"FoV {other:g}"] = np.array([height, pitch, roll, other])
+        scale = math.tan(math.radians(other) / 2) / math.tan(math.radians(min(max(fov, 1.0), 179.0)) / 2)
+        if not 1.0 / reach <= scale <= reach:
+            alts[f"FoV {other:g}"] = np.array([height, pitch, roll, other])
     return alts
 
 
-def ground_evidence(depth_grey: np.ndarray, poses: np.ndarray,
-                    depth_kind: DepthKind) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def crop_fov(fov: np.ndarray | float, width: int, crop_width: int) -> np.ndarray:
+    """The FoV across a centred crop ``crop_width`` wide of an image ``width`` wide (same focal length)."""
+    return np.degrees(2.0 * np.arctan(np.tan(np.radians(fov) / 2.0) * crop_width / width))
+
+
+def ground_evidence(depth_grey: np.ndarray, igd: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per pose, the grey level of its IGD, the pixels that agree with that ground, those that lie beyond it.
 
     Args:
-        depth_grey: ``[H, W]`` uint8, the data set's encoding. poses: ``[K, 4]``.
+        depth_grey: ``[H, W]`` uint8, the data set's encoding. igd: ``[K, H, W]`` metres, the IGD of K poses.
 
     Returns:
         ``(igd_grey [K, H, W] int16, agree [K, H, W] bool, beyond [K, H, W] bool)``: ``agree`` counts non-sky
         pixels only; ``beyond`` includes sky (seen where the pose has ground nearer than MAX_DEPTH_M).
     """
-    igd = ideal_ground_depth(torch.from_numpy(poses).double(), depth_grey.shape, depth_kind=depth_kind)[:, 0]
-    igd_grey = depth_to_grey(igd.numpy()).astype(np.int16)
+    igd_grey = depth_to_grey(igd).astype(np.int16)
     above = depth_grey.astype(np.int16)[None] - igd_grey  # > 0: deeper than the ground of the pose
     ground = igd_grey < SKY_GREY  # the pose has ground nearer than MAX_DEPTH_M there
     agree = (np.abs(above) <= AGREE_LEVELS) & ground & (depth_grey < SKY_GREY)[None]
@@ -86,10 +112,35 @@ def ground_evidence(depth_grey: np.ndarray, poses: np.ndarray,
     return igd_grey, agree, beyond
 
 
-def lower_median_ratio(depth_m: np.ndarray, pose: np.ndarray, depth_kind: DepthKind) -> float:
-    """Median depth/IGD ratio of the pose on the non-sky pixels of the lower half of the image (NaN without any)."""
-    igd = ideal_ground_depth(torch.from_numpy(pose[None]).double(), depth_m.shape, depth_kind=depth_kind)[0, 0]
-    igd = igd.numpy()
+def compare_poses(depth_grey: np.ndarray, poses: np.ndarray, depth_kind: DepthKind, *,
+                  contradicted: bool = False) -> dict[str, Any]:
+    """The annotated pose ``poses[0]`` against each alternative ``poses[1:]`` on one depth map.
+
+    Args:
+        contradicted: prefer an alternative only where the depth contradicts the annotated pose more than the
+            alternative (more pixels lie beyond its ground), as for the FoV: see :func:`check_sample`.
+
+    Returns:
+        ``igd`` (``[H, W]`` metres, of the annotated pose), ``seen`` (non-sky pixels), ``agree`` and ``beyond``
+        (``[K]`` pixel counts), ``evidence`` and ``preferred`` (``[K - 1]``: for each alternative, see
+        :func:`check_sample`).
+    """
+    igd = ideal_ground_depth(torch.from_numpy(poses).double(), depth_grey.shape, depth_kind=depth_kind)[:, 0].numpy()
+    igd_grey, agree, beyond = ground_evidence(depth_grey, igd)
+    seen = max(int((depth_grey < SKY_GREY).sum()), 1)
+    n_agree, n_beyond = agree.sum((1, 2)), beyond.sum((1, 2))
+    apart = np.abs(igd_grey[1:] - igd_grey[:1]) > AGREE_LEVELS  # where the data can tell the two grounds apart
+    gained = (agree[1:] & apart).sum((1, 2)) - (agree[:1] & apart).sum((1, 2))
+    cleared = (beyond[:1] & apart).sum((1, 2)) - (beyond[1:] & apart).sum((1, 2))
+    evidence = gained + cleared
+    preferred = ((gained >= MIN_GROUND_PIXELS) & (evidence >= max(FLAG_MARGIN * seen, MIN_GROUND_PIXELS))
+                 & (n_beyond[1:] < n_beyond[0] if contradicted else n_beyond[1:] <= n_beyond[0]))
+    return {"igd": igd[0], "seen": seen, "pixels": depth_grey.size, "agree": n_agree, "beyond": n_beyond,
+            "evidence": evidence, "preferred": preferred}
+
+
+def lower_median_ratio(depth_m: np.ndarray, igd: np.ndarray) -> float:
+    """Median depth/IGD ratio on the pixels of the lower half of the image where both are below MAX_DEPTH_M."""
     usable = (depth_m < MAX_DEPTH_M) & (igd < MAX_DEPTH_M)
     usable[: depth_m.shape[0] // 2] = False
     return float(np.median(depth_m[usable] / np.maximum(igd[usable], 1e-6))) if usable.any() else math.nan
@@ -98,34 +149,58 @@ def lower_median_ratio(depth_m: np.ndarray, pose: np.ndarray, depth_kind: DepthK
 def check_sample(depth_grey: np.ndarray, pose: np.ndarray, depth_kind: DepthKind) -> dict[str, Any]:
     """Agreement of one sample with its pose and with each alternative; the flag and why.
 
-    An alternative is preferred, and the sample flagged, only when (1) on the pixels where the two poses'
-    IGDs differ by more than ``2 * AGREE_LEVELS`` grey levels it agrees with at least
-    ``max(FLAG_MARGIN * non-sky pixels, MIN_GROUND_PIXELS)`` more pixels than the annotated pose, and (2) no more
-    pixels lie beyond its ground than beyond the annotated pose's: a raised surface (a forest canopy, roofs)
-    is fitted by a steeper or wider pose, whose ground the real ground then lies beyond.
+    An alternative is preferred, and the sample flagged, when (1) it explains at least MIN_GROUND_PIXELS more
+    pixels as flat ground, and its evidence (:data:`FLAG_MARGIN`) reaches ``max(FLAG_MARGIN * non-sky pixels,
+    MIN_GROUND_PIXELS)``, and (2) no more pixels lie beyond its ground than beyond the annotated pose's. (2) rules
+    out a pose that fits a raised surface (a forest canopy, roofs near the horizon) instead of the ground: the
+    real ground lies beyond it.
+
+    Roll, pitch and their swap are judged on the whole image. The FoV is judged on the image's centre
+    (:data:`FOV_CROP`), where lens distortion is small, and (3) only where the depth contradicts the annotated
+    FoV: of the many FoVs tried, one often fits a large flat roof in a band, but a raised surface never lies
+    beyond the ground, so on exact data a right pose is never contradicted. A FoV too wide for a nadir view,
+    whose ground then lies nowhere beyond the depth, goes unnoticed.
     """
     if depth_grey.shape[1] > CHECK_WIDTH:
         scale = CHECK_WIDTH / depth_grey.shape[1]
         depth_grey = cv2.resize(depth_grey, (CHECK_WIDTH, max(1, round(depth_grey.shape[0] * scale))),
                                 interpolation=cv2.INTER_NEAREST_EXACT)  # the pixel at each new pixel's centre
-    alts = alternatives(pose)
-    igd_grey, agree, beyond = ground_evidence(depth_grey, np.stack([pose, *alts.values()]), depth_kind)
-    seen = max(int((depth_grey < SKY_GREY).sum()), 1)
-    n_agree, n_beyond = agree.sum((1, 2)), beyond.sum((1, 2))
-    apart = np.abs(igd_grey[1:] - igd_grey[:1]) > 2 * AGREE_LEVELS  # no pixel can agree with both poses
-    gain = (agree[1:] & apart).sum((1, 2)) - (agree[:1] & apart).sum((1, 2))
-    needed = max(FLAG_MARGIN * seen, MIN_GROUND_PIXELS)
-    admissible = (gain >= needed) & (n_beyond[1:] <= n_beyond[0])
+    height, width = depth_grey.shape
+    alts, fov_alts = alternatives(pose), fov_alternatives(pose)
+    whole = compare_poses(depth_grey, np.stack([pose, *alts.values()]), depth_kind)
+    top, left = round(height * (1 - FOV_CROP) / 2), round(width * (1 - FOV_CROP) / 2)
+    centre_grey = depth_grey[top:height - top, left:width - left]  # centred: the principal point stays
+    centre_poses = np.stack([pose, *fov_alts.values()])
+    centre_poses[:, 3] = crop_fov(centre_poses[:, 3], width, centre_grey.shape[1])
+    centre = compare_poses(centre_grey, centre_poses, depth_kind, contradicted=True)
+    candidates = [(whole["evidence"][k] / whole["seen"], name, whole, k) for k, name in enumerate(alts)
+                  if whole["preferred"][k]]
+    candidates += [(centre["evidence"][k] / centre["seen"], name, centre, k) for k, name in enumerate(fov_alts)
+                   if centre["preferred"][k]]
     reason = None
-    if admissible.any():
-        k = int(np.argmax(np.where(admissible, gain, -1)))
-        reason = (f"{list(alts)[k]} fits the depth better ({n_agree[k + 1] / seen:.2f} vs {n_agree[0] / seen:.2f} "
-                  f"of pixels agree; {n_beyond[0] / depth_grey.size:.2f} vs {n_beyond[k + 1] / depth_grey.size:.2f} "
-                  "lie beyond its ground)")
+    if candidates:
+        _, name, on, k = max(candidates, key=lambda c: c[0])
+        where = " of the image's centre" if on is centre else ""
+        reason = (f"{name} fits the depth better ({on['agree'][k + 1] / on['seen']:.2f} vs "
+                  f"{on['agree'][0] / on['seen']:.2f} of the non-sky pixels{where} agree; "
+                  f"{on['beyond'][k + 1] / on['pixels']:.2f} vs {on['beyond'][0] / on['pixels']:.2f} of all pixels"
+                  f"{where} lie beyond the ground)")
     depth = grey_to_depth(depth_grey).astype(np.float64)
-    return {"agreement": float(n_agree[0] / seen), "beyond": float(n_beyond[0] / depth_grey.size),
-            "lower_median_ratio": lower_median_ratio(depth, pose, depth_kind), "flag": reason,
-            "unchecked": bool(n_agree.max() < max(MIN_AGREEMENT * seen, MIN_GROUND_PIXELS))}
+    visible = any(c["agree"].max() >= max(MIN_AGREEMENT * c["seen"], MIN_GROUND_PIXELS) for c in (whole, centre))
+    return {"agreement": float(whole["agree"][0] / whole["seen"]),
+            "beyond": float(whole["beyond"][0] / whole["pixels"]),
+            "lower_median_ratio": lower_median_ratio(depth, whole["igd"]), "flag": reason, "unchecked": not visible}
+
+
+@contextmanager
+def one_torch_thread() -> Iterator[None]:
+    """Torch on one thread meanwhile: the checks are small tensors, which threads slow down (a lot on a busy CPU)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(threads)
 
 
 def diagnose_split(root: Path, split: str, depth_kind: DepthKind) -> dict[str, Any]:
@@ -146,25 +221,26 @@ def diagnose_split(root: Path, split: str, depth_kind: DepthKind) -> dict[str, A
                            "outside_range": int(((values < lo) | (values > hi)).sum())}
     sky_fractions, agreements, ratios, flagged, unchecked = [], [], [], [], []
     depth_min, depth_max = math.inf, 0.0
-    for index, name in enumerate(dataset.names):
-        path = root / split / dataset.depth_dir / name
-        try:
-            grey = read_depth_grey(path)
-        except ValueError as error:
-            errors.append(str(error))
-            continue
-        sky = grey == SKY_GREY
-        sky_fractions.append(float(sky.mean()))
-        if (~sky).any():
-            seen = grey_to_depth(grey[~sky])
-            depth_min, depth_max = min(depth_min, float(seen.min())), max(depth_max, float(seen.max()))
-        result = check_sample(grey, poses[index], depth_kind)
-        agreements.append(result["agreement"])
-        ratios.append(result["lower_median_ratio"])
-        if result["flag"]:
-            flagged.append({"name": name, "reason": result["flag"]})
-        elif result["unchecked"]:
-            unchecked.append(name)
+    with one_torch_thread():
+        for index, name in enumerate(dataset.names):
+            path = root / split / dataset.depth_dir / name
+            try:
+                grey = read_depth_grey(path)
+            except ValueError as error:
+                errors.append(str(error))
+                continue
+            sky = grey == SKY_GREY
+            sky_fractions.append(float(sky.mean()))
+            if (~sky).any():
+                seen = grey_to_depth(grey[~sky])
+                depth_min, depth_max = min(depth_min, float(seen.min())), max(depth_max, float(seen.max()))
+            result = check_sample(grey, poses[index], depth_kind)
+            agreements.append(result["agreement"])
+            ratios.append(result["lower_median_ratio"])
+            if result["flag"]:
+                flagged.append({"name": name, "reason": result["flag"]})
+            elif result["unchecked"]:
+                unchecked.append(name)
     return {"split": split, "count": len(dataset), "errors": errors, "flagged": flagged, "unchecked": unchecked,
             "pose": pose_stats,
             "depth_m": {"min": depth_min if sky_fractions else None, "max": depth_max},
@@ -191,8 +267,8 @@ def format_report(reports: list[dict[str, Any]]) -> str:
                              f"mean sky fraction {r['sky_fraction']['mean']:.3f}")
             if agree["median"] is not None:
                 lines.append(f"   flat-ground agreement ({r['depth_kind']} IGD of each file's pose): median "
-                             f"{agree['median']:.3f} of non-sky pixels within 5 %; lower-half depth/IGD "
-                             f"median ratio {agree['lower_half_median_ratio']:.3f}")
+                             f"{agree['median']:.3f} of non-sky pixels within 2 grey levels (5 %); lower-half "
+                             f"depth/IGD median ratio {agree['lower_half_median_ratio']:.3f}")
         lines += [f"   ERROR   {e}" for e in r["errors"]]
         lines += [f"   FLAGGED {f['name']}: {f['reason']}" for f in r["flagged"]]
         if r.get("unchecked"):

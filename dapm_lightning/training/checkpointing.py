@@ -13,7 +13,7 @@ import math
 import random
 import re
 import signal
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -42,7 +42,7 @@ class SafeCheckpointIO(TorchCheckpointIO):
     default (no arbitrary pickled code) and names the file when it cannot read it.
     """
 
-    def load_checkpoint(self, path: Any, map_location: Callable[..., Any] | None = lambda storage, loc: storage,
+    def load_checkpoint(self, path: Any, map_location: Any = lambda storage, loc: storage,
                         weights_only: bool | None = None) -> dict[str, Any]:
         try:
             return super().load_checkpoint(path, map_location=map_location,

@@ -43,7 +43,8 @@ EXIT_USAGE = 2
 _UNKNOWN = re.compile(r"unrecognized arguments: (?P<args>.*)")
 _GROUP_OPTION = re.compile(r"(?:Group|Subcommand) '(?P<group>[\w.]+)' does not accept (?:nested key|option) "
                            r"'(?P<key>[\w.]+)'")
-_INIT_ARG = re.compile(r"Parser key \"(?P<key>[\w.]+)\":(?:.|\n)*?Problem with given class_path '(?P<class_path>[\w.]+)':"
+_INIT_ARG = re.compile(r"Parser key \"(?P<key>[\w.]+)\":(?:.|\n)*?"
+                       r"Problem with given class_path '(?P<class_path>[\w.]+)':"
                        r"\s*(?:Option|Key) '(?P<name>\w+)' is not (?:accepted|expected)")
 
 
@@ -65,7 +66,7 @@ class DAPMArgumentParser(LightningArgumentParser):
         kwargs.setdefault("allow_abbrev", False)
         super().__init__(*args, **kwargs)
 
-    def error(self, message: str, ex: Exception | None = None) -> NoReturn:  # type: ignore[override]
+    def error(self, message: str, ex: Exception | None = None) -> NoReturn:
         if not self.exit_on_error:  # a nested parse: the parser above reports it
             super().error(message, ex)
         parser = getattr(ex, "subcommand_parser", None) or self
@@ -73,7 +74,7 @@ class DAPMArgumentParser(LightningArgumentParser):
         print(short_parse_error(message, option_strings(parser), subcommand), file=sys.stderr)
         sys.exit(EXIT_USAGE)
 
-    def validate(self, *args: Any, **kwargs: Any) -> None:  # type: ignore[override]
+    def validate(self, *args: Any, **kwargs: Any) -> None:
         namespace = args[0] if args else kwargs.get("namespace", kwargs.get("cfg"))
         if namespace is not None:
             loggers_follow_root_dir(namespace)
@@ -193,12 +194,12 @@ class DAPMCLI(LightningCLI):
     out, each run says which.
     """
 
-    def __init__(self, *args: Any, parser_class: type[LightningArgumentParser] = DAPMArgumentParser,
-                 **kwargs: Any) -> None:
-        super().__init__(*args, parser_class=parser_class, **kwargs)
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        kwargs.setdefault("parser_class", DAPMArgumentParser)
+        super().__init__(*args, **kwargs)
 
     def parse_arguments(self, parser: LightningArgumentParser, args: Any) -> None:
-        words = list(sys.argv[1:] if args is None else args) if not isinstance(args, dict) else []
+        words = sys.argv[1:] if args is None else list(args) if isinstance(args, (list, tuple)) else []
         if isinstance(parser, DAPMArgumentParser):
             parser.requested_subcommand = next((w for w in words if w in SUBCOMMANDS), None)
         super().parse_arguments(parser, args)

@@ -29,8 +29,8 @@ def test_callback_sets_share_and_eval_ignores_it(monkeypatch):
     assert module.igd_predicted_share == pytest.approx(0.25)
     seen = []
     real_forward = module.net.forward
-    monkeypatch.setattr(module.net, "forward", lambda image, forcing=None: seen.append(forcing)
-                        or real_forward(image, forcing))
+    monkeypatch.setattr(module.net, "forward", lambda image, forcing=None, prior=None: seen.append(forcing)
+                        or real_forward(image, forcing, prior))
     module.log_dict = lambda *a, **k: None
     batch = dict(image=torch.rand(2, 3, 32, 32), depth=torch.full((2, 1, 32, 32), 50.0),
                  sky=torch.zeros(2, 1, 32, 32, dtype=torch.bool), valid=torch.ones(2, 1, 32, 32, dtype=torch.bool),

@@ -5,10 +5,11 @@ import time
 from pathlib import Path
 
 import lightning as L
+import pytest
 import torch
 import yaml
 
-from dapm_lightning.training.checkpointing import LastCheckpoint, find_last_checkpoint
+from dapm_lightning.training.checkpointing import CheckpointOnSigterm, LastCheckpoint, find_last_checkpoint
 from dapm_lightning.training.lightning_cli import run_lightning_cli
 from tests.conftest import QUICKSTART
 
@@ -23,6 +24,37 @@ class Linear(L.LightningModule):
 
     def configure_optimizers(self):
         return torch.optim.SGD(self.parameters(), lr=0.1)
+
+
+class TermedAt(Linear):
+    """Marks SIGTERM as received at a training or validation step (what Lightning's signal handler does)."""
+
+    def __init__(self, train_step=None):
+        super().__init__()
+        self.train_step = train_step
+
+    def training_step(self, batch, batch_idx):
+        if self.global_step == self.train_step:
+            self.trainer._signal_connector.received_sigterm = True
+        return super().training_step(batch, batch_idx)
+
+    def validation_step(self, batch, batch_idx):
+        self.trainer._signal_connector.received_sigterm = True
+
+
+def test_sigterm_saves_last_in_training_only_and_exits_143(tmp_path):
+    loader = torch.utils.data.DataLoader(torch.utils.data.TensorDataset(torch.randn(12, 2)), batch_size=2)
+    kwargs = dict(logger=False, enable_progress_bar=False, enable_model_summary=False, default_root_dir=tmp_path)
+    trainer = L.Trainer(max_steps=5, callbacks=[CheckpointOnSigterm(), LastCheckpoint(dirpath=tmp_path / "fit")],
+                        **kwargs)
+    with pytest.raises(SystemExit) as info:
+        trainer.fit(TermedAt(train_step=2), loader)
+    assert info.value.code == 143  # Lightning's own exit status would be 0, as for a finished run
+    assert torch.load(tmp_path / "fit" / "last.ckpt", weights_only=True)["global_step"] == 3
+    trainer = L.Trainer(callbacks=[CheckpointOnSigterm(), LastCheckpoint(dirpath=tmp_path / "val")], **kwargs)
+    with pytest.raises(SystemExit) as info:
+        trainer.validate(TermedAt(), loader)
+    assert info.value.code == 143 and not (tmp_path / "val").exists()  # no training state to save
 
 
 def test_the_final_step_is_saved_between_two_periodic_saves(tmp_path):

@@ -1,0 +1,180 @@
+"""The command line's user errors and defaults: foreign checkpoints, unknown options, unknown backbones,
+no logger, GPU configs on a CPU machine, logs under default_root_dir."""
+
+from pathlib import Path
+
+import lightning as L
+import pytest
+import torch
+from lightning.pytorch.callbacks import LearningRateMonitor
+
+from dapm_lightning.cli import main
+from dapm_lightning.training import lightning_cli
+from dapm_lightning.training.callbacks import DepthPanelLogger
+from dapm_lightning.training.checkpointing import NotADAPMCheckpointError, load_dapm_module
+from dapm_lightning.training.lightning_cli import run_lightning_cli
+from dapm_lightning.training.module import DAPMModule
+from tests.conftest import CONFIGS, QUICKSTART
+
+PAPER = CONFIGS / "paper" / "uapd_dapm.yaml"
+UAPD = ["--data.class_path", "dapm_lightning.data.datamodules.UAPDDataModule", "--data.init_args.batch_size", "2",
+        "--data.init_args.num_workers", "0", "--trainer.enable_progress_bar", "false"]
+
+
+def run_main(args, capsys):
+    with pytest.raises(SystemExit) as info:
+        main(args)
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    return info.value.code, err
+
+
+class Linear(L.LightningModule):
+    def __init__(self, width: int = 3):
+        super().__init__()
+        self.save_hyperparameters()
+        self.layer = torch.nn.Linear(2, width)
+
+    def training_step(self, batch, batch_idx):
+        return self.layer(batch[0]).square().mean()
+
+    def configure_optimizers(self):
+        return torch.optim.SGD(self.parameters(), lr=0.1)
+
+
+@pytest.fixture(scope="module")
+def foreign(tmp_path_factory):
+    """Another Lightning model's checkpoint, a plain state dict and a DAPM network's bare state dict."""
+    folder = tmp_path_factory.mktemp("foreign")
+    trainer = L.Trainer(max_steps=1, logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                        enable_model_summary=False)
+    trainer.fit(Linear(), torch.utils.data.DataLoader(torch.utils.data.TensorDataset(torch.randn(4, 2)), batch_size=2))
+    trainer.save_checkpoint(folder / "other.ckpt")
+    torch.save(torch.nn.Linear(2, 1).state_dict(), folder / "plain.pth")
+    torch.save(DAPMModule().state_dict(), folder / "dapm_weights.pth")
+    return folder
+
+
+def test_load_dapm_module_builds_the_checkpoints_model(checkpoint):
+    module = load_dapm_module(checkpoint).eval()
+    reference = DAPMModule.load_from_checkpoint(checkpoint, weights_only=True).eval()
+    assert isinstance(module, DAPMModule) and module.net_config == reference.net_config
+    assert module.train_image_size == reference.train_image_size == (24, 40)
+    image = torch.rand(1, 3, 24, 40)
+    with torch.no_grad():
+        torch.testing.assert_close(module(image).depth_m, reference(image).depth_m, rtol=0, atol=0)
+    assert next(load_dapm_module(str(checkpoint), map_location=torch.device("cpu")).parameters()).device.type == "cpu"
+
+
+def test_load_dapm_module_says_what_a_foreign_file_is(foreign, checkpoint, tmp_path):
+    cases = {"other.ckpt": r"a Lightning checkpoint of another model: 2 weight tensor\(s\) such as 'layer.weight'",
+             "plain.pth": r"a plain PyTorch state dict, another model's weights \('weight', 'bias'\)",
+             "dapm_weights.pth": r"a plain PyTorch state dict, the weights of a DAPM network"}
+    for name, what in cases.items():
+        path = foreign / name
+        with pytest.raises(NotADAPMCheckpointError, match=rf"{path}: not a dapm-lightning checkpoint \({what}"):
+            load_dapm_module(path)
+        with pytest.raises(ValueError, match=r"\nFix: pass a checkpoint written by `dapm-lightning fit`"):
+            load_dapm_module(path)
+    damaged = tmp_path / "cut.ckpt"
+    damaged.write_bytes(checkpoint.read_bytes()[:4096])
+    with pytest.raises(RuntimeError, match="cut.ckpt: not a readable checkpoint"):
+        load_dapm_module(damaged)
+    with pytest.raises(FileNotFoundError, match="missing.ckpt"):
+        load_dapm_module(tmp_path / "missing.ckpt")
+
+
+@pytest.mark.parametrize("subcommand", ["fit", "validate", "test", "predict"])
+def test_ckpt_path_of_another_model_is_one_short_message(subcommand, foreign, tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    for name, what in (("other.ckpt", "a Lightning checkpoint of another model"),
+                       ("plain.pth", "a plain PyTorch state dict")):
+        path = foreign / name
+        code, err = run_main([subcommand, "--config", str(QUICKSTART), "--ckpt_path", str(path),
+                              "--trainer.logger", "false"], capsys)
+        assert code == 1 and f"{path}: not a dapm-lightning checkpoint ({what}" in err, err
+        assert "Fix: pass a checkpoint written by `dapm-lightning fit`" in err
+        assert len(err.splitlines()) <= 4 and "pytorch-lightning_version" not in err, err
+
+
+def test_unknown_options_are_a_few_lines_with_the_closest(capsys, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    code, err = run_main(["fit", "--config", str(QUICKSTART), "--trainer.max_stpes", "3"], capsys)
+    assert code == 2 and len(err.splitlines()) <= 4, err
+    assert "unknown option --trainer.max_stpes" in err and "did you mean --trainer.max_steps?" in err
+    assert "see `dapm-lightning fit --help`" in err
+    code, err = run_main(["test", "--config", str(QUICKSTART), "--data.init_args.batchsize", "3"], capsys)
+    assert code == 2 and len(err.splitlines()) <= 4, err
+    assert "did you mean --data.init_args.batch_size?" in err and "dapm-lightning test --help" in err
+    typo = tmp_path / "typo.yaml"
+    typo.write_text("trainer:\n  max_stpes: 3\n")
+    code, err = run_main(["fit", "--config", str(QUICKSTART), "--config", str(typo)], capsys)
+    assert code == 2 and "trainer.max_stpes" in err and "did you mean --trainer.max_steps?" in err, err
+
+
+@pytest.mark.parametrize("option", [["--trainer.max_step", "3"], ["--model.net.backbon", "resnet18"]])
+def test_abbreviated_options_are_refused(option, capsys, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    code, err = run_main(["fit", "--config", str(QUICKSTART), *option, "--print_config"], capsys)  # accepted: exit 0
+    assert code == 2 and f"unknown option {option[0]}" in err and f"did you mean {option[0]}" in err, err
+
+
+def test_unknown_backbone_names_the_setting(capsys, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    code, err = run_main(["fit", "--config", str(QUICKSTART), "--model.net.backbone", "resnet5O",
+                          "--data.init_args.root", str(tmp_path / "never_rendered")], capsys)
+    assert code == 1 and "model.net.backbone: unknown timm model 'resnet5O' (closest: resnet50" in err, err
+    assert "timm.list_models('resnet*')" in err and not (tmp_path / "never_rendered").exists()
+
+
+def test_without_a_logger_the_callbacks_that_need_one_are_left_out(tiny_uapd, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    notes = []
+    monkeypatch.setattr(lightning_cli, "rank_zero_info", notes.append)
+    cli = run_lightning_cli(["fit", "--config", str(QUICKSTART), *UAPD, "--data.init_args.root", str(tiny_uapd),
+                             "--trainer.logger", "false", "--trainer.max_steps", "1"])
+    assert cli.trainer.global_step == 1 and not cli.trainer.loggers
+    assert not [c for c in cli.trainer.callbacks if isinstance(c, (LearningRateMonitor, DepthPanelLogger))]
+    assert notes == ["note: no logger (trainer.logger false): left out DepthPanelLogger, LearningRateMonitor, which "
+                     "need one"]
+    with_logger = run_lightning_cli(["--config", str(QUICKSTART), *UAPD, "--data.init_args.root", str(tiny_uapd)],
+                                    run=False)
+    kept = [type(c) for c in with_logger.trainer.callbacks]
+    assert LearningRateMonitor in kept and DepthPanelLogger in kept
+    assert DepthPanelLogger(output_dir="panels").needs_logger is False
+
+
+def test_evaluation_of_a_gpu_config_falls_back_to_the_cpu_and_fit_refuses(checkpoint, tiny_uapd, tmp_path, capsys,
+                                                                         monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    notes = []
+    monkeypatch.setattr(lightning_cli, "rank_zero_info", notes.append)
+    common = ["--config", str(PAPER), *UAPD, "--data.init_args.root", str(tiny_uapd), "--data.init_args.pin_memory",
+              "false", "--data.init_args.persistent_workers", "false", "--trainer.logger", "false",
+              "--trainer.default_root_dir", str(tmp_path)]
+    cli = run_lightning_cli(["validate", *common, "--ckpt_path", str(checkpoint)])
+    trainer = cli.trainer
+    assert trainer.accelerator.__class__.__name__ == "CPUAccelerator" and trainer.world_size == 1
+    assert trainer.num_nodes == 1 and "val_loss" in trainer.callback_metrics
+    assert any(n.startswith("note: no GPU on this machine: validate runs on the CPU") and "devices 4" in n
+               for n in notes), notes
+    code, err = run_main(["fit", *common], capsys)
+    assert code == 1 and "trainer.accelerator: gpu, but this machine has no GPU" in err and "Fix:" in err, err
+
+
+def test_quickstart_logs_and_checkpoints_follow_default_root_dir(tiny_uapd, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    root = tmp_path / "D"
+    cli = run_lightning_cli(["fit", "--config", str(QUICKSTART), *UAPD, "--data.init_args.root", str(tiny_uapd),
+                             "--trainer.max_steps", "1", "--trainer.limit_val_batches", "1",
+                             "--trainer.default_root_dir", str(root)])
+    assert [Path(logger.save_dir) for logger in cli.trainer.loggers] == [root, root]
+    assert list((root / "tensorboard" / "version_0").glob("events.out.tfevents.*"))
+    assert (root / "csv" / "version_0" / "metrics.csv").is_file()
+    assert (root / "tensorboard" / "version_0" / "checkpoints" / "last.ckpt").is_file()
+    assert not (tmp_path / "outputs").exists()  # the config's own default_root_dir is not used
+    explicit = run_lightning_cli(["--config", str(QUICKSTART), *UAPD, "--data.init_args.root", str(tiny_uapd),
+                                  "--trainer.default_root_dir", str(root), "--trainer.logger+=CSVLogger",
+                                  "--trainer.logger.save_dir", str(tmp_path / "elsewhere")], run=False)
+    assert Path(explicit.trainer.loggers[-1].save_dir) == tmp_path / "elsewhere"  # an explicit save_dir is kept
