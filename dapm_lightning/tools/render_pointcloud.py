@@ -28,20 +28,11 @@ def view_box(xyz: np.ndarray, height: float) -> tuple[np.ndarray, np.ndarray, fl
     return centre - span / 2, centre + span / 2, span
 
 
-def render(image_rgb: np.ndarray, prediction: Any, out: str | Path, *, stride: int = 1,
-           max_depth: float | None = None, title: str | None = None) -> Path:
-    """Draw ``image_rgb`` (``[H, W, 3]`` uint8) and ``prediction``'s point cloud side by side into ``out``."""
-    from matplotlib.figure import Figure
-
+def draw_cloud(ax: Any, image_rgb: np.ndarray, prediction: Any, label: str, *, stride: int = 1,
+               max_depth: float | None = None) -> None:
+    """One prediction's coloured point cloud, the camera and its pose on a 3D matplotlib axis."""
     cloud = prediction.points(stride=stride, max_depth=max_depth, rgb=image_rgb)
     pose = prediction.pose
-    figure = Figure(figsize=(11, 4.6), dpi=110)
-    left = figure.add_subplot(1, 2, 1)
-    left.imshow(image_rgb)
-    title = title or "input image"
-    left.set_title(title if len(title) <= 48 else title[:45] + "...", fontsize=9)
-    left.axis("off")
-    ax = figure.add_subplot(1, 2, 2, projection="3d")
     height = pose["height"]
     box_low, box_high, span = view_box(cloud.xyz, height)
     inside = np.all((cloud.xyz[:, :2] >= box_low) & (cloud.xyz[:, :2] <= box_high), axis=1) & (
@@ -60,9 +51,32 @@ def render(image_rgb: np.ndarray, prediction: Any, out: str | Path, *, stride: i
     ax.set_xlabel("X (m, forward)")
     ax.set_ylabel("Y (m, left)")
     ax.set_zlabel("Z (m, up)")
-    ax.set_title(f"predicted metric point cloud ({len(xyz)} of {len(cloud.xyz)} points shown)\n"
+    ax.set_title(f"{label} ({len(xyz)} of {len(cloud.xyz)} points shown)\n"
                  f"height {height:.1f} m, pitch "
                  f"{pose['pitch']:.1f}, roll {pose['roll']:.1f}, FoV {pose['fov']:.1f} deg", fontsize=9)
+
+
+def render(image_rgb: np.ndarray, prediction: Any, out: str | Path, *, stride: int = 1,
+           max_depth: float | None = None, title: str | None = None, with_telemetry: Any = None) -> Path:
+    """Draw ``image_rgb`` (``[H, W, 3]`` uint8) and ``prediction``'s point cloud side by side into ``out``.
+
+    ``with_telemetry``: a second prediction of the same image, given telemetry, drawn as a third panel.
+    """
+    from matplotlib.figure import Figure
+
+    panels = 2 if with_telemetry is None else 3
+    figure = Figure(figsize=(5.5 * panels, 4.6), dpi=110)
+    left = figure.add_subplot(1, panels, 1)
+    left.imshow(image_rgb)
+    title = title or "input image"
+    left.set_title(title if len(title) <= 48 else title[:45] + "...", fontsize=9)
+    left.axis("off")
+    draw_cloud(figure.add_subplot(1, panels, 2, projection="3d"), image_rgb, prediction,
+               "predicted metric point cloud" if with_telemetry is None else "without telemetry",
+               stride=stride, max_depth=max_depth)
+    if with_telemetry is not None:
+        draw_cloud(figure.add_subplot(1, panels, 3, projection="3d"), image_rgb, with_telemetry,
+                   "with telemetry", stride=stride, max_depth=max_depth)
     figure.tight_layout()
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -71,7 +85,8 @@ def render(image_rgb: np.ndarray, prediction: Any, out: str | Path, *, stride: i
 
 
 def render_main(ckpt_path: Path, image: Path, out: Path = Path("pointcloud.png"), image_width: int | None = None,
-                stride: int = 1, max_depth: float | None = None, ply: Path | None = None) -> Path:
+                stride: int = 1, max_depth: float | None = None, ply: Path | None = None,
+                telemetry: list[float] | None = None) -> Path:
     """Predict one image and render its point cloud beside it.
 
     Args:
@@ -82,15 +97,20 @@ def render_main(ckpt_path: Path, image: Path, out: Path = Path("pointcloud.png")
         stride: keep every stride-th pixel in the point cloud.
         max_depth: leave out points farther than this (metres).
         ply: also write the point cloud to this PLY file.
+        telemetry: the image's known pose (height m, pitch, roll, fov deg; NaN where unknown): a third panel
+            shows the cloud predicted with it.
     """
     from dapm_lightning.inference.inputs import read_image
     from dapm_lightning.inference.predictor import DAPMPredictor
 
     rgb = read_image(Path(image))
-    prediction = DAPMPredictor.from_checkpoint(ckpt_path, image_width=image_width)(rgb)
+    predictor = DAPMPredictor.from_checkpoint(ckpt_path, image_width=image_width)
+    prediction = predictor(rgb)
+    given = predictor(rgb, prior=np.asarray(telemetry, dtype=np.float64)) if telemetry is not None else None
     if ply is not None:
         prediction.points(stride, max_depth, rgb).write_ply(ply)
-    written = render(rgb, prediction, out, stride=stride, max_depth=max_depth, title=Path(image).name)
+    written = render(rgb, prediction, out, stride=stride, max_depth=max_depth, title=Path(image).name,
+                     with_telemetry=given)
     print(f"wrote {written}")
     return written
 

@@ -30,3 +30,16 @@ def test_view_box_frames_the_scene_not_its_far_outliers():
     assert 50 < span < 70  # the scene's 50 m extent plus the camera at the origin, not the 900 m outlier
     assert np.all(low <= [0.0, 0.0]) and np.all(high >= [0.0, 0.0])  # the camera is in view
     assert view_box(scene[:3], height=80.0)[2] == 80.0  # a high camera sets the side
+
+
+def test_render_with_and_without_telemetry_from_a_checkpoint(checkpoint, tmp_path):
+    import cv2
+
+    from dapm_lightning.tools.render_pointcloud import render_main
+
+    image = tmp_path / "frame.png"
+    cv2.imwrite(str(image), np.random.default_rng(1).integers(0, 255, (48, 64, 3), np.uint8))
+    one = render_main(checkpoint, image, tmp_path / "one.png")
+    two = render_main(checkpoint, image, tmp_path / "two.png", telemetry=[40.0, -35.0, 0.0, 70.0])
+    width = lambda path: cv2.imread(str(path)).shape[1]  # noqa: E731
+    assert width(two) > 1.4 * width(one)  # a third panel: the cloud with telemetry
