@@ -27,7 +27,7 @@ from dapm_lightning.data.uapd import IMAGE_SUFFIXES
 
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg", ".wmv")
 SIZE_MULTIPLE = 32
-"""Network input heights and widths are multiples of this (the encoder's total stride)."""
+"""The encoder's total stride: the shortest network input side, and what exported ONNX sizes are multiples of."""
 DEFAULT_NETWORK_SIZE = (512, 512)
 """The network size for checkpoints that do not record their training size (the paper's 512 x 512)."""
 MAX_UPSCALE = 4.0
@@ -62,23 +62,24 @@ def to_rgb8(image: np.ndarray, source: str = "image", *, bgr: bool = True) -> np
     raise ValueError(f"{source}: unsupported number of channels {channels}")
 
 
-def _round(value: float) -> int:
-    return max(SIZE_MULTIPLE, int(round(value / SIZE_MULTIPLE)) * SIZE_MULTIPLE)
+def network_size(height: int, width: int, target: NetworkSize, multiple: int = 1) -> tuple[int, int]:
+    """The network input ``(h, w)`` for an ``height x width`` image, in the image's own aspect.
 
-
-def network_size(height: int, width: int, target: NetworkSize) -> tuple[int, int]:
-    """The network input ``(h, w)`` for an ``height x width`` image, both multiples of 32.
-
-    ``target`` ``(H, W)``: about ``H * W`` pixels in the image's aspect (a model trained on 64 x 64 images sees
-    a 4:3 photo at 64 x 96 after rounding: the scale of what it learnt on). An int: that width, the height
-    from the aspect. None: the image's own size.
+    ``target`` ``(H, W)``: about ``H * W`` pixels (a model trained on 64 x 64 images sees a 4000 x 3000 photo at
+    74 x 55: the scale of what it learnt on). An int: that width. None: the image's own size. The short side is
+    at least 32 pixels (the encoder's stride). The aspect is kept to the pixel, as the network's IGD and the
+    FoV assume square pixels; ``multiple`` rounds both sides to a multiple (32 for an exported ONNX model),
+    which bends the aspect slightly.
     """
     if target is None:
-        return _round(height), _round(width)
-    if isinstance(target, int):
-        return _round(height * target / width), _round(target)
-    scale = math.sqrt(target[0] * target[1] / (height * width))
-    return _round(height * scale), _round(width * scale)
+        scale = 1.0
+    elif isinstance(target, int):
+        scale = target / width
+    else:
+        scale = math.sqrt(target[0] * target[1] / (height * width))
+    scale *= max(1.0, SIZE_MULTIPLE / (min(height, width) * scale))
+    return (max(multiple, int(round(height * scale / multiple)) * multiple),
+            max(multiple, int(round(width * scale / multiple)) * multiple))
 
 
 def upscale_note(name: str, size: Sequence[int], net: Sequence[int]) -> str | None:
@@ -90,9 +91,9 @@ def upscale_note(name: str, size: Sequence[int], net: Sequence[int]) -> str | No
             "predictions from so little detail are unreliable (give larger images)")
 
 
-def prepare_image(rgb: np.ndarray, target: NetworkSize) -> torch.Tensor:
+def prepare_image(rgb: np.ndarray, target: NetworkSize, multiple: int = 1) -> torch.Tensor:
     """``[H, W, 3]`` uint8 RGB -> ``[3, h, w]`` uint8 tensor at the network size."""
-    size = network_size(rgb.shape[0], rgb.shape[1], target)
+    size = network_size(rgb.shape[0], rgb.shape[1], target, multiple)
     if size != rgb.shape[:2]:
         shrink = size[0] < rgb.shape[0]
         rgb = cv2.resize(rgb, (size[1], size[0]), interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR)

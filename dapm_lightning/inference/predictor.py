@@ -16,6 +16,7 @@ from torch.utils.data import DataLoader
 from dapm_lightning.data.datamodules import collate_samples
 from dapm_lightning.inference.inputs import (
     DEFAULT_NETWORK_SIZE,
+    SIZE_MULTIPLE,
     ImageFilesDataset,
     NetworkSize,
     PriorSettings,
@@ -140,6 +141,9 @@ class DAPMPredictor:
             images = images.contiguous(memory_format=torch.channels_last)
         if self.session is not None:
             feed = images.float().div(255.0) if images.dtype == torch.uint8 else images.float()
+            size = network_size(feed.shape[-2], feed.shape[-1], None, SIZE_MULTIPLE)  # the exported model's sizes
+            if size != tuple(feed.shape[-2:]):
+                feed = F.interpolate(feed, size=size, mode="bilinear", align_corners=False, antialias=True)
             names = [o.name for o in self.session.get_outputs()]
             values = self.session.run(None, {"image": feed.cpu().numpy()})
             return {n: torch.from_numpy(v) for n, v in zip(names, values)}

@@ -73,14 +73,15 @@ def pose_sources(prior: PosePrior | None, batch: int) -> list[dict[str, str]]:
              for i, key in enumerate(POSE_KEYS)} for b in range(batch)]
 
 
-def ground_scale(depth_m: Tensor, sky: Tensor, igd_used: Tensor, igd_network: Tensor, height_ratio: Tensor,
+def ground_scale(depth_m: Tensor, sky: Tensor, igd_used: Tensor, igd_network: Tensor | None, height_ratio: Tensor,
                  max_depth: float) -> tuple[Tensor, list[str]]:
     """Per image the factor that puts the depth on the metric scale of the known pose, and how it was found.
 
     Args:
         depth_m, sky: ``[B, 1, h, w]`` the network's depth and sky mask.
         igd_used: ``[B, 1, h, w]`` the flat ground of the pose used (telemetry where known).
-        igd_network: ``[B, 1, h, w]`` the flat ground of the network's own pose.
+        igd_network: ``[B, 1, h, w]`` the flat ground of the pose the depth was made with; None (a model
+            without a pose): ground is where the depth has the shape of ``igd_used`` up to one scale.
         height_ratio: ``[B]`` known / predicted height (NaN where the height is unknown).
 
     Returns:
@@ -92,9 +93,14 @@ def ground_scale(depth_m: Tensor, sky: Tensor, igd_used: Tensor, igd_network: Te
     scales, methods = [], []
     band = math.log1p(GROUND_AGREEMENT)
     for b in range(depth_m.shape[0]):
-        depth, igd_own, igd_known = depth_m[b].double(), igd_network[b].double(), igd_used[b].double()
-        ground = (~sky[b]) & (igd_own < max_depth) & (igd_known < max_depth) & (depth > 0)
-        ground &= (depth.clamp_min(1e-6) / igd_own.clamp_min(1e-6)).log().abs() < band
+        depth, igd_known = depth_m[b].double().clamp_min(1e-6), igd_used[b].double()
+        ground = (~sky[b]) & (igd_known < max_depth)
+        if igd_network is not None:
+            igd_own = igd_network[b].double()
+            ground &= (igd_own < max_depth) & ((depth / igd_own.clamp_min(1e-6)).log().abs() < band)
+        elif ground.any():
+            ratio = (igd_known / depth).log()
+            ground &= (ratio - ratio[ground].median()).abs() < band
         if ground.float().mean() >= MIN_GROUND_SHARE:
             scales.append(float((igd_known[ground] / depth[ground]).median()))
             methods.append("ground")
@@ -114,7 +120,11 @@ def apply_pose_prior(outputs: Mapping[str, Tensor], prior: PosePrior | None, mod
     Args:
         outputs: ``{depth_m, sky_prob, pose[, pose_network]}`` at the network size; with ``condition`` or
             ``both`` the network has already fused the prior (``pose`` the pose used, ``pose_network`` its own).
+            Without ``pose`` (a depth-only model), a prior that knows all four components is the pose.
         prior: the batch's prior (None: nothing known; the outputs come back unchanged).
+
+    The scale fit compares the depth with the ground of the pose it was made with: the network's own pose
+    in ``scale`` mode, the pose used in ``both`` (there it corrects only what conditioning left).
 
     Returns:
         ``(outputs, sources, scale methods)``: with ``scale``/``both``, ``depth_m`` rescaled to the pose used
@@ -122,25 +132,37 @@ def apply_pose_prior(outputs: Mapping[str, Tensor], prior: PosePrior | None, mod
     """
     result = dict(outputs)
     batch = next(iter(outputs.values())).shape[0]
-    if prior is None or "pose" not in outputs:
+    if prior is None:
         return result, pose_sources(None, batch), ["none"] * batch
     if mode not in PRIOR_MODES:
         raise ValueError(f"unknown telemetry mode {mode!r}; choose from {', '.join(PRIOR_MODES)}")
-    prior = prior.to(outputs["pose"].device)
-    network = outputs.get("pose_network", outputs["pose"])
-    if "pose_network" not in outputs:  # the network ran without the prior: fuse here (no bins spread at hand)
-        used = spec.denormalize(fuse_pose(spec.normalize(network.double()), prior, spec, None)).to(network.dtype)
+    device = next(iter(outputs.values())).device
+    prior = prior.to(device)
+    if "pose" not in outputs:  # a depth-only model: a fully known pose is the pose, for K, points and the scale
+        if not bool(prior.known.all()):
+            return result, pose_sources(None, batch), ["none"] * batch
+        result["pose"] = prior.value.to(device)
+        made_with = None
+    elif "pose_network" in outputs:  # the network was given the prior: its depth is made with the pose used
+        made_with: Tensor | None = outputs["pose"]
+    else:  # the network ran without the prior: fuse here (no bins spread at hand)
+        network = outputs["pose"]
+        used = spec.denormalize(fuse_pose(spec.normalize(network.float()), prior, spec, None)).to(network.dtype)
         result.update(pose=used, pose_network=network)
+        made_with = network
     methods = ["none"] * batch
     if mode in ("scale", "both") and "depth_m" in outputs:
         depth = outputs["depth_m"]
         size = (depth.shape[-2], depth.shape[-1])
         sky = (outputs["sky_prob"] > 0.5) if "sky_prob" in outputs else depth >= spec.max_depth
-        height_known = prior.known[:, 0]
-        ratio = torch.where(height_known, prior.value[:, 0].to(network.dtype) / network[:, 0].clamp_min(1e-3),
-                            torch.full_like(network[:, 0], float("nan")))
-        scale, methods = ground_scale(depth, sky, spec.depth(result["pose"].float(), size),
-                                      spec.depth(network.float(), size), ratio, spec.max_depth)
+        used_pose = result["pose"].float()
+        ratio = torch.full_like(used_pose[:, 0], float("nan"))
+        if made_with is not None:
+            made_with = made_with.float()
+            ratio = torch.where(prior.known[:, 0], used_pose[:, 0] / made_with[:, 0].clamp_min(1e-3), ratio)
+        scale, methods = ground_scale(depth, sky, spec.depth(used_pose, size),
+                                      None if made_with is None else spec.depth(made_with, size), ratio,
+                                      spec.max_depth)
         below = float(np.nextafter(np.float32(spec.max_depth), np.float32(0)))
         scaled = (depth * scale.view(-1, 1, 1, 1)).clamp(max=below)
         result["depth_m"] = torch.where(sky, torch.full_like(depth, spec.max_depth), scaled)

@@ -135,6 +135,10 @@ def write_poses(out: Path, rows: list[dict[str, Any]], suffix: str = "") -> Path
             merged = {row["name"]: row for row in csv.DictReader(handle) if row.get("name")}
     merged.update({row["name"]: row for row in rows})
     columns = POSE_COLUMNS + sorted({k for row in merged.values() for k in row} - set(POSE_COLUMNS))
+    for row in merged.values():  # rows of images without telemetry: their pose is the network's
+        for column in columns[len(POSE_COLUMNS):]:
+            if row.get(column) in (None, "") and column.endswith(("_source", "_network")):
+                row[column] = "network" if column.endswith("_source") else row.get(column[:-len("_network")], "")
     with path.open("w", newline="") as handle:
         writer = csv.DictWriter(handle, fieldnames=columns, restval="")
         writer.writeheader()

@@ -99,7 +99,7 @@ class DAPMOutput(NamedTuple):
         """``[B, 1, H, W]`` probability of "beyond max depth", or None without a sky stage."""
         if self.depth is None or self.depth.sky_logits is None:
             return None
-        return torch.sigmoid(self.depth.sky_logits)
+        return torch.sigmoid(self.depth.sky_logits.float())  # float: half precision rounds near 0.5
 
 
 class DAPMNet(nn.Module):
@@ -171,7 +171,7 @@ class DAPMNet(nn.Module):
         if self.pose_decoder is not None:
             pose = self._pose(features, None if depth_coarse is None else depth_coarse.detach())
             if prior is not None and prior.known.any():
-                spread = bins_spread(pose.bin_logits[-1]) if pose.bin_logits else None
+                spread = bins_spread(pose.bin_logits[-1]).detach() if pose.bin_logits else None
                 used_norm = fuse_pose(pose.pose_norm, prior.to(image.device), self.config.igd, spread)
                 pose = pose._replace(used_norm=used_norm, used=self.config.igd.denormalize(used_norm))
         depth = None

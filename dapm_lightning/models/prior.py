@@ -71,20 +71,20 @@ def bins_spread(bin_logits: Tensor) -> Tensor:
 
 
 def fuse_pose(pose_norm: Tensor, prior: PosePrior, spec: IGDSpec, network_spread: Tensor | None) -> Tensor:
-    """The network's normalised pose ``[B, 4]`` combined with a prior, normalised ``[B, 4]``.
+    """The network's normalised pose ``[B, 4]`` combined with a prior, normalised ``[B, 4]`` float32.
 
     Unknown components keep the network's value; σ = 0 takes the prior's; σ > 0 the inverse-variance mean
     of the two (``network_spread``: ``[B, 4]`` normalised standard deviation of the network's estimate).
     """
-    known = prior.known
+    known = prior.known.to(pose_norm.device)
     if not known.any():
         return pose_norm
+    own = pose_norm.float()  # float32 whatever the autocast: an exact prior comes back exact
     ranges = torch.tensor([spec.pose_ranges[k][1] - spec.pose_ranges[k][0] for k in POSE_KEYS],
-                          device=pose_norm.device, dtype=pose_norm.dtype)
-    prior_norm = spec.normalize(torch.nan_to_num(prior.value.to(pose_norm.dtype), nan=0.0))
-    prior_spread = prior.sigma.to(pose_norm.dtype) / ranges
-    spread = (torch.full_like(pose_norm, NETWORK_SPREAD_WITHOUT_BINS) if network_spread is None
-              else network_spread.to(pose_norm.dtype))
+                          device=own.device, dtype=own.dtype)
+    prior_norm = spec.normalize(torch.nan_to_num(prior.value.to(own), nan=0.0))
+    prior_spread = prior.sigma.to(own) / ranges
+    spread = torch.full_like(own, NETWORK_SPREAD_WITHOUT_BINS) if network_spread is None else network_spread.to(own)
     weight = spread**2 / (spread**2 + prior_spread**2)  # 1 where the prior is exact
-    fused = pose_norm + weight * (prior_norm - pose_norm)
-    return torch.where(known, fused, pose_norm)
+    fused = own + weight * (prior_norm - own)
+    return torch.where(known, fused, own)

@@ -15,7 +15,7 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from dapm_lightning.inference.inputs import network_size
+from dapm_lightning.inference.inputs import SIZE_MULTIPLE, network_size
 from dapm_lightning.inference.onnx import export_onnx
 from dapm_lightning.inference.predictor import checkpoint_network_size
 
@@ -40,7 +40,7 @@ def export(ckpt_path: Path, out: Path | None = None, height: int | None = None, 
     module = load_dapm_module(ckpt_path, map_location="cpu")
     if height is None or width is None:
         trained = checkpoint_network_size(module)
-        height, width = network_size(height or trained[0], width or trained[1], None)
+        height, width = network_size(height or trained[0], width or trained[1], None, SIZE_MULTIPLE)
     out = Path(out) if out else ckpt_path.with_name(ckpt_path.stem + ("_fp16" if fp16 else "") + ".onnx")
     start = time.perf_counter()
     rows = export_onnx(module.net.eval(), out, (height, width), checks=checks, dynamic=dynamic, fp16=fp16)

@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+import zlib
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass
 from typing import Any, Literal
 
 import lightning as L
+import numpy as np
 import torch
 from lightning.pytorch.utilities import rank_zero_warn
 from torch import Tensor
@@ -70,20 +72,22 @@ class PriorTraining:
     known with probability ``component_probability``: the true value plus Gaussian noise of ``noise`` (height m,
     pitch, roll, fov deg), given to the network with that σ. The network fuses it with its own pose
     (:func:`~dapm_lightning.models.prior.fuse_pose`) before the IGD feature; the pose losses keep training its
-    own estimate. Draws come from the trainer's random state, which checkpoints carry (exact resume, each DDP
-    process its own). Off in the paper configs; ``model.prior_training`` in configs.
+    own estimate. An image's draws depend only on (``seed``, epoch, its name), so runs repeat exactly under any
+    number of processes and across a resume. Off in the paper configs; ``model.prior_training`` in configs.
 
     Args:
         enabled: give priors at all.
         image_fraction: share of training images with a prior.
         component_probability: chance that each component of such an image is known.
         noise: σ of the noise on (height m, pitch deg, roll deg, fov deg), the σ the network is told.
+        seed: the draws of each image are seeded by (seed, epoch, image name).
     """
 
     enabled: bool = False
     image_fraction: float = 0.5
     component_probability: float = 0.5
     noise: tuple[float, float, float, float] = (3.0, 1.0, 1.0, 2.0)
+    seed: int = 0
 
     def __post_init__(self) -> None:
         if not (0.0 <= self.image_fraction <= 1.0 and 0.0 <= self.component_probability <= 1.0):
@@ -92,16 +96,31 @@ class PriorTraining:
             raise ValueError("model.prior_training.noise: four standard deviations >= 0 (height m, pitch, roll, "
                              "fov deg)")
 
-    def sample(self, pose: Tensor, has_pose: Tensor) -> PosePrior | None:
-        """A training prior from the true poses ``[B, 4]`` (only images with a pose get one), or None."""
+    def sample(self, pose: Tensor, has_pose: Tensor, names: Sequence[str], epoch: int) -> PosePrior | None:
+        """A training prior from the true poses ``[B, 4]`` (only images with a pose get one), or None when off.
+
+        Each image's draws come from (``seed``, ``epoch``, its name): the same whatever the batch, the process
+        count or a resume, and apart from the random state dropout uses.
+        """
         if not self.enabled:
             return None
-        batch = pose.shape[0]
-        with_prior = (torch.rand(batch, 1, device=pose.device) < self.image_fraction) & has_pose.view(-1, 1)
-        known = with_prior & (torch.rand(batch, 4, device=pose.device) < self.component_probability)
+        uniform, normal = [], []
+        for name in names:
+            generator = torch.Generator().manual_seed(_draw_seed(self.seed, epoch, name))
+            uniform.append(torch.rand(5, generator=generator))
+            normal.append(torch.randn(4, generator=generator))
+        u, z = torch.stack(uniform).to(pose.device), torch.stack(normal).to(pose.device)
+        with_prior = (u[:, :1] < self.image_fraction) & has_pose.view(-1, 1)
+        known = with_prior & (u[:, 1:] < self.component_probability)
         sigma = torch.tensor(self.noise, device=pose.device, dtype=torch.float32)
-        noisy = pose.float() + torch.randn(batch, 4, device=pose.device) * sigma
+        noisy = pose.float() + z * sigma
         return PosePrior(torch.where(known, noisy, torch.full_like(noisy, float("nan"))), sigma)
+
+
+def _draw_seed(seed: int, epoch: int, name: str) -> int:
+    """A 63-bit seed from (seed, epoch, a sample's name)."""
+    state = np.random.SeedSequence([seed, epoch, zlib.crc32(name.encode("utf-8"))]).generate_state(2)
+    return int(state[0]) << 31 ^ int(state[1])
 
 
 def _as_config(value: Any, kind: type[Any]) -> Any:
@@ -236,7 +255,10 @@ class DAPMModule(L.LightningModule):
         teacher_forcing = None
         if stage == "train" and self.igd_predicted_share < 1.0:
             teacher_forcing = TeacherForcing(self.net_config.igd.normalize(batch["pose"]), self.igd_predicted_share)
-        prior = self.prior_training.sample(batch["pose"], batch["has_pose"]) if stage == "train" else None
+        prior = None
+        if stage == "train":
+            names = batch.get("name") or [str(k) for k in range(image.shape[0])]
+            prior = self.prior_training.sample(batch["pose"], batch["has_pose"], names, self.current_epoch)
         out = self.net(image, teacher_forcing, prior)
         sky, valid = depth_masks(batch["depth"], self.net_config.igd.max_depth)
         terms = self.criterion(out, {**batch, "sky": sky, "valid": valid})

@@ -68,12 +68,14 @@ def test_any_input_kind_is_handled_or_refused(image_folder):
     for i in range(len(ds)):
         item = ds[i]
         assert item["image"].dtype == torch.uint8 and item["image"].shape[0] == 3
-        assert item["image"].shape[2] == 64 and item["image"].shape[1] % 32 == 0
+        height, width = item["meta"]["size"]
+        assert item["image"].shape[2] == 64 and item["image"].shape[1] == max(32, round(height * 64 / width))
     with pytest.raises(ValueError, match="float32"):
         to_rgb8(np.zeros((4, 4), np.float32), "x.tif")
     with pytest.raises(ValueError, match="channels"):
         to_rgb8(np.zeros((4, 4, 5), np.uint8), "x.tif")
     assert network_size(480, 640, 512) == (384, 512)
+    assert network_size(480, 640, 512, multiple=32) == (384, 512) and network_size(45, 70, 64, 32) == (32, 64)
 
 
 def test_sources_folder_glob_image_video_and_mistakes(image_folder, tmp_path):
@@ -309,10 +311,10 @@ def test_sky_through_the_real_network_at_other_sizes(checkpoint, tmp_path):
 
 # --------------------------------------------------------------------------------------------- the network size
 def test_network_size_keeps_the_training_pixel_count_in_each_aspect():
-    assert network_size(3000, 4000, (512, 512)) == (448, 576)
-    assert network_size(4000, 3000, (512, 512)) == (576, 448)
-    assert network_size(480, 640, 512) == (384, 512)
-    assert network_size(45, 70, None) == (32, 64)
+    assert network_size(3000, 4000, (512, 512)) == (443, 591)  # 4:3 kept to the pixel: square pixels, true FoV
+    assert network_size(4000, 3000, (512, 512)) == (591, 443)
+    assert network_size(3000, 4000, (64, 64)) == (55, 74)
+    assert network_size(45, 70, None) == (45, 70) and network_size(10, 20, None) == (32, 64)  # short side >= 32
 
 
 def test_the_checkpoint_records_its_training_size(checkpoint, tiny_uapd):
@@ -330,7 +332,7 @@ def test_the_checkpoint_records_its_training_size(checkpoint, tiny_uapd):
 
 def test_tiny_inputs_are_warned_about(checkpoint):
     predictor = DAPMPredictor.from_checkpoint(checkpoint, image_width=64)
-    with pytest.warns(UserWarning, match="5x7 pixels enlarged 14x"):
+    with pytest.warns(UserWarning, match="5x7 pixels enlarged 13x to the network's 64x90"):
         result = predictor(np.zeros((7, 5, 3), np.uint8))
     assert result.depth_m.shape == (7, 5)
 

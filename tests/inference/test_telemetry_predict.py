@@ -114,22 +114,24 @@ def test_python_api_priors_as_dicts_arrays_and_modes(checkpoint):
         DAPMPredictor.from_checkpoint(checkpoint, telemetry_mode="guess")
 
 
-def test_training_priors_follow_the_settings_and_the_random_state():
+def test_training_priors_depend_on_the_image_and_epoch_only():
     settings = PriorTraining(enabled=True, image_fraction=1.0, component_probability=0.5)
     pose = torch.tensor([[50.0, -40.0, 3.0, 70.0]]).repeat(400, 1)
     has_pose = torch.ones(400, dtype=torch.bool)
     has_pose[::2] = False
-    torch.manual_seed(3)
-    first = settings.sample(pose, has_pose)
-    torch.manual_seed(3)
-    again = settings.sample(pose, has_pose)
-    assert torch.equal(first.value.isnan(), again.value.isnan())  # the same random state, the same draws
+    names = [f"img{k}" for k in range(400)]
+    first = settings.sample(pose, has_pose, names, epoch=0)
+    torch.manual_seed(123)  # the global random state plays no part
+    split = [settings.sample(pose[k:k + 7], has_pose[k:k + 7], names[k:k + 7], epoch=0) for k in range(0, 400, 7)]
+    torch.testing.assert_close(torch.cat([p.value for p in split]), first.value, equal_nan=True)  # any batching
+    other_epoch = settings.sample(pose, has_pose, names, epoch=1)
+    assert not torch.equal(other_epoch.value.isnan(), first.value.isnan())
     known = first.known
     assert not known[::2].any()  # images without a pose get no prior
     assert 0.4 < known[1::2].float().mean() < 0.6
-    noise = (first.value - pose)[known.all(dim=1) | known.any(dim=1)]
-    assert noise[:, 0][noise[:, 0].isfinite()].std() == pytest.approx(3.0, rel=0.3)
-    assert PriorTraining().sample(pose, has_pose) is None  # off by default: nothing drawn
+    noise = (first.value - pose)[:, 0]
+    assert noise[noise.isfinite()].std() == pytest.approx(3.0, rel=0.3)
+    assert PriorTraining().sample(pose, has_pose, names, 0) is None  # off by default: nothing drawn
     with pytest.raises(ValueError, match="model.prior_training"):
         PriorTraining(image_fraction=2.0)
 
@@ -144,3 +146,24 @@ def test_the_module_trains_with_priors_and_keeps_the_setting_in_checkpoints(tmp_
     loss, out = module._shared_step(batch, "train")
     assert out.pose.used is not None and torch.isfinite(loss)
     assert module.hparams["prior_training"]["enabled"] is True
+
+
+def test_both_mode_leaves_conditioned_metric_depth_alone_and_depth_only_models_take_a_full_prior():
+    spec = IGDSpec()
+    used = torch.tensor([[100.0, -40.0, 0.0, 60.0]])
+    own = torch.tensor([[60.0, -40.0, 0.0, 60.0]])
+    depth = spec.depth(used, (32, 48))  # conditioned: already the ground of the pose used, in metres
+    sky = depth >= 1000
+    outputs = {"depth_m": depth, "sky_prob": sky.float(), "pose": used, "pose_network": own}
+    prior = PosePrior(torch.tensor([[100.0, NAN, NAN, NAN]]), torch.zeros(4))
+    fixed, _, methods = apply_pose_prior(outputs, prior, "both", spec)
+    assert methods == ["ground"]
+    torch.testing.assert_close(fixed["depth_m"], depth)  # scale 1, not known / network height
+    full = PosePrior(used, torch.zeros(4))
+    depth_only, sources, methods = apply_pose_prior({"depth_m": depth * 0.5, "sky_prob": sky.float()}, full,
+                                                    "scale", spec)
+    assert torch.equal(depth_only["pose"], used) and set(sources[0].values()) == {"telemetry"}
+    assert methods == ["ground"] and torch.allclose(depth_only["depth_m"][~sky], depth[~sky], rtol=1e-4)
+    partial = PosePrior(torch.tensor([[100.0, NAN, NAN, NAN]]), torch.zeros(4))
+    unchanged, _, methods = apply_pose_prior({"depth_m": depth, "sky_prob": sky.float()}, partial, "scale", spec)
+    assert "pose" not in unchanged and methods == ["none"]
