@@ -75,3 +75,14 @@ def checkpoint(tiny_uapd, tmp_path_factory):
     return path
 
 
+
+
+def run_main(args, capsys):
+    """``dapm-lightning ARGS`` expected to exit: ``(exit status, stderr)``, and no traceback shown."""
+    from dapm_lightning.cli import main
+
+    with pytest.raises(SystemExit) as info:
+        main(args)
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    return info.value.code, err

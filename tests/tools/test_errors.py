@@ -9,15 +9,7 @@ import pytest
 from dapm_lightning.cli import main
 from dapm_lightning.data.errors import DatasetError
 from dapm_lightning.tools.errors import debug_requested, describe
-from tests.conftest import CONFIGS, QUICKSTART
-
-
-def run_main(args, capsys):
-    with pytest.raises(SystemExit) as info:
-        main(args)
-    err = capsys.readouterr().err
-    assert "Traceback" not in err
-    return info.value.code, err
+from tests.conftest import CONFIGS, QUICKSTART, run_main
 
 
 def test_missing_data_folder(tmp_path, capsys, monkeypatch):

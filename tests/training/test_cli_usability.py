@@ -8,25 +8,16 @@ import pytest
 import torch
 from lightning.pytorch.callbacks import LearningRateMonitor
 
-from dapm_lightning.cli import main
 from dapm_lightning.training import lightning_cli
 from dapm_lightning.training.callbacks import DepthPanelLogger
 from dapm_lightning.training.checkpointing import NotADAPMCheckpointError, load_dapm_module
 from dapm_lightning.training.lightning_cli import run_lightning_cli
 from dapm_lightning.training.module import DAPMModule
-from tests.conftest import CONFIGS, QUICKSTART
+from tests.conftest import CONFIGS, QUICKSTART, run_main
 
 PAPER = CONFIGS / "paper" / "uapd_dapm.yaml"
 UAPD = ["--data.class_path", "dapm_lightning.data.datamodules.UAPDDataModule", "--data.init_args.batch_size", "2",
         "--data.init_args.num_workers", "0", "--trainer.enable_progress_bar", "false"]
-
-
-def run_main(args, capsys):
-    with pytest.raises(SystemExit) as info:
-        main(args)
-    err = capsys.readouterr().err
-    assert "Traceback" not in err
-    return info.value.code, err
 
 
 class Linear(L.LightningModule):
