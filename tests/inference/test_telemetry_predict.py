@@ -167,3 +167,21 @@ def test_both_mode_leaves_conditioned_metric_depth_alone_and_depth_only_models_t
     partial = PosePrior(torch.tensor([[100.0, NAN, NAN, NAN]]), torch.zeros(4))
     unchanged, _, methods = apply_pose_prior({"depth_m": depth, "sky_prob": sky.float()}, partial, "scale", spec)
     assert "pose" not in unchanged and methods == ["none"]
+
+
+def test_csv_telemetry_through_the_documented_config_form(checkpoint, flight, tmp_path, monkeypatch):
+    folder, table = flight
+    monkeypatch.chdir(tmp_path)  # configs/predict.yaml: the package's own
+    out = tmp_path / "lightning"
+    main(["predict", "--config", "configs/predict.yaml", "--ckpt_path", str(checkpoint),
+          "--data.init_args.source", str(folder), "--data.init_args.telemetry", str(table),
+          "--data.init_args.num_workers", "0", "--trainer.callbacks.output_dir", str(out)])
+    camera = json.loads((out / "a_camera.json").read_text())["pose"]
+    assert camera["height_m"] == {"value": pytest.approx(45.5), "source": "telemetry",
+                                  "network": camera["height_m"]["network"]}
+    one_line = tmp_path / "one_line"
+    main(["predict", str(folder), "--ckpt_path", str(checkpoint), "--out", str(one_line), "--device", "cpu",
+          "--telemetry", str(table), "--outputs", "depth_npy"])
+    for name in ("a", "b", "c"):  # the two forms give the same metric depth
+        np.testing.assert_allclose(np.load(out / f"{name}_depth.npy"), np.load(one_line / f"{name}_depth.npy"),
+                                   rtol=1e-5)
