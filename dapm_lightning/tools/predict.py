@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import difflib
 import sys
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -90,11 +91,17 @@ def parse(argv: Sequence[str]) -> argparse.Namespace:
     return args
 
 
+def _short_warning(message: Warning | str, category: type[Warning], filename: str, lineno: int,
+                   line: str | None = None) -> str:
+    return f"warning: {message}\n"
+
+
 def predict_main(argv: Sequence[str]) -> None:
     """``dapm-lightning predict SOURCE --ckpt_path CKPT [--out DIR] [--device cpu|cuda|auto] [--outputs ...]``."""
     from dapm_lightning.inference.predictor import DAPMPredictor
 
     args = parse(argv)
+    warnings.formatwarning = _short_warning  # "warning: MESSAGE", not the source line that raised it
     files = PredictionFiles(Path(args.out), args.outputs, args.points_stride, contact_sheet=args.contact_sheet)
     predictor = DAPMPredictor.from_checkpoint(args.ckpt_path, args.image_width, args.device,
                                               precision=args.precision, batch_size=args.batch_size,
