@@ -149,7 +149,7 @@ class DAPMPredictor:
             return {n: torch.from_numpy(v) for n, v in zip(names, values)}
         with self._autocast():
             out = self.module(images, prior.to(self.device)) if prior is not None else self.module(images)
-        return out.inference_outputs()
+        return out.inference_outputs(spread=True)
 
     def forward_batch(self, images: Tensor, names: Sequence[str], sizes: Sequence[Sequence[int]],
                       priors: Tensor | None = None) -> list[Prediction]:

@@ -118,7 +118,8 @@ def apply_pose_prior(outputs: Mapping[str, Tensor], prior: PosePrior | None, mod
     """Network outputs with a prior applied as ``mode`` says.
 
     Args:
-        outputs: ``{depth_m, sky_prob, pose[, pose_network]}`` at the network size; with ``condition`` or
+        outputs: ``{depth_m, sky_prob, pose[, pose_network, pose_spread]}`` at the network size (``pose_spread``:
+            the network's pose-bins spread, for fusing here; without it a fixed spread); with ``condition`` or
             ``both`` the network has already fused the prior (``pose`` the pose used, ``pose_network`` its own).
             Without ``pose`` (a depth-only model), a prior that knows all four components is the pose.
         prior: the batch's prior (None: nothing known; the outputs come back unchanged).
@@ -145,9 +146,10 @@ def apply_pose_prior(outputs: Mapping[str, Tensor], prior: PosePrior | None, mod
         made_with = None
     elif "pose_network" in outputs:  # the network was given the prior: its depth is made with the pose used
         made_with: Tensor | None = outputs["pose"]
-    else:  # the network ran without the prior: fuse here (no bins spread at hand)
+    else:  # the network ran without the prior: fuse here, with its bins spread when given
         network = outputs["pose"]
-        used = spec.denormalize(fuse_pose(spec.normalize(network.float()), prior, spec, None)).to(network.dtype)
+        used = spec.denormalize(fuse_pose(spec.normalize(network.float()), prior, spec,
+                                          outputs.get("pose_spread"))).to(network.dtype)
         result.update(pose=used, pose_network=network)
         made_with = network
     methods = ["none"] * batch

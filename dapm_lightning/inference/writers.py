@@ -307,7 +307,7 @@ class PredictionWriter(BasePredictionWriter):
 
 def predictions_from_batch(output: Any, batch: dict[str, Any], spec: IGDSpec) -> list[Prediction]:
     """The predictions of one predict batch from the module's output (a ``DAPMOutput``), its prior applied."""
-    outputs = output.inference_outputs() if hasattr(output, "inference_outputs") else dict(output)
+    outputs = output.inference_outputs(spread=True) if hasattr(output, "inference_outputs") else dict(output)
     return predictions_with_prior(outputs, batch, spec)
 
 

@@ -71,18 +71,22 @@ class DAPMOutput(NamedTuple):
     depth: DepthPrediction | None
     pose: PosePrediction | None
 
-    def inference_outputs(self) -> dict[str, Tensor]:
+    def inference_outputs(self, spread: bool = False) -> dict[str, Tensor]:
         """The :data:`INFERENCE_OUTPUTS` this model has, by name.
 
         ``depth_m [B, 1, H, W]`` metres (sky at the depth limit), ``sky_prob [B, 1, H, W]``, ``pose [B, 4]``
         (height m, pitch, roll, fov deg; fused with the prior where one was given) and, with a prior,
-        ``pose_network [B, 4]``: the network's own estimate.
+        ``pose_network [B, 4]``: the network's own estimate. ``spread``: also ``pose_spread [B, 4]``, the
+        normalised standard deviation of the last pose-bins distribution (to fuse a prior afterwards).
         """
         used = None if self.pose is None else self.pose.used
         values = {"depth_m": self.depth_m, "sky_prob": self.sky_prob,
                   "pose": self.pose_physical if used is None else used,
                   "pose_network": None if used is None else self.pose_physical}
-        return {name: values[name] for name in INFERENCE_OUTPUTS if values[name] is not None}
+        result = {name: values[name] for name in INFERENCE_OUTPUTS if values[name] is not None}
+        if spread and self.pose is not None and self.pose.bin_logits:
+            result["pose_spread"] = bins_spread(self.pose.bin_logits[-1])  # for fusing a prior afterwards
+        return result
 
     @property
     def depth_m(self) -> Tensor | None:

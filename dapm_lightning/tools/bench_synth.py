@@ -158,7 +158,7 @@ def evaluate(module: torch.nn.Module | None, root: Path, mean_pose: torch.Tensor
             for subset in TELEMETRY_SUBSETS if telemetry else ():
                 prior = telemetry_prior(pose, subset, generator)  # the same telemetry for both ways of using it
                 for mode, way in (("cond", "condition"), ("scale", "scale")):
-                    outputs = (module(image, prior) if mode == "cond" else out).inference_outputs()
+                    outputs = (module(image, prior) if mode == "cond" else out).inference_outputs(spread=True)
                     outputs, _, _ = apply_pose_prior(outputs, prior, way, spec)  # type: ignore[arg-type]
                     row = f"{subset}/{mode}"
                     metrics[row][0].update(outputs["depth_m"].float(), depth)

@@ -185,3 +185,17 @@ def test_csv_telemetry_through_the_documented_config_form(checkpoint, flight, tm
     for name in ("a", "b", "c"):  # the two forms give the same metric depth
         np.testing.assert_allclose(np.load(out / f"{name}_depth.npy"), np.load(one_line / f"{name}_depth.npy"),
                                    rtol=1e-5)
+
+
+def test_scale_mode_fuses_with_the_networks_own_bins_spread():
+    spec = IGDSpec()
+    network = torch.tensor([[60.0, -40.0, 0.0, 60.0]])
+    prior = PosePrior(torch.tensor([[30.0, NAN, NAN, NAN]]), torch.tensor([9.0, 0.0, 0.0, 0.0]))
+    sure, unsure = torch.full((1, 4), 0.01), torch.full((1, 4), 0.5)
+    height = {}
+    for name, spread in (("sure", sure), ("unsure", unsure), ("fixed", None)):
+        outputs = {"pose": network} | ({} if spread is None else {"pose_spread": spread})
+        fused, _, _ = apply_pose_prior(outputs, prior, "scale", spec)
+        height[name] = float(fused["pose"][0, 0])
+    assert 59.0 < height["sure"] < 60.0 and 30.0 < height["unsure"] < 32.0  # the surer side wins
+    assert height["unsure"] < height["fixed"] < height["sure"]
