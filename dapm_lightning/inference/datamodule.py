@@ -15,6 +15,8 @@ from dapm_lightning.inference.inputs import (
     PriorSettings,
     SizeBatchSampler,
     VideoFramesDataset,
+    checkpoint_network_size,
+    source_dataset,
 )
 
 
@@ -54,7 +56,7 @@ class PredictDataModule(DAPMDataModule):
         self.source, self.image_width = source, image_width
         self.frame_step, self.max_frames, self.keep_rgb = frame_step, max_frames, keep_rgb
         self.telemetry, self.read_metadata, self.sensor_width_mm = telemetry, read_metadata, sensor_width_mm
-        self.prior_settings = PriorSettings(telemetry_mode, tuple(float(v) for v in telemetry_sigma))  # type: ignore[arg-type]
+        self.prior_settings = PriorSettings(telemetry_mode, telemetry_sigma)
 
     def setup(self, stage: str | None = None) -> None:
         if stage not in (None, "predict"):
@@ -65,15 +67,11 @@ class PredictDataModule(DAPMDataModule):
         """The network size: ``image_width`` if set, else the model's training size."""
         if self.image_width is not None:
             return self.image_width
-        from dapm_lightning.inference.predictor import checkpoint_network_size
-
         module = self.trainer.lightning_module if self.trainer is not None else None
         return checkpoint_network_size(module)
 
     def dataset(self) -> Dataset[Sample]:
         """The images' or the video's data set."""
-        from dapm_lightning.inference.predictor import source_dataset
-
         dataset = source_dataset(self.source, self.network_target(), self.frame_step, self.max_frames,
                                  self.batch_size, self.keep_rgb, self.telemetry, self.read_metadata,
                                  self.sensor_width_mm, self.prior_settings)

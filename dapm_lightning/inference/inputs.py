@@ -24,6 +24,7 @@ from torch.utils.data import Dataset, IterableDataset, Sampler, get_worker_info
 
 from dapm_lightning.data.sample import Sample
 from dapm_lightning.data.uapd import IMAGE_SUFFIXES
+from dapm_lightning.inference import telemetry as flight
 
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg", ".wmv")
 SIZE_MULTIPLE = 32
@@ -33,6 +34,10 @@ DEFAULT_NETWORK_SIZE = (512, 512)
 MAX_UPSCALE = 4.0
 """An input enlarged more than this for the network is warned about (little detail to see)."""
 
+PriorMode = Literal["condition", "scale", "both"]
+"""How pose priors are used: into the network, to rescale its depth afterwards, or both
+(:mod:`dapm_lightning.inference.prior`)."""
+PRIOR_MODES: tuple[str, ...] = ("condition", "scale", "both")
 NetworkSize = tuple[int, int] | int | None
 """How big the network input is: ``(H, W)`` (the pixel count kept, each image's aspect), a width (height
 from the aspect), or None (the image's own size, rounded)."""
@@ -166,6 +171,15 @@ class PriorSettings:
 
     mode: str = "condition"
     sigma: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
+
+    def __post_init__(self) -> None:
+        if self.mode not in PRIOR_MODES:
+            raise ValueError(f"telemetry_mode must be one of {', '.join(PRIOR_MODES)}, got {self.mode!r}")
+        sigma = tuple(float(v) for v in self.sigma)
+        if len(sigma) != 4 or min(sigma) < 0:
+            raise ValueError(f"telemetry_sigma: four standard deviations >= 0 (height m, pitch, roll, fov deg), "
+                             f"got {list(self.sigma)}")
+        object.__setattr__(self, "sigma", sigma)
 
 
 def predict_sample(rgb: np.ndarray, name: str, source: str, target: NetworkSize, keep_rgb: bool,
@@ -316,3 +330,44 @@ class VideoFramesDataset(IterableDataset[Sample]):
                                      self.prior_settings)
         finally:
             capture.release()
+
+
+def checkpoint_network_size(module: torch.nn.Module | None) -> tuple[int, int]:
+    """The network size a module's checkpoint was trained at, else :data:`DEFAULT_NETWORK_SIZE` with a note."""
+    size = getattr(module, "train_image_size", None)
+    if size is not None:
+        return int(size[0]), int(size[1])
+    warnings.warn(f"the checkpoint does not record its training image size: predicting at "
+                  f"{DEFAULT_NETWORK_SIZE[1]}x{DEFAULT_NETWORK_SIZE[0]} pixels (set the image width to the one it "
+                  "was trained at)", stacklevel=2)
+    return DEFAULT_NETWORK_SIZE
+
+
+def source_dataset(source: str | Path, target: NetworkSize, frame_step: int = 1, max_frames: int | None = None,
+                   chunk: int = 1, keep_rgb: bool = False, telemetry: str | Path | None = None,
+                   read_metadata: bool = True, sensor_width_mm: float | None = None,
+                   prior_settings: PriorSettings = PriorSettings()) -> ImageFilesDataset | VideoFramesDataset:  # noqa: B008
+    """The data set of a source, each image with its pose prior from telemetry.
+
+    Images: ``telemetry`` a CSV (``name,height_m,pitch_deg,roll_deg,fov_deg``; see
+    :func:`~dapm_lightning.inference.telemetry.read_telemetry_csv`), each component it lacks taken from the
+    image's own DJI XMP / EXIF when ``read_metadata``. Videos: ``telemetry`` a DJI SRT file; without it, the
+    video's own ``.SRT`` beside it when ``read_metadata``.
+    """
+    kind, paths = resolve_source(source)
+    if kind == "video":
+        video = VideoFramesDataset(paths[0], target, frame_step, max_frames, chunk, keep_rgb,
+                                   prior_settings=prior_settings)
+        srt = Path(telemetry) if telemetry is not None else next(
+            (p for p in (paths[0].with_suffix(".SRT"), paths[0].with_suffix(".srt")) if p.is_file()), None)
+        if srt is not None and (telemetry is not None or read_metadata):
+            height, width = video.frame_size
+            video.priors = {frame: t.values() for frame, t in flight.read_srt(srt, width=width, height=height).items()}
+        return video
+    priors = None
+    if telemetry is not None or read_metadata:
+        found = flight.telemetry_for_images(paths, telemetry, read_metadata=read_metadata,
+                                            sensor_width_mm=sensor_width_mm)
+        rows = np.stack([t.values() for t in found])
+        priors = rows if np.isfinite(rows).any() else None
+    return ImageFilesDataset(paths, target, keep_rgb, priors, prior_settings)

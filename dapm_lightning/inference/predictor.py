@@ -15,36 +15,25 @@ from torch.utils.data import DataLoader
 
 from dapm_lightning.data.datamodules import collate_samples
 from dapm_lightning.inference.inputs import (
-    DEFAULT_NETWORK_SIZE,
     SIZE_MULTIPLE,
-    ImageFilesDataset,
     NetworkSize,
     PriorSettings,
     SizeBatchSampler,
     VideoFramesDataset,
+    checkpoint_network_size,
     network_size,
     prepare_image,
-    resolve_source,
+    source_dataset,
     to_rgb8,
     upscale_note,
 )
 from dapm_lightning.inference.postprocess import Prediction
-from dapm_lightning.inference.prior import PRIOR_MODES, PriorMode, as_prior
+from dapm_lightning.inference.prior import PriorMode, as_prior
 from dapm_lightning.inference.writers import predictions_with_prior
 from dapm_lightning.models.prior import PosePrior
+from dapm_lightning.training.module import network_prior
 
 Precision = Literal["32", "bf16", "16"]
-
-
-def checkpoint_network_size(module: torch.nn.Module | None) -> tuple[int, int]:
-    """The network size a module's checkpoint was trained at, else :data:`DEFAULT_NETWORK_SIZE` with a note."""
-    size = getattr(module, "train_image_size", None)
-    if size is not None:
-        return int(size[0]), int(size[1])
-    warnings.warn(f"the checkpoint does not record its training image size: predicting at "
-                  f"{DEFAULT_NETWORK_SIZE[1]}x{DEFAULT_NETWORK_SIZE[0]} pixels (set the image width to the one it "
-                  "was trained at)", stacklevel=2)
-    return DEFAULT_NETWORK_SIZE
 
 
 def apply_inference_options(module: torch.nn.Module, channels_last: bool, compile: bool) -> torch.nn.Module:
@@ -104,11 +93,9 @@ class DAPMPredictor:
         self.target: NetworkSize = image_width if image_width is not None else checkpoint_network_size(module)
         self.device, self.batch_size = torch.device(device), max(1, batch_size)
         self.precision, self.channels_last = str(precision), channels_last
-        if telemetry_mode not in PRIOR_MODES:
-            raise ValueError(f"telemetry_mode must be one of {', '.join(PRIOR_MODES)}, got {telemetry_mode!r}")
-        if self.session is not None and telemetry_mode != "scale":
-            telemetry_mode = "scale"  # the ONNX model takes no prior: the known pose is applied afterwards
-        self.prior_settings = PriorSettings(str(telemetry_mode), tuple(float(v) for v in telemetry_sigma))  # type: ignore[arg-type]
+        self.prior_settings = PriorSettings(telemetry_mode, tuple(telemetry_sigma))  # type: ignore[arg-type]
+        if self.session is not None:  # the ONNX model takes no prior: the known pose is applied afterwards
+            self.prior_settings = PriorSettings("scale", self.prior_settings.sigma)
         config = getattr(module, "net_config", None) or getattr(module, "config", None)
         from dapm_lightning.geometry.igd import IGDSpec
 
@@ -157,15 +144,21 @@ class DAPMPredictor:
 
         ``priors``: ``[B, 4]`` known pose components (NaN where unknown), used as ``telemetry_mode`` says.
         """
-        batch: dict[str, Any] = {"name": list(names), "meta": [{"size": tuple(size), "prior_mode":
-                                                                self.prior_settings.mode} for size in sizes]}
-        prior = None
-        if priors is not None and torch.isfinite(priors).any():
+        batch: dict[str, Any] = {"image": images, "name": list(names),
+                                 "meta": [{"size": tuple(size), "prior_mode": self.prior_settings.mode}
+                                          for size in sizes]}
+        if priors is not None:
             batch["pose"] = priors.float()
             batch["pose_sigma"] = torch.tensor(self.prior_settings.sigma).expand(len(names), 4)
-            prior = PosePrior(batch["pose"], batch["pose_sigma"])
-        conditioned = prior if self.prior_settings.mode != "scale" else None
-        return predictions_with_prior(self.network_outputs(images, conditioned), batch, self.spec)
+        return self.predict_batch(batch)
+
+    def predict_batch(self, batch: dict[str, Any]) -> list[Prediction]:
+        """Predictions of a batch of unlabelled samples (:mod:`~dapm_lightning.inference.inputs`).
+
+        Its pose prior is given to the network or applied afterwards, as the batch's ``prior_mode`` says.
+        """
+        outputs = self.network_outputs(batch["image"], network_prior(batch))
+        return predictions_with_prior(outputs, batch, self.spec)
 
     def _network_input(self, image: Any, index: int) -> tuple[Tensor, tuple[int, int]]:
         """One image (numpy RGB, PIL, or tensor ``[3, H, W]``) -> ``[3, h, w]`` network input and ``(H, W)``."""
@@ -244,9 +237,8 @@ class DAPMPredictor:
         if isinstance(dataset, VideoFramesDataset):
             return DataLoader(dataset, batch_size=self.batch_size, num_workers=num_workers,
                               collate_fn=collate_samples)
-        images = dataset
-        sampler = SizeBatchSampler(images.network_sizes(), self.batch_size)
-        return DataLoader(images, batch_sampler=sampler, num_workers=num_workers, collate_fn=collate_samples)
+        sampler = SizeBatchSampler(dataset.network_sizes(), self.batch_size)
+        return DataLoader(dataset, batch_sampler=sampler, num_workers=num_workers, collate_fn=collate_samples)
 
     def predict_source(self, source: str | Path, frame_step: int = 1, max_frames: int | None = None,
                        keep_rgb: bool = False, num_workers: int = 0, telemetry: str | Path | None = None,
@@ -258,44 +250,10 @@ class DAPMPredictor:
         """
         for batch in self.loader(source, frame_step, max_frames, keep_rgb, num_workers, telemetry, read_metadata,
                                  sensor_width_mm):
-            sizes = [meta["size"] for meta in batch["meta"]]
-            predictions = self.forward_batch(batch["image"], batch["name"], sizes, batch["pose"])
-            for meta, prediction in zip(batch["meta"], predictions):
+            for meta, prediction in zip(batch["meta"], self.predict_batch(batch)):
                 if keep_rgb:
                     prediction.extras["rgb"] = meta["rgb"]
                 yield prediction
-
-
-def source_dataset(source: str | Path, target: NetworkSize, frame_step: int = 1, max_frames: int | None = None,
-                   chunk: int = 1, keep_rgb: bool = False, telemetry: str | Path | None = None,
-                   read_metadata: bool = True, sensor_width_mm: float | None = None,
-                   prior_settings: PriorSettings = PriorSettings()) -> ImageFilesDataset | VideoFramesDataset:  # noqa: B008
-    """The data set of a source, each image with its pose prior from telemetry.
-
-    Images: ``telemetry`` a CSV (``name,height_m,pitch_deg,roll_deg,fov_deg``; see
-    :func:`~dapm_lightning.inference.telemetry.read_telemetry_csv`), each component it lacks taken from the
-    image's own DJI XMP / EXIF when ``read_metadata``. Videos: ``telemetry`` a DJI SRT file; without it, the
-    video's own ``.SRT`` beside it when ``read_metadata``.
-    """
-    from dapm_lightning.inference import telemetry as flight
-
-    kind, paths = resolve_source(source)
-    if kind == "video":
-        video = VideoFramesDataset(paths[0], target, frame_step, max_frames, chunk, keep_rgb,
-                                   prior_settings=prior_settings)
-        srt = Path(telemetry) if telemetry is not None else next(
-            (p for p in (paths[0].with_suffix(".SRT"), paths[0].with_suffix(".srt")) if p.is_file()), None)
-        if srt is not None and (telemetry is not None or read_metadata):
-            height, width = video.frame_size
-            video.priors = {frame: t.values() for frame, t in flight.read_srt(srt, width=width, height=height).items()}
-        return video
-    priors = None
-    if telemetry is not None or read_metadata:
-        found = flight.telemetry_for_images(paths, telemetry, read_metadata=read_metadata,
-                                            sensor_width_mm=sensor_width_mm)
-        rows = np.stack([t.values() for t in found])
-        priors = rows if np.isfinite(rows).any() else None
-    return ImageFilesDataset(paths, target, keep_rgb, priors, prior_settings)
 
 
 def resolve_device(device: str) -> str:

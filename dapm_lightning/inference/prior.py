@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 import torch
@@ -21,12 +21,11 @@ from torch import Tensor
 
 from dapm_lightning.geometry.constants import POSE_KEYS
 from dapm_lightning.geometry.igd import IGDSpec
+from dapm_lightning.inference.inputs import PRIOR_MODES, PriorMode
 from dapm_lightning.inference.postprocess import pose_field
 from dapm_lightning.inference.telemetry import PoseTelemetry
 from dapm_lightning.models.prior import PosePrior, fuse_pose
 
-PriorMode = Literal["condition", "scale", "both"]
-PRIOR_MODES: tuple[str, ...] = ("condition", "scale", "both")
 GROUND_AGREEMENT = 0.25
 """A pixel is ground to the model where its depth is within 25 % of the flat ground of its own pose."""
 MIN_GROUND_SHARE = 0.02

@@ -30,7 +30,7 @@ from dapm_lightning.geometry.constants import POSE_KEYS
 from dapm_lightning.geometry.igd import IGDSpec
 from dapm_lightning.inference.postprocess import Prediction, pose_field, predictions_from_outputs
 from dapm_lightning.inference.prior import apply_pose_prior
-from dapm_lightning.models.prior import PosePrior
+from dapm_lightning.training.module import batch_prior
 from dapm_lightning.training.visualize import colorize_depth
 
 Output = Literal["depth_npy", "depth_tiff", "depth16", "depth_color", "sky", "camera", "points", "npz"]
@@ -314,9 +314,7 @@ def predictions_from_batch(output: Any, batch: dict[str, Any], spec: IGDSpec) ->
 def predictions_with_prior(outputs: dict[str, Any], batch: dict[str, Any], spec: IGDSpec) -> list[Prediction]:
     """Per-image predictions of a batch's network outputs, with the batch's pose prior applied (telemetry)."""
     metas = batch["meta"]
-    prior = None
-    if "pose" in batch and torch.isfinite(batch["pose"]).any():
-        prior = PosePrior(batch["pose"].float(), batch.get("pose_sigma", torch.zeros(4)))
+    prior = batch_prior(batch)
     mode = metas[0].get("prior_mode", "condition") if metas else "condition"
     outputs, sources, methods = apply_pose_prior(outputs, prior, mode, spec)
     predictions = predictions_from_outputs(outputs, batch["name"], [meta["size"] for meta in metas], spec,

@@ -15,9 +15,8 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from dapm_lightning.inference.inputs import SIZE_MULTIPLE, network_size
+from dapm_lightning.inference.inputs import SIZE_MULTIPLE, checkpoint_network_size, network_size
 from dapm_lightning.inference.onnx import export_onnx
-from dapm_lightning.inference.predictor import checkpoint_network_size
 
 
 def export(ckpt_path: Path, out: Path | None = None, height: int | None = None, width: int | None = None,

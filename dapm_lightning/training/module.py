@@ -135,16 +135,21 @@ def _as_config(value: Any, kind: type[Any]) -> Any:
 
 
 def batch_prior(batch: dict[str, Any]) -> PosePrior | None:
-    """The pose prior a predict batch gives the network (``pose``, NaN where unknown, and ``pose_sigma``).
-
-    None when nothing is known, or when its ``meta`` asks for ``prior_mode`` ``scale`` (applied afterwards).
-    """
+    """The pose prior a predict batch carries (``pose``, NaN where unknown, and ``pose_sigma``), or None."""
     value = batch.get("pose")
-    metas = batch.get("meta") or [{}]
-    if value is None or not torch.isfinite(value).any() or metas[0].get("prior_mode") == "scale":
+    if value is None or not torch.isfinite(value).any():
         return None
     sigma = batch.get("pose_sigma")
     return PosePrior(value.float(), torch.zeros(4, device=value.device) if sigma is None else sigma.float())
+
+
+def network_prior(batch: dict[str, Any]) -> PosePrior | None:
+    """The prior the network is given for a predict batch: its :func:`batch_prior`.
+
+    None when its ``meta`` asks for ``prior_mode`` ``scale`` (the prior is then applied after the network).
+    """
+    metas = batch.get("meta") or [{}]
+    return None if metas[0].get("prior_mode") == "scale" else batch_prior(batch)
 
 
 def training_image_size(checkpoint: dict[str, Any]) -> tuple[int, int] | None:
@@ -346,7 +351,7 @@ class DAPMModule(L.LightningModule):
 
     def predict_step(self, batch: dict[str, Any], batch_idx: int) -> DAPMOutput:
         """The batch's ``pose`` (NaN where unknown) and ``pose_sigma``, when given, are its pose prior."""
-        return self(batch["image"], batch_prior(batch))
+        return self(batch["image"], network_prior(batch))
 
     @property
     def planned_steps(self) -> int:
