@@ -7,6 +7,7 @@ from dapm_lightning.data.errors import DatasetError
 from dapm_lightning.data.potsdam import PotsdamDataset
 from dapm_lightning.data.sample import Sample
 from dapm_lightning.data.synthetic import generate_uapd
-from dapm_lightning.data.uapd import UAPDDataset, parse_uapd_filename
+from dapm_lightning.data.uapd import UAPDDataset, format_uapd_filename, parse_uapd_filename
 
-__all__ = ["DatasetError", "PotsdamDataset", "Sample", "UAPDDataset", "generate_uapd", "parse_uapd_filename"]
+__all__ = ["DatasetError", "PotsdamDataset", "Sample", "UAPDDataset", "format_uapd_filename", "generate_uapd",
+           "parse_uapd_filename"]

@@ -16,6 +16,7 @@ from dapm_lightning.data.samplers import EpochShuffleSampler
 from dapm_lightning.data.synthetic import generate_uapd, is_current
 from dapm_lightning.data.transforms import train_transform
 from dapm_lightning.data.uapd import UAPDDataset
+from dapm_lightning.geometry.constants import MAX_DEPTH_M
 
 
 def collate_samples(samples: list[Sample]) -> dict[str, Any]:
@@ -125,17 +126,21 @@ class UAPDDataModule(DAPMDataModule):
         on_bad_file: ``"raise"`` lists every broken file at start-up; ``"skip"`` leaves them out.
         depth_kind: what the depth PNGs hold ("range" for synthetic data; check real data with the
             doctor); the model's ``depth_kind`` must match.
+        max_depth: metres that grey 255 means, the log encoding's limit (UAPD: 1000); the model's
+            ``igd.max_depth`` must match (checked when training or testing starts).
     """
 
     def __init__(self, root: str = "data/uapd", test_split: str = "val",
                  on_bad_file: Literal["raise", "skip"] = "raise", depth_kind: Literal["range", "planar"] = "range",
-                 **kwargs: Any) -> None:
+                 max_depth: float = MAX_DEPTH_M, **kwargs: Any) -> None:
         super().__init__(**kwargs)
         self.root, self.test_split, self.on_bad_file, self.depth_kind = Path(root), test_split, on_bad_file, depth_kind
+        self.max_depth = float(max_depth)
 
     def make_dataset(self, split: str, train: bool) -> Dataset[Sample]:
         return UAPDDataset(self.root, split, train_transform() if train and self.augment else None,
-                           image_dtype=self.image_dtype, on_bad_file=self.on_bad_file, augment_seed=self.seed)
+                           max_depth=self.max_depth, image_dtype=self.image_dtype, on_bad_file=self.on_bad_file,
+                           augment_seed=self.seed)
 
 
 class SyntheticDataModule(UAPDDataModule):
@@ -160,7 +165,7 @@ class SyntheticDataModule(UAPDDataModule):
         super().__init__(root=root, **kwargs)
         self.render_settings: dict[str, Any] = {
             "train": train_size, "val": val_size, "size": image_size, "seed": render_seed,
-            "families": families, "effects": effects, "distortion": distortion}
+            "families": families, "effects": effects, "distortion": distortion, "max_depth": self.max_depth}
         self.render_workers = render_workers
 
     def prepare_data(self) -> None:

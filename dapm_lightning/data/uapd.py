@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import re
 import warnings
+from collections.abc import Mapping, Sequence
 from pathlib import Path, PurePath
 from typing import Any, Literal
 
@@ -70,6 +71,31 @@ def parse_uapd_filename(name: str | PurePath) -> dict[str, Any]:
         raise ValueError(f"{name}: missing pose key(s) {missing} (expected tokens z_, pitch_, roll_, fov_)")
     parsed["tokens"] = loose
     return parsed
+
+
+def format_uapd_filename(tokens: Sequence[str], pose: Sequence[float] | np.ndarray, *, x: float = 0.0,
+                         y: float = 0.0, yaw: float = 0.0, extra: Mapping[str, float] | None = None,
+                         suffix: str = ".png") -> str:
+    """The UAPD file name :func:`parse_uapd_filename` reads back (design.md §4).
+
+    ``tokens`` (e.g. ``["Town03", "000123"]``) come first, then ``x, y, z`` (the height), ``pitch, roll, yaw,
+    fov`` with 2 decimals (the precision the renderers place the camera with), then ``extra`` keys with 3
+    decimals, in the given order; e.g. ``Town03_000123_x_1.00_y_2.00_z_57.20_pitch_-63.40_roll_12.75_yaw_33.00
+    _fov_88.10.png`` (one line).
+
+    Raises:
+        ValueError: a token or an ``extra`` key that the parser would misread.
+    """
+    height, pitch, roll, fov = (float(v) for v in pose)
+    for token in tokens:
+        if not token or "_" in token or _KEY.match(token) and token.lower() in KEY_ALIASES:
+            raise ValueError(f"token {token!r} would not read back (empty, with '_', or a pose key)")
+    for key in extra or {}:
+        if not _KEY.match(key) or key.lower() in KEY_ALIASES or key in ("x", "y", "yaw"):
+            raise ValueError(f"extra key {key!r} must be letters and not a pose, x, y or yaw key")
+    fields = [*tokens, f"x_{x:.2f}", f"y_{y:.2f}", f"z_{height:.2f}", f"pitch_{pitch:.2f}", f"roll_{roll:.2f}",
+              f"yaw_{yaw:.2f}", f"fov_{fov:.2f}", *(f"{k}_{v:.3f}" for k, v in (extra or {}).items())]
+    return "_".join(fields) + suffix
 
 
 def pose_from_parsed(parsed: dict[str, Any]) -> np.ndarray:

@@ -28,6 +28,16 @@ def decode_log_depth(depth_norm: Tensor, max_depth: float = MAX_DEPTH_M) -> Tens
     return torch.exp2(depth_norm.clamp(0.0, 1.0) * math.log2(max_depth + 1.0)) - 1.0
 
 
+def log_depth_grey(depth_m: Tensor, max_depth: float = MAX_DEPTH_M) -> Tensor:
+    """Metres to continuous grey levels ``SKY_GREY * encode_log_depth(d)`` in [0, 255] (the authors' metric space)."""
+    return SKY_GREY * encode_log_depth(depth_m, max_depth)
+
+
+def norm_to_grey(depth_norm: Tensor) -> np.ndarray:
+    """Normalised log depth ``[...]`` in [0, 1] to uint8 grey ``round(SKY_GREY * x)`` (for pictures of maps)."""
+    return (depth_norm.detach().float().clamp(0, 1) * SKY_GREY).round().to(torch.uint8).cpu().numpy()
+
+
 def depth_to_grey(depth_m: np.ndarray, max_depth: float = MAX_DEPTH_M) -> np.ndarray:
     """Metres to UAPD's 8-bit grey ``floor(255 * encode_log_depth(d))`` (uint8; 255 = at or beyond max_depth)."""
     clamped = np.clip(np.nan_to_num(depth_m, nan=0.0, posinf=max_depth), 0.0, max_depth)

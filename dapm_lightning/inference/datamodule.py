@@ -79,7 +79,7 @@ class PredictDataModule(DAPMDataModule):
             dataset.rank, dataset.world_size = self.trainer.global_rank, self.trainer.world_size
         return dataset
 
-    def predict_dataloader(self) -> DataLoader[dict[str, Any]]:
+    def predict_dataloader(self) -> DataLoader[Any]:
         # Lightning's notes on custom batch samplers and on iterable data sets concern writers that need batch
         # indices; PredictionWriter names its files from the samples, and the size batches return every image
         warnings.filterwarnings("ignore", message="You are using a custom batch sampler `SizeBatchSampler`")

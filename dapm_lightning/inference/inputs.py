@@ -158,7 +158,8 @@ def image_size(path: Path) -> tuple[int, int]:
         with Image.open(path) as image:
             return int(image.height), int(image.width)
     except Exception:  # a format Pillow lacks (OpenCV may still read it), or a damaged file named later
-        return tuple(read_image(path).shape[:2])  # type: ignore[return-value]
+        height, width = read_image(path).shape[:2]
+        return int(height), int(width)
 
 
 @dataclass(frozen=True)

@@ -50,7 +50,8 @@ def read_ply(path: str | Path) -> dict[str, np.ndarray]:
         raise ValueError(f"{path}: not a PLY file (no 'ply' magic or no 'end_header')")
     body_start = data.index(b"\n", end) + 1
     lines = data[:end].decode("ascii").splitlines()
-    fmt, elements = "", []  # [(name, count, [(property, dtype)])]
+    fmt = ""
+    elements: list[tuple[str, int, list[tuple[str, str]]]] = []  # (name, count, [(property, dtype)])
     for line in lines[1:]:
         words = line.split()
         if not words or words[0] in ("comment", "obj_info"):

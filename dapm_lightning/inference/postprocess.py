@@ -23,7 +23,7 @@ from torch import Tensor
 from dapm_lightning.geometry.camera import intrinsics_matrix
 from dapm_lightning.geometry.constants import MAX_DEPTH_M, POSE_KEYS
 from dapm_lightning.geometry.depth_codec import decode_log_depth, encode_log_depth
-from dapm_lightning.geometry.igd import IGDSpec
+from dapm_lightning.geometry.igd import DepthKind, IGDSpec
 from dapm_lightning.geometry.pointcloud import camera_to_world, depth_to_points, valid_points
 from dapm_lightning.inference.ply import write_ply
 
@@ -101,7 +101,7 @@ class Prediction:
     sky_prob: np.ndarray | None = None
     K: np.ndarray | None = None
     camera_to_world: np.ndarray | None = None
-    depth_kind: str = "range"
+    depth_kind: DepthKind = "range"
     max_depth: float = MAX_DEPTH_M
     name: str = ""
     extras: dict[str, Any] = field(default_factory=dict)
@@ -111,7 +111,8 @@ class Prediction:
     @property
     def size(self) -> tuple[int, int]:
         """``(H, W)`` of the input."""
-        return tuple(self.extras["size"])  # type: ignore[return-value]
+        height, width = self.extras["size"]
+        return int(height), int(width)
 
     def points(self, stride: int = 1, max_depth: float | None = None, rgb: np.ndarray | None = None) -> PointCloud:
         """Metric point cloud of the non-sky pixels, every ``stride``-th row and column, in the world frame.

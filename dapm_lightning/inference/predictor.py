@@ -17,6 +17,7 @@ from dapm_lightning.data.datamodules import collate_samples
 from dapm_lightning.inference.inputs import (
     SIZE_MULTIPLE,
     NetworkSize,
+    PriorMode,
     PriorSettings,
     SizeBatchSampler,
     VideoFramesDataset,
@@ -28,7 +29,7 @@ from dapm_lightning.inference.inputs import (
     upscale_note,
 )
 from dapm_lightning.inference.postprocess import Prediction
-from dapm_lightning.inference.prior import PriorMode, as_prior
+from dapm_lightning.inference.prior import as_prior
 from dapm_lightning.inference.writers import predictions_with_prior
 from dapm_lightning.models.prior import PosePrior
 from dapm_lightning.training.module import network_prior
@@ -40,7 +41,7 @@ def apply_inference_options(module: torch.nn.Module, channels_last: bool, compil
     """Channels-last and/or ``torch.compile`` on ``module``'s network in place; returns ``module``."""
     net = getattr(module, "net", module)
     if channels_last:
-        net.to(memory_format=torch.channels_last)  # type: ignore[call-overload]
+        net.to(memory_format=torch.channels_last)
     if compile and not getattr(net, "_dapm_compiled", False):
         net.compile(dynamic=False)
         net._dapm_compiled = True
@@ -227,7 +228,7 @@ class DAPMPredictor:
 
     def loader(self, source: str | Path, frame_step: int = 1, max_frames: int | None = None,
                keep_rgb: bool = False, num_workers: int = 0, telemetry: str | Path | None = None,
-               read_metadata: bool = True, sensor_width_mm: float | None = None) -> DataLoader[dict[str, Any]]:
+               read_metadata: bool = True, sensor_width_mm: float | None = None) -> DataLoader[Any]:
         """Batches of a folder, glob pattern, image or video at the network size, with their telemetry.
 
         Mixed sizes are batched by size; telemetry as :func:`source_dataset` finds it.

@@ -138,13 +138,14 @@ def apply_pose_prior(outputs: Mapping[str, Tensor], prior: PosePrior | None, mod
         raise ValueError(f"unknown telemetry mode {mode!r}; choose from {', '.join(PRIOR_MODES)}")
     device = next(iter(outputs.values())).device
     prior = prior.to(device)
+    made_with: Tensor | None
     if "pose" not in outputs:  # a depth-only model: a fully known pose is the pose, for K, points and the scale
         if not bool(prior.known.all()):
             return result, pose_sources(None, batch), ["none"] * batch
         result["pose"] = prior.value.to(device)
         made_with = None
     elif "pose_network" in outputs:  # the network was given the prior: its depth is made with the pose used
-        made_with: Tensor | None = outputs["pose"]
+        made_with = outputs["pose"]
     else:  # the network ran without the prior: fuse here, with its bins spread when given
         network = outputs["pose"]
         used = spec.denormalize(fuse_pose(spec.normalize(network.float()), prior, spec,

@@ -33,6 +33,7 @@ import numpy as np
 import numpy.typing as npt
 from PIL import ExifTags, Image, UnidentifiedImageError
 
+from dapm_lightning.data.uapd import IMAGE_SUFFIXES
 from dapm_lightning.geometry.constants import POSE_KEYS
 
 __all__ = [
@@ -57,8 +58,9 @@ CSV_COLUMNS: tuple[str, str, str, str, str] = ("name", "height_m", "pitch_deg", 
 FULL_FRAME_DIAGONAL_MM: float = math.hypot(36.0, 24.0)
 """43.27 mm: the diagonal of a 36 x 24 mm frame, to which a 35-mm-equivalent focal length refers."""
 
-IMAGE_SUFFIXES: tuple[str, ...] = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp", ".dng")
-"""Extensions stripped from a CSV ``name`` (anything else after a dot is part of the name)."""
+CSV_NAME_SUFFIXES: tuple[str, ...] = (*IMAGE_SUFFIXES, ".dng")
+"""Extensions stripped from a CSV ``name``: the images the project reads and the raw DNGs a flight log may
+name (anything else after a dot is part of the name)."""
 
 _FIELDS: tuple[str, str, str, str] = ("height_m", "pitch_deg", "roll_deg", "fov_deg")
 _SHOW_NAMES = 5
@@ -201,7 +203,7 @@ def _csv_key(name: str) -> str:
     """The image stem a CSV ``name`` refers to: directories dropped, a known image extension stripped."""
     base = name.replace("\\", "/").rsplit("/", 1)[-1]
     stem, dot, suffix = base.rpartition(".")
-    return stem if dot and stem and f".{suffix.lower()}" in IMAGE_SUFFIXES else base
+    return stem if dot and stem and f".{suffix.lower()}" in CSV_NAME_SUFFIXES else base
 
 
 _CSV_FIX = {

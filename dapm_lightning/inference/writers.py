@@ -28,6 +28,7 @@ from lightning.pytorch.utilities import rank_zero_info
 from dapm_lightning.geometry.camera import horizon_segment
 from dapm_lightning.geometry.constants import POSE_KEYS
 from dapm_lightning.geometry.igd import IGDSpec
+from dapm_lightning.inference.inputs import PriorMode
 from dapm_lightning.inference.postprocess import Prediction, pose_field, predictions_from_outputs
 from dapm_lightning.inference.prior import apply_pose_prior
 from dapm_lightning.training.module import batch_prior
@@ -85,7 +86,8 @@ def write_prediction(out: Path, prediction: Prediction, outputs: Iterable[str] =
         prediction.points(points_stride, points_max_depth, rgb).write_ply(written[-1])
     if "npz" in outputs:
         written.append(out / f"{name}.npz")
-        np.savez_compressed(written[-1], **npz_arrays(prediction))
+        arrays: dict[str, Any] = npz_arrays(prediction)
+        np.savez_compressed(written[-1], **arrays)
     return written
 
 
@@ -315,7 +317,7 @@ def predictions_with_prior(outputs: dict[str, Any], batch: dict[str, Any], spec:
     """Per-image predictions of a batch's network outputs, with the batch's pose prior applied (telemetry)."""
     metas = batch["meta"]
     prior = batch_prior(batch)
-    mode = metas[0].get("prior_mode", "condition") if metas else "condition"
+    mode: PriorMode = metas[0].get("prior_mode", "condition") if metas else "condition"
     outputs, sources, methods = apply_pose_prior(outputs, prior, mode, spec)
     predictions = predictions_from_outputs(outputs, batch["name"], [meta["size"] for meta in metas], spec,
                                            pose_network=outputs.get("pose_network"),

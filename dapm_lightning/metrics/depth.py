@@ -15,8 +15,8 @@ import torch
 from torch import Tensor
 from torchmetrics import Metric
 
-from dapm_lightning.geometry.constants import MAX_DEPTH_M, MIN_DEPTH_M
-from dapm_lightning.geometry.depth_codec import encode_log_depth
+from dapm_lightning.geometry.constants import MAX_DEPTH_M, MIN_DEPTH_M, SKY_GREY
+from dapm_lightning.geometry.depth_codec import log_depth_grey
 
 DEPTH_METRIC_NAMES = ("d1", "d2", "d3", "abs_rel", "sq_rel", "rmse", "rmse_log", "log10", "silog")
 
@@ -44,8 +44,8 @@ def per_image_depth_metrics(pred: Tensor, target: Tensor, *, min_depth: float = 
     target = target.reshape(batch, -1).double()
     mask = (target > min_depth) & (target < max_depth) & torch.isfinite(target)
     if space == "uapd_log":
-        pred = 255.0 * encode_log_depth(pred, max_depth)
-        target = 255.0 * encode_log_depth(target.clamp(min=0.0), max_depth)
+        pred = log_depth_grey(pred, max_depth)
+        target = log_depth_grey(target.clamp(min=0.0), max_depth)
         mask &= target > 0
         pred = pred.clamp(min=1e-6)
     elif space != "metric":
@@ -149,9 +149,8 @@ class AuthorsDepthMetrics(Metric):
         self.add_state("pixels", default=torch.tensor(0.0, dtype=torch.float64), dist_reduce_fx="sum")
 
     def grey(self, depth_m: Tensor) -> Tensor:
-        """Metres -> grey levels ``255 * encode_log_depth(clamp(d, 0, max_depth))``, clamped at ``clamp``."""
-        return (255.0 * encode_log_depth(depth_m.double().clamp(0.0, self.max_depth), self.max_depth)
-                ).clamp(min=self.clamp)
+        """Metres -> grey levels (:func:`log_depth_grey` of ``clamp(d, 0, max_depth)``), clamped at ``clamp``."""
+        return log_depth_grey(depth_m.double().clamp(0.0, self.max_depth), self.max_depth).clamp(min=self.clamp)
 
     def update(self, pred: Tensor, target: Tensor) -> None:
         """``pred``, ``target``: ``[B, 1, H, W]`` or ``[B, H, W]`` metres (sky at ``max_depth``)."""
@@ -175,7 +174,7 @@ class AuthorsDepthMetrics(Metric):
         mean = {name: getattr(self, f"sum_{name}") / self.pixels for name in _POOLED_SUMS}
         rmse_grey = torch.sqrt(mean["sq_err"])
         result = {"d1": mean["d1"], "d2": mean["d2"], "d3": mean["d3"], "abs_rel": mean["abs_rel"],
-                  "sq_rel": mean["sq_rel"], "rmse_grey": rmse_grey, "rmse_unit": rmse_grey / 255.0,
+                  "sq_rel": mean["sq_rel"], "rmse_grey": rmse_grey, "rmse_unit": rmse_grey / SKY_GREY,
                   "rmse_log": torch.sqrt(mean["log_sq"]), "log10": mean["log10"],
                   "silog": 100.0 * torch.sqrt((mean["log_sq"] - mean["log"] ** 2).clamp(min=0.0))}
         return {k: v.float() for k, v in result.items()}

@@ -83,7 +83,7 @@ class DAPMOutput(NamedTuple):
         values = {"depth_m": self.depth_m, "sky_prob": self.sky_prob,
                   "pose": self.pose_physical if used is None else used,
                   "pose_network": None if used is None else self.pose_physical}
-        result = {name: values[name] for name in INFERENCE_OUTPUTS if values[name] is not None}
+        result = {name: value for name in INFERENCE_OUTPUTS if (value := values[name]) is not None}
         if spread and self.pose is not None and self.pose.bin_logits:
             result["pose_spread"] = bins_spread(self.pose.bin_logits[-1])  # for fusing a prior afterwards
         return result
@@ -120,6 +120,9 @@ class DAPMNet(nn.Module):
         (torch.Size([1, 1, 96, 128]), torch.Size([1, 4]))
     """
 
+    pixel_mean: Tensor
+    pixel_std: Tensor
+
     def __init__(self, config: DAPMConfig | None = None) -> None:
         super().__init__()
         self.config = config = config or DAPMConfig()
@@ -128,7 +131,8 @@ class DAPMNet(nn.Module):
         self.register_buffer("pixel_mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("pixel_std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
         self.depth_decoder = self.to_head = self.igd_feature = self.depth_pqb = self.upsample = None
-        self.pose_decoder = self.pose_pqb = None
+        self.pose_decoder = None
+        self.pose_pqb: EncoderPosePQB | PosePQB | None = None
         if config.use_depth:
             self.depth_decoder = DepthDecoder(channels[-3:], config.decoder_channels, config.dropout,
                                               squeeze_excite=config.decoder_squeeze_excite)

@@ -6,6 +6,7 @@ import difflib
 import re
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import timm
 from torch import Tensor, nn
@@ -50,8 +51,9 @@ class Encoder(nn.Module):
             overlay = {"file": str(weights_path)}
         self.body = timm.create_model(backbone, features_only=True, pretrained=pretrained or overlay is not None,
                                       out_indices=tuple(out_indices), pretrained_cfg_overlay=overlay)
-        self.channels: list[int] = list(self.body.feature_info.channels())
-        self.strides: list[int] = list(self.body.feature_info.reduction())
+        feature_info: Any = self.body.feature_info
+        self.channels: list[int] = list(feature_info.channels())
+        self.strides: list[int] = list(feature_info.reduction())
 
     def forward(self, image: Tensor) -> list[Tensor]:
         """``image [B, 3, H, W]`` (ImageNet-normalised) -> feature maps ``[B, C_i, H / s_i, W / s_i]``."""

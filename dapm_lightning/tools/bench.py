@@ -16,8 +16,10 @@ import time
 from typing import Any
 
 import torch
+from lightning.pytorch import Callback
 from torch.utils.flop_counter import FlopCounterMode
 
+from dapm_lightning.geometry.constants import POSE_KEYS
 from dapm_lightning.models import EFFICIENT_NETWORK, PAPER_NETWORK, DAPMConfig, DAPMNet
 
 CONFIGS: dict[str, dict[str, Any]] = {
@@ -102,83 +104,74 @@ def data_pipeline(size: int, images: int, repeats: int) -> list[dict[str, Any]]:
                  "mb_per_sample": sample_bytes(dict(dataset[0])) / 2**20} for dtype, dataset in datasets.items()]
 
 
+class StepTimer(Callback):
+    """Seconds of every training step (forward, loss, backward and optimizer step; loading excluded), last loss."""
+
+    def __init__(self) -> None:
+        self.seconds: list[float] = []
+        self.loss, self._start = math.nan, 0.0
+
+    def on_train_batch_start(self, trainer: Any, pl_module: Any, batch: Any, batch_idx: int) -> None:
+        self._start = time.perf_counter()
+
+    def on_train_batch_end(self, trainer: Any, pl_module: Any, outputs: Any, batch: Any, batch_idx: int) -> None:
+        self.seconds.append(time.perf_counter() - self._start)
+        loss = outputs.get("loss") if isinstance(outputs, dict) else outputs
+        self.loss = float(loss) if isinstance(loss, torch.Tensor) else math.nan
+
+
 def train_compare(configs: list[str], *, backbone: str, size: int, steps: int, batch: int, train_images: int,
                   val_images: int, seed: int = 0) -> list[dict[str, Any]]:
-    """Train each network configuration for the same steps on the same batches; speed and accuracy.
+    """Train each network configuration as ``dapm-lightning fit`` trains it; speed and accuracy.
 
-    One process, the configurations interleaved step by step (each step, every configuration trains on
-    the same batch, timed on its own), so a noisy machine slows them alike. Same initial seed and loss
-    (the paper's: Eq. 17 in the authors' normalised log space); AdamW 1e-3, 10 % warm-up then cosine;
-    the IGD fed the predicted pose (no teacher forcing). Accuracy on the validation split: toolbox
-    depth metrics in metres, the authors' protocol, pose medians.
+    Each configuration is the quickstart recipe (dapm_lightning/configs/quickstart.yaml: its loss, optimizer,
+    schedule, augmentation and IGD teacher forcing) with the network settings of :data:`CONFIGS`, trained
+    by ``DAPMModule`` in a Lightning ``Trainer`` on the same synthetic data, from the same seed, one after the
+    other in this process, then validated with the module's own metrics (toolbox depth in metres, the
+    authors' protocol, pose medians). ``s_per_step`` is the median step time (loading excluded).
     """
     import tempfile
+    from pathlib import Path
 
-    from torch.utils.data import DataLoader
+    from lightning.pytorch.callbacks import Checkpoint
 
-    from dapm_lightning.data.sample import depth_masks
     from dapm_lightning.data.synthetic import generate_uapd
-    from dapm_lightning.data.transforms import train_transform
-    from dapm_lightning.data.uapd import UAPDDataset
-    from dapm_lightning.metrics import AuthorsDepthMetrics, DepthMetrics, PoseMetrics
-    from dapm_lightning.training.loss import DAPMLoss, LossConfig
-    from dapm_lightning.training.module import warmup_cosine
+    from dapm_lightning.training.lightning_cli import run_lightning_cli
 
+    quickstart = Path(__file__).resolve().parents[1] / "configs" / "quickstart.yaml"
+    rows = []
     with tempfile.TemporaryDirectory() as tmp:
-        generate_uapd(tmp, train=train_images, val=val_images, size=size, seed=seed)
-        train_set = UAPDDataset(tmp, "train", train_transform(), augment_seed=seed)
-        val_set = UAPDDataset(tmp, "val")
-        runs: dict[str, dict[str, Any]] = {}
+        generate_uapd(Path(tmp) / "data", train=train_images, val=val_images, size=size, seed=seed)
         for name in configs:
-            torch.manual_seed(seed)
-            net = DAPMNet(DAPMConfig(backbone=backbone, **CONFIGS[name])).train()
-            optimizer = torch.optim.AdamW(net.parameters(), lr=1e-3, weight_decay=0.01)
-            runs[name] = {"net": net, "optimizer": optimizer, "seconds": 0.0, "loss": math.nan,
-                          "criterion": DAPMLoss(LossConfig(depth_space="log_norm"), net.config.igd),
-                          "schedule": torch.optim.lr_scheduler.LambdaLR(
-                              optimizer, lambda k: warmup_cosine(k, steps, 0.1, 0.02))}
-        loader = DataLoader(train_set, batch_size=batch, shuffle=True, drop_last=True,
-                            generator=torch.Generator().manual_seed(seed))
-        step = 0
-        while step < steps:
-            for sample in loader:
-                sky, valid = depth_masks(sample["depth"])
-                targets = {**sample, "sky": sky, "valid": valid}
-                for run in runs.values():
-                    start = time.perf_counter()
-                    loss = run["criterion"](run["net"](sample["image"].float()), targets)["total"]
-                    run["optimizer"].zero_grad()
-                    loss.backward()
-                    run["optimizer"].step()
-                    run["schedule"].step()
-                    run["seconds"] += time.perf_counter() - start
-                    run["loss"] = float(loss.detach())
-                step += 1
-                if step % 10 == 0:
-                    print(f"step {step}/{steps}: " + ", ".join(f"{k} {r['seconds'] / step:.2f} s/step loss "
-                                                              f"{r['loss']:.3f}" for k, r in runs.items()),
-                          file=sys.stderr, flush=True)
-                if step == steps:
-                    break
-        rows = []
-        for name, run in runs.items():
-            net = run["net"].eval()
-            depth, authors, pose = DepthMetrics(), AuthorsDepthMetrics(), PoseMetrics()
+            net = [f"--model.net.{key}={value if isinstance(value, str) else json.dumps(value)}"
+                   for key, value in CONFIGS[name].items()]
+            cli = run_lightning_cli([
+                "--config", str(quickstart), "--seed_everything", str(seed), *net,
+                "--model.net.backbone", backbone, "--model.net.pretrained", "false",
+                "--model.authors_depth_metrics", "true",
+                "--data.class_path", "dapm_lightning.data.datamodules.UAPDDataModule",
+                "--data.init_args.root", str(Path(tmp) / "data"), "--data.init_args.batch_size", str(batch),
+                "--data.init_args.num_workers", "0", "--data.init_args.seed", str(seed),
+                "--trainer.max_steps", str(steps), "--trainer.max_epochs", "-1", "--trainer.limit_val_batches", "0",
+                "--trainer.num_sanity_val_steps", "0", "--trainer.logger", "false",
+                "--trainer.enable_progress_bar", "false", "--trainer.enable_model_summary", "false",
+                "--trainer.default_root_dir", str(Path(tmp) / name)], run=False)
+            timer = StepTimer()
+            trainer = cli.trainer
+            trainer.callbacks[:] = [c for c in trainer.callbacks if not isinstance(c, Checkpoint)] + [timer]
+            trainer.fit(cli.model, datamodule=cli.datamodule)
+            trainer.limit_val_batches = 1.0
             start = time.perf_counter()
-            with torch.no_grad():
-                for sample in DataLoader(val_set, batch_size=batch):
-                    out = net(sample["image"].float())
-                    depth.update(out.depth_m, sample["depth"])
-                    authors.update(out.depth_m, sample["depth"])
-                    pose.update(out.pose_physical, sample["pose"])
-            eval_ms = (time.perf_counter() - start) / len(val_set) * 1e3
-            d, a, p = depth.compute(), authors.compute(), pose.compute()
-            rows.append({"config": name, "params_m": sum(q.numel() for q in net.parameters()) / 1e6,
-                         "s_per_step": run["seconds"] / steps, "eval_ms_per_image": eval_ms,
-                         "final_loss": run["loss"], "d1": float(d["d1"]), "abs_rel": float(d["abs_rel"]),
-                         "rmse_m": float(d["rmse"]), "authors_d1": float(a["d1"]),
-                         "authors_abs_rel": float(a["abs_rel"]), "authors_rmse_unit": float(a["rmse_unit"]),
-                         **{f"{k}_median": float(p[f"{k}_median"]) for k in ("height", "pitch", "roll", "fov")}})
+            metrics = trainer.validate(cli.model, datamodule=cli.datamodule, verbose=False)[0]
+            eval_ms = (time.perf_counter() - start) / val_images * 1e3
+            rows.append({"config": name, "params_m": sum(q.numel() for q in cli.model.net.parameters()) / 1e6,
+                         "s_per_step": statistics.median(timer.seconds), "eval_ms_per_image": eval_ms,
+                         "final_loss": timer.loss,
+                         "d1": metrics["val_depth_d1"], "abs_rel": metrics["val_depth_abs_rel"],
+                         "rmse_m": metrics["val_depth_rmse"], "authors_d1": metrics["val_depthauthors_d1"],
+                         "authors_abs_rel": metrics["val_depthauthors_abs_rel"],
+                         "authors_rmse_unit": metrics["val_depthauthors_rmse_unit"],
+                         **{f"{k}_median": metrics[f"val_pose_{k}_median"] for k in POSE_KEYS}})
     return rows
 
 

@@ -25,6 +25,8 @@ from typing import Any
 import torch
 
 from dapm_lightning.data.synthetic import FAMILIES, generate_uapd, is_current
+from dapm_lightning.geometry.constants import MAX_DEPTH_M, SKY_GREY
+from dapm_lightning.geometry.depth_codec import depth_to_grey
 
 PREVIOUS_GENERATOR = {64: 46.5, 128: 16.9}
 """images/s of the single-town generator this one replaced (``generate_uapd(size=S, workers=2)``, 2 cores)."""
@@ -294,7 +296,6 @@ def figure(args: argparse.Namespace) -> dict[str, Any]:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    import numpy as np
 
     from dapm_lightning.data.synthetic import image_seed, render_scene, sample_pose, sample_scene
 
@@ -308,12 +309,11 @@ def figure(args: argparse.Namespace) -> dict[str, Any]:
             axes[row, k].set_title(f"{family if row == 0 else ''}\nh {pose[0]:.0f} m, pitch {pose[1]:.0f}, "
                                    f"roll {pose[2]:.0f}, fov {pose[3]:.0f}", fontsize=7)
             if row == 0:
-                depth = np.minimum(np.where(np.isfinite(range_m), range_m, 1000.0), 1000.0)
-                axes[1, k].imshow(np.log2(depth + 1) / np.log2(1001), cmap="gray", vmin=0, vmax=1)
+                axes[1, k].imshow(depth_to_grey(range_m), cmap="gray", vmin=0, vmax=SKY_GREY)
         for ax in axes[:, k]:
             ax.axis("off")
     fig.suptitle("dapm-lightning synth: two samples per scene family (RGB; log depth of the first as "
-                 "written, white = 1000 m or more)", fontsize=9)
+                 f"written, white = {MAX_DEPTH_M:.0f} m or more)", fontsize=9)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(args.out, dpi=args.dpi)
     plt.close(fig)

@@ -27,6 +27,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from dapm_lightning.data.uapd import format_uapd_filename
 from dapm_lightning.geometry.constants import MAX_DEPTH_M, POSE_RANGES
 from dapm_lightning.geometry.depth_codec import depth_to_grey
 
@@ -127,8 +128,8 @@ class SampleParams:
 
     def name(self) -> str:
         """UAPD file name (values rounded to 2 decimals: the camera is placed with the rounded values)."""
-        return (f"{self.town}_{self.index:06d}_x_{self.x:.2f}_y_{self.y:.2f}_z_{self.height:.2f}"
-                f"_pitch_{self.pitch:.2f}_roll_{self.roll:.2f}_yaw_{self.yaw:.2f}_fov_{self.fov:.2f}.png")
+        return format_uapd_filename([self.town, f"{self.index:06d}"], (self.height, self.pitch, self.roll, self.fov),
+                                    x=self.x, y=self.y, yaw=self.yaw)
 
 
 def sample_params(config: CarlaConfig, index: int) -> SampleParams:

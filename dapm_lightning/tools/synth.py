@@ -9,6 +9,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from dapm_lightning.data.synthetic import FAMILIES, generate_uapd, normalize_families, shard_range
+from dapm_lightning.geometry.constants import MAX_DEPTH_M
 
 
 def parse_shard(text: str) -> tuple[int, int]:
@@ -54,6 +55,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--distortion", action="store_true",
                         help="random radial lens distortion per image (k in [-0.5, 0.5], kcube in [-0.2, 0.2], "
                              "written into the name), applied to image and depth alike")
+    parser.add_argument("--max_depth", type=float, default=MAX_DEPTH_M, metavar="M",
+                        help=f"depth limit of the log encoding, grey 255 (default {MAX_DEPTH_M:g}, UAPD's); train "
+                             "with the same model.net.igd.max_depth and data.init_args.max_depth")
     parser.add_argument("--no-effects", dest="effects", action="store_false",
                         help="no camera processing (exposure, white balance, blur, noise, JPEG artefacts)")
     return parser
@@ -65,6 +69,8 @@ def synth_main(argv: Sequence[str]) -> None:
     args = parser.parse_args(list(argv))
     if len(args.size) not in (1, 2) or min(args.size) < 1:
         parser.error(f"--size takes S or H W (positive), got {args.size}")
+    if not args.max_depth > 1.0:
+        parser.error(f"--max_depth must be > 1 m, got {args.max_depth}")
     if args.train < 0 or args.val < 0:
         parser.error("--train and --val must be >= 0")
     size = args.size[0] if len(args.size) == 1 else (args.size[0], args.size[1])
@@ -73,7 +79,7 @@ def synth_main(argv: Sequence[str]) -> None:
     try:
         out = generate_uapd(args.out, train=args.train, val=args.val, size=size, seed=args.seed,
                             workers=args.workers, families=args.families, effects=args.effects, shard=args.shard,
-                            distortion=args.distortion)
+                            distortion=args.distortion, max_depth=args.max_depth)
     except ValueError as error:
         parser.error(str(error))
     seconds = time.perf_counter() - start

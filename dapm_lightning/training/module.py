@@ -243,6 +243,11 @@ class DAPMModule(L.LightningModule):
         if data_kind is not None and data_kind != model_kind and self.net_config.use_pose:
             raise ValueError(f"the data holds {data_kind} depth but the model's IGD computes {model_kind} depth: set "
                              f"model.net.igd.depth_kind: {data_kind} (or fix data.init_args.depth_kind)")
+        data_limit, model_limit = getattr(datamodule, "max_depth", None), self.net_config.igd.max_depth
+        if data_limit is not None and data_limit != model_limit:
+            raise ValueError(f"the data's depth PNGs encode depth up to {data_limit:g} m (grey 255) but the model's "
+                             f"limit is {model_limit:g} m: set model.net.igd.max_depth: {data_limit:g} (or fix "
+                             "data.init_args.max_depth)")
 
     def forward(self, image: Tensor, prior: PosePrior | None = None) -> DAPMOutput:
         """``image [B, 3, H, W]`` (uint8 or float in [0, 1]) -> :class:`DAPMOutput` (predictions only).

@@ -13,17 +13,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from dapm_lightning.geometry.constants import MAX_DEPTH_M
-from dapm_lightning.geometry.depth_codec import encode_log_depth
+from dapm_lightning.geometry.constants import MAX_DEPTH_M, POSE_KEYS, SKY_GREY
+from dapm_lightning.geometry.depth_codec import encode_log_depth, norm_to_grey
 from dapm_lightning.metrics.depth import DEPTH_METRIC_NAMES, per_image_depth_metrics
 from dapm_lightning.models.dapm import DAPMOutput
-
-POSE_KEYS = ("height", "pitch", "roll", "fov")
-
-
-def _grey(values: Tensor) -> np.ndarray:
-    """``[H, W]`` in [0, 1] -> uint8 grey (``round(255 x)``)."""
-    return (values.detach().float().clamp(0, 1) * 255.0).round().to(torch.uint8).cpu().numpy()
 
 
 def stage_maps(out: DAPMOutput, index: int) -> dict[str, np.ndarray]:
@@ -36,15 +29,16 @@ def stage_maps(out: DAPMOutput, index: int) -> dict[str, np.ndarray]:
     depth = out.depth
     if depth is None:
         return {}
-    maps = {"depth_init": _grey(depth.depth_init_norm[index, 0]), "depth": _grey(depth.depth_norm[index, 0])}
+    maps = {"depth_init": norm_to_grey(depth.depth_init_norm[index, 0]),
+            "depth": norm_to_grey(depth.depth_norm[index, 0])}
     if depth.sky_logits is not None:
-        maps["sky"] = ((depth.sky_logits[index, 0] > 0).to(torch.uint8) * 255).cpu().numpy()
+        maps["sky"] = ((depth.sky_logits[index, 0] > 0).to(torch.uint8) * SKY_GREY).cpu().numpy()
     seen: dict[int, int] = {}
     for logits in depth.bin_logits:
         n = logits.shape[1]
         seen[n] = seen.get(n, 0) + 1
         key = f"bins_{n}" if seen[n] == 1 else f"bins_{n}_{seen[n]}"
-        maps[key] = _grey(logits[index].argmax(dim=0).float() / max(1, n - 1))
+        maps[key] = norm_to_grey(logits[index].argmax(dim=0).float() / max(1, n - 1))
     return maps
 
 
@@ -103,7 +97,7 @@ class TestOutputWriter(L.Callback):
             row[f"depth_{metric}"] = float(metrics[metric][i]) if metrics else math.nan
         if out.depth is not None:
             target = encode_log_depth(batch["depth"][i].double().clamp(0, self.max_depth), self.max_depth)
-            row["depth_mae_grey"] = float((out.depth.depth_norm[i].double() - target).abs().mean() * 255.0)
+            row["depth_mae_grey"] = float((out.depth.depth_norm[i].double() - target).abs().mean() * SKY_GREY)
         return row
 
     def on_test_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:

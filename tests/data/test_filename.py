@@ -1,6 +1,7 @@
 import pytest
 
-from dapm_lightning.data import parse_uapd_filename
+from dapm_lightning.data import format_uapd_filename, parse_uapd_filename
+from dapm_lightning.data.synthetic import FAMILIES
 
 EXAMPLE = "Town03_000123_x_-12.5_y_40.1_z_57.20_pitch_-63.40_roll_12.75_yaw_33.0_fov_88.10.png"
 
@@ -38,3 +39,36 @@ def test_errors_name_the_file(name, message):
     with pytest.raises(ValueError, match=message) as info:
         parse_uapd_filename(name)
     assert name in str(info.value)
+
+
+@pytest.mark.parametrize("tokens, pose, extra", [
+    (["Town03", "000123"], (57.2, -63.4, 12.75, 88.1), None),
+    (["synth", "000007", "forest"], (10.004, -99.996, -30.0, 120.0), {"lensk": -0.1234, "lenskcube": 0.05}),
+    ([], (0.5, 5.0, 0.0, 30.0), None),
+])
+def test_format_reads_back(tokens, pose, extra):
+    name = format_uapd_filename(tokens, pose, x=-12.5, y=40.125, yaw=33.0, extra=extra)
+    parsed = parse_uapd_filename(name)
+    assert [parsed[k] for k in ("height", "pitch", "roll", "fov")] == [round(v, 2) for v in pose]
+    assert (parsed["x"], parsed["y"], parsed["yaw"]) == (-12.5, 40.12, 33.0)
+    for key, value in (extra or {}).items():
+        assert parsed[key] == round(value, 3)
+    assert name.endswith(".png") and name.startswith("_".join(tokens))
+
+
+@pytest.mark.parametrize("tokens, extra", [(["a_b"], None), (["pitch"], None), ([""], None),
+                                           ([], {"fov": 1.0}), ([], {"k2": 1.0})])
+def test_format_refuses_what_would_not_read_back(tokens, extra):
+    with pytest.raises(ValueError, match="read back|must be letters"):
+        format_uapd_filename(tokens, (50.0, -45.0, 0.0, 90.0), extra=extra)
+
+
+def test_both_writers_use_the_one_format():
+    from dapm_lightning.data.synthetic import render_sample
+    from dapm_lightning.tools.carla_collect import CarlaConfig, sample_params
+
+    name = render_sample(0, "train", 3, (16, 16))[0]
+    assert parse_uapd_filename(name)["tokens"][-1] in FAMILIES
+    params = sample_params(CarlaConfig(samples=1), 0)
+    assert params.name() == format_uapd_filename([params.town, "000000"], (params.height, params.pitch, params.roll,
+                                                 params.fov), x=params.x, y=params.y, yaw=params.yaw)

@@ -26,6 +26,7 @@ def test_size_symbolic_pooling_equals_pytorch():
         torch.testing.assert_close(adaptive_avg_pool2d_symbolic(x, n), torch.nn.functional.adaptive_avg_pool2d(x, n))
 
 
+@pytest.mark.slow
 def test_dynamic_onnx_matches_pytorch_at_other_sizes(tmp_path):
     net = tiny_net()
     rows = export_onnx(net, tmp_path / "m.onnx", (64, 96), checks=1)

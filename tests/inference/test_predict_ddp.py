@@ -6,6 +6,9 @@ import sys
 
 import cv2
 import numpy as np
+import pytest
+
+pytestmark = pytest.mark.slow  # multi-process run: `make test-all`
 
 
 def test_two_processes_predict_every_image_once(checkpoint, tmp_path):

@@ -141,6 +141,7 @@ def test_loss_is_finite_on_edge_batches():
         assert all(torch.isfinite(p.grad).all() for p in net.parameters() if p.grad is not None)
 
 
+@pytest.mark.slow
 def test_tiny_model_overfits_synthetic_images():
     torch.manual_seed(0)
     rng = np.random.default_rng(0)
@@ -168,9 +169,16 @@ def test_tiny_model_overfits_synthetic_images():
 
 
 def test_pose_ranges_are_configurable():
-    ranges = dict(POSE_RANGES, height=(0.0, 500.0))
-    out = make_net(igd=IGDSpec(pose_ranges=ranges)).eval()(torch.rand(1, 3, 32, 32))
-    assert 0 <= out.pose_physical[0, 0] <= 500
+    image = torch.rand(1, 3, 32, 32)
+    torch.manual_seed(0)
+    default = make_net().eval()(image)
+    torch.manual_seed(0)  # the same weights: the ranges only map the normalised pose to units
+    wide = make_net(igd=IGDSpec(pose_ranges=dict(POSE_RANGES, height=(0.0, 500.0), fov=(20.0, 160.0)))).eval()(image)
+    x = wide.pose.pose_norm[0]
+    torch.testing.assert_close(x, default.pose.pose_norm[0])
+    torch.testing.assert_close(wide.pose_physical[0], torch.stack([500 * x[0], -100 + 110 * x[1], -30 + 60 * x[2],
+                                                                   20 + 140 * x[3]]))
+    torch.testing.assert_close(default.pose_physical[0, 0], 10 + 90 * x[0])
 
 
 @pytest.mark.parametrize("pose", [

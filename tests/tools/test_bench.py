@@ -3,6 +3,7 @@
 import argparse
 import math
 
+import pytest
 import torch
 
 from dapm_lightning.tools.bench import measure, print_table, print_train_compare, train_compare
@@ -22,10 +23,22 @@ def test_measure_counts_the_paper_and_efficient_networks():
     assert torch.is_grad_enabled()  # measured without switching autograd off for the caller
 
 
-def test_train_compare_trains_both_on_the_same_batches(capsys):
+@pytest.mark.slow
+def test_train_compare_trains_both_through_the_lightning_module(capsys, monkeypatch):
+    from dapm_lightning.training.module import DAPMModule
+
+    steps: list[str] = []
+    real_step = DAPMModule.training_step
+
+    def counted(self, batch, batch_idx):
+        steps.append(self.net_config.head_stride)
+        return real_step(self, batch, batch_idx)
+
+    monkeypatch.setattr(DAPMModule, "training_step", counted)
     rows = train_compare(["efficient", "paper"], backbone="resnet18", size=32, steps=2, batch=2, train_images=4,
                          val_images=2)
     assert [r["config"] for r in rows] == ["efficient", "paper"]
+    assert steps == [4, 4, 1, 1]  # the module's own step, 2 per network (efficient heads at 1/4, paper at 1/1)
     for row in rows:
         assert all(math.isfinite(v) for k, v in row.items() if k != "config"), row
     print_train_compare(rows, argparse.Namespace(backbone="resnet18", train_size=32, train_images=4, val_images=2,

@@ -11,8 +11,8 @@ import yaml
 from dapm_lightning.cli import main
 from dapm_lightning.data.datamodules import DAPMDataModule, PotsdamDataModule
 from dapm_lightning.models import TeacherForcing
-from dapm_lightning.training.checkpointing import find_last_checkpoint
-from dapm_lightning.training.lightning_cli import DAPMCLI, run_lightning_cli
+from dapm_lightning.training.checkpointing import SafeCheckpointIO, find_last_checkpoint
+from dapm_lightning.training.lightning_cli import run_lightning_cli
 from dapm_lightning.training.module import DAPMModule
 from dapm_lightning.training.viewpoints import ViewpointBreakdown
 from tests.conftest import CONFIGS, QUICKSTART
@@ -30,6 +30,7 @@ def fast_fit(config_args, root, tmp_path, monkeypatch):
                               "--trainer.fast_dev_run", "1", "--trainer.default_root_dir", str(tmp_path)])
 
 
+@pytest.mark.slow  # each ablation's model is built and checked in the fast tier (test_every_config_parses)
 @pytest.mark.parametrize("ablation", sorted(p.name for p in (CONFIGS / "ablations").glob("*.yaml")))
 def test_every_ablation_trains_a_step(ablation, tiny_uapd, tmp_path, monkeypatch):
     cli = fast_fit(["--config", str(PAPER), "--config", str(CONFIGS / "ablations" / ablation)], tiny_uapd, tmp_path,
@@ -108,14 +109,48 @@ def test_checkpoint_roundtrip_identical_predictions(tiny_uapd, tmp_path, monkeyp
     assert loaded.hparams["net"]["backbone"] == "resnet18" and loaded.net_config == model.net_config
 
 
-@pytest.mark.parametrize("path", sorted(str(p.relative_to(CONFIGS)) for p in CONFIGS.rglob("*.yaml")))
-def test_every_config_parses(path):
-    stack = [] if path.startswith("paper") or path == "quickstart.yaml" else ["--config", str(PAPER)]
-    cli = DAPMCLI(DAPMModule, DAPMDataModule, subclass_mode_data=True, run=False, auto_configure_optimizers=False,
-                  args=[*stack, "--config", str(CONFIGS / path), "--trainer.accelerator", "cpu",
-                        "--trainer.devices", "1", "--trainer.strategy", "auto", "--model.net.pretrained", "false"])
+CONFIG_FILES = [*sorted(str(p.relative_to(CONFIGS)) for p in CONFIGS.rglob("*.yaml")), "quickstart.yaml"]
+WITHOUT_IGD_FEATURE = {"paper/uapd_dapm_d.yaml", "paper/uapd_dapm_p.yaml", "paper/potsdam_dapm_d.yaml",
+                       "ablations/t9_pqb_only.yaml", "ablations/t9_no_pqb_no_igd.yaml",
+                       "ablations/t11_igd_loss_only.yaml"}
+"""The paper's rows without the IGD feature (Tables 2, 9, 11), written out so a config that drops it fails."""
+
+
+def parse(config_args):
+    """The real CLI's parser (its trainer defaults and seed), nothing run."""
+    return run_lightning_cli([*config_args, "--trainer.accelerator", "cpu", "--trainer.devices", "1",
+                              "--trainer.strategy", "auto", "--model.net.pretrained", "false"], run=False)
+
+
+def depth_for_two_poses(net):
+    """The refined depth (before the sky map overrides it) of one image, teacher-forced with two distant poses."""
+    net = net.eval()
+    torch.manual_seed(0)
+    image = torch.rand(1, 3, 64, 64)
+    with torch.no_grad():
+        outs = [net(image, TeacherForcing(net.config.igd.normalize(torch.tensor([pose])), 0.0))
+                for pose in ([20.0, -90.0, 0.0, 60.0], [90.0, -20.0, 10.0, 100.0])]
+    return [None if o.depth is None else o.depth.depth_norm for o in outs]
+
+
+@pytest.mark.parametrize("path", CONFIG_FILES)
+def test_every_config_parses_and_feeds_the_igd_to_the_depth_exactly_where_it_says(path):
+    if path == "quickstart.yaml":
+        stack = ["--config", str(QUICKSTART)]
+    else:
+        alone = path.startswith("paper") or path == "predict.yaml"
+        stack = [*([] if alone else ["--config", str(PAPER)]), "--config", str(CONFIGS / path)]
+    cli = parse(stack)
     assert isinstance(cli.model, DAPMModule)
     assert isinstance(cli.datamodule, DAPMDataModule)
+    assert isinstance(cli.trainer.strategy.checkpoint_io, SafeCheckpointIO)  # the real CLI's trainer defaults
+    low, high = depth_for_two_poses(cli.model.net)
+    if path in WITHOUT_IGD_FEATURE:
+        assert not cli.model.net.config.use_igd_feature
+        assert low is None or torch.equal(low, high), "the depth depends on a pose it should not see"
+    else:
+        assert cli.model.net.config.use_igd_feature
+        assert not torch.equal(low, high), "the depth ignores the IGD it is given"
 
 
 def test_help_and_synth_subprocess():
@@ -130,28 +165,6 @@ def test_help_and_synth_subprocess():
 def test_main_dispatches_synth(tmp_path):
     main(["synth", "--out", str(tmp_path / "s"), "--train", "1", "--val", "1", "--size", "12", "16", "--workers", "1"])
     assert len(list((tmp_path / "s" / "train" / "rgb").glob("*.png"))) == 1
-
-
-STACKS = [[CONFIGS / "paper" / p.name] for p in sorted((CONFIGS / "paper").glob("*.yaml"))] + [
-    [PAPER, CONFIGS / "ablations" / p.name] for p in sorted((CONFIGS / "ablations").glob("*.yaml"))]
-
-
-@pytest.mark.parametrize("stack", STACKS, ids=lambda s: s[-1].stem)
-def test_the_igd_feature_reaches_the_depth_wherever_it_is_on(stack):
-    args = [a for path in stack for a in ("--config", str(path))]
-    cli = DAPMCLI(DAPMModule, DAPMDataModule, subclass_mode_data=True, run=False, auto_configure_optimizers=False,
-                  args=[*args, "--trainer.accelerator", "cpu", "--trainer.devices", "1", "--trainer.strategy", "auto",
-                        "--model.net.pretrained", "false"])
-    net = cli.model.net.eval()
-    if not net.config.use_igd_feature:
-        return
-    torch.manual_seed(0)
-    image = torch.rand(1, 3, 64, 64)
-    with torch.no_grad():
-        # the refined depth before the sky map overrides it (an untrained sky map may cover everything)
-        low, high = (net(image, TeacherForcing(net.config.igd.normalize(torch.tensor([pose])), 0.0)).depth.depth_norm
-                     for pose in ([20.0, -90.0, 0.0, 60.0], [90.0, -20.0, 10.0, 100.0]))
-    assert not torch.equal(low, high), "the depth ignores the IGD it is given"
 
 
 def test_top_level_help_lists_every_subcommand_and_tools_take_settings_files(capsys):

@@ -9,6 +9,7 @@ import pytest
 
 from dapm_lightning.data.synthetic import generate_uapd
 
+pytestmark = pytest.mark.slow  # multi-process runs: `make test-all`
 HERE = Path(__file__).resolve().parent
 QUICKSTART = HERE.parents[1] / "dapm_lightning" / "configs" / "quickstart.yaml"
 

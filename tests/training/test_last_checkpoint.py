@@ -77,6 +77,7 @@ def test_find_last_checkpoint_takes_the_newest_of_every_version(tmp_path):
     assert find_last_checkpoint([tmp_path]) == tmp_path / "tb/version_1/checkpoints/last-v1.ckpt"
 
 
+@pytest.mark.slow
 def test_quickstart_resumes_from_the_latest_state_when_validation_stopped_improving(tmp_path, monkeypatch):
     """The best model stays at epoch 0 (its metric, the step, is minimal there); last.ckpt follows every epoch,
     and `fit --ckpt_path last` continues from it although the resumed run logs into a new version folder."""

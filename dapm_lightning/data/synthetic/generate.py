@@ -17,6 +17,7 @@ from dapm_lightning.data.synthetic.lens import distort, sample_lens
 from dapm_lightning.data.synthetic.render import render_scene
 from dapm_lightning.data.synthetic.scene import Scene, normalize_families, sample_scene
 from dapm_lightning.data.synthetic.shading import camera_effects
+from dapm_lightning.data.uapd import format_uapd_filename
 from dapm_lightning.geometry.constants import MAX_DEPTH_M, POSE_KEYS, POSE_RANGES
 from dapm_lightning.geometry.depth_codec import depth_to_grey
 
@@ -38,17 +39,18 @@ def image_seed(seed: int, split: str, index: int) -> np.random.Generator:
 
 def uapd_name(index: int, pose: np.ndarray, scene: Scene, lens: tuple[float, float] | None = None) -> str:
     """UAPD-style file name carrying the pose (x, y, yaw, lens k and kcube as metadata, the family as a token)."""
-    height, pitch, roll, fov = (float(v) for v in pose)
     x, y = scene.camera_xy
-    distortion = f"_lensk_{lens[0]:.3f}_lenskcube_{lens[1]:.3f}" if lens else ""
-    return (f"synth_{index:06d}_{scene.family}_x_{x:.2f}_y_{y:.2f}_z_{height:.2f}_pitch_{pitch:.2f}_roll_{roll:.2f}"
-            f"_yaw_{scene.yaw_deg:.2f}_fov_{fov:.2f}{distortion}.png")
+    distortion = {"lensk": lens[0], "lenskcube": lens[1]} if lens else None
+    return format_uapd_filename(["synth", f"{index:06d}", scene.family], pose, x=x, y=y, yaw=scene.yaw_deg,
+                                extra=distortion)
 
 
 def render_sample(seed: int, split: str, index: int, size: tuple[int, int],
-                  families: dict[str, float] | None = None, effects: bool = True, distortion: bool = False
-                  ) -> tuple[str, np.ndarray, np.ndarray, np.ndarray]:
+                  families: dict[str, float] | None = None, effects: bool = True, distortion: bool = False,
+                  max_depth: float = MAX_DEPTH_M) -> tuple[str, np.ndarray, np.ndarray, np.ndarray]:
     """``(name, rgb uint8, depth grey uint8, hit map)`` of one image of a data set.
+
+    The grey levels encode depth up to ``max_depth`` (grey 255: at or beyond it, sky included).
 
     With ``distortion``, lens coefficients are drawn from a stream of their own (the pose and scene
     stay those of the undistorted image) and image and depth are warped alike (:mod:`.lens`).
@@ -65,14 +67,14 @@ def render_sample(seed: int, split: str, index: int, size: tuple[int, int],
             rgb = camera_effects(rgb / 255.0, scene.look, np.random.default_rng(scene.texture_seed))
     else:
         rgb, depth_m, hit = render_scene(pose, size, scene, effects=effects)
-    grey = depth_to_grey(np.where(np.isfinite(depth_m), depth_m, MAX_DEPTH_M))
+    grey = depth_to_grey(np.where(np.isfinite(depth_m), depth_m, max_depth), max_depth)
     return uapd_name(index, pose, scene, lens), rgb, grey, hit
 
 
-def _render_one(job: tuple[Path, str, int, int, tuple[int, int], dict[str, float], bool, bool]) -> str:
-    out, split, index, seed, size, families, effects, distortion = job
+def _render_one(job: tuple[Path, str, int, int, tuple[int, int], dict[str, float], bool, bool, float]) -> str:
+    out, split, index, seed, size, families, effects, distortion, max_depth = job
     torch.set_num_threads(1)
-    name, rgb, grey, _ = render_sample(seed, split, index, size, families, effects, distortion)
+    name, rgb, grey, _ = render_sample(seed, split, index, size, families, effects, distortion, max_depth)
     cv2.imwrite(str(out / split / "rgb" / name), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
     cv2.imwrite(str(out / split / "depth" / name), grey)
     return name
@@ -80,13 +82,13 @@ def _render_one(job: tuple[Path, str, int, int, tuple[int, int], dict[str, float
 
 def settings(*, train: int, val: int, size: int | tuple[int, int], seed: int,
              families: dict[str, float] | str | None = None, effects: bool = True,
-             distortion: bool = False) -> dict[str, Any]:
+             distortion: bool = False, max_depth: float = MAX_DEPTH_M) -> dict[str, Any]:
     """What ``synth.json`` records; two data sets with equal settings hold the same bytes."""
     hw = [size, size] if isinstance(size, int) else [int(s) for s in size]
     return {"train": int(train), "val": int(val), "size": hw, "seed": int(seed),
             "families": normalize_families(families), "effects": bool(effects),
             "distortion": bool(distortion), "depth_kind": "range",
-            "max_depth": MAX_DEPTH_M, "generator": "dapm_lightning.data.synthetic", "version": GENERATOR_VERSION}
+            "max_depth": float(max_depth), "generator": "dapm_lightning.data.synthetic", "version": GENERATOR_VERSION}
 
 
 def is_current(root: str | Path, **kwargs: Any) -> bool:
@@ -112,7 +114,8 @@ def shard_range(count: int, shard: tuple[int, int]) -> range:
 
 def generate_uapd(out: str | Path, *, train: int = 200, val: int = 50, size: int | tuple[int, int] = 128,
                   seed: int = 0, workers: int | None = None, families: dict[str, float] | str | None = None,
-                  effects: bool = True, shard: tuple[int, int] = (0, 1), distortion: bool = False) -> Path:
+                  effects: bool = True, shard: tuple[int, int] = (0, 1), distortion: bool = False,
+                  max_depth: float = MAX_DEPTH_M) -> Path:
     """Write a synthetic UAPD-format data set ``out/{train,val}/{rgb,depth}/NAME.png``.
 
     Args:
@@ -128,6 +131,7 @@ def generate_uapd(out: str | Path, *, train: int = 200, val: int = 50, size: int
             image and depth alike (the depth is then consistent with the image, not pinhole).
         shard: ``(k, n)``: render only the k-th (0-based) of n contiguous parts of the image list, for
             array jobs; the union of all shards is byte-identical to one run.
+        max_depth: the depth limit of the log encoding (grey 255); the model's ``igd.max_depth`` must match.
 
     Returns:
         ``out``; it also holds ``synth.json`` with the settings (:func:`settings`). A folder holding a
@@ -135,12 +139,11 @@ def generate_uapd(out: str | Path, *, train: int = 200, val: int = 50, size: int
     """
     out = Path(out)
     hw = (size, size) if isinstance(size, int) else (int(size[0]), int(size[1]))
-    info = settings(train=train, val=val, size=hw, seed=seed, families=families, effects=effects,
-                    distortion=distortion)
+    chosen = {"train": train, "val": val, "size": hw, "seed": seed, "families": families, "effects": effects,
+              "distortion": distortion, "max_depth": max_depth}
+    info = settings(**chosen)
     weights = info["families"]
-    stale = (out / "synth.json").is_file() and not is_current(out, train=train, val=val, size=hw, seed=seed,
-                                                               families=families, effects=effects,
-                                                               distortion=distortion)
+    stale = (out / "synth.json").is_file() and not is_current(out, **chosen)
     if stale and shard[1] > 1:
         raise ValueError(f"{out} holds a data set rendered with other settings ({out / 'synth.json'}); "
                          "remove it or choose another folder before rendering shards into it")
@@ -153,7 +156,7 @@ def generate_uapd(out: str | Path, *, train: int = 200, val: int = 50, size: int
     for split, count in (("train", train), ("val", val)):
         for sub in ("rgb", "depth"):
             (out / split / sub).mkdir(parents=True, exist_ok=True)
-        jobs += [(out, split, i, seed, hw, weights, effects, distortion) for i in range(count)]
+        jobs += [(out, split, i, seed, hw, weights, effects, distortion, max_depth) for i in range(count)]
     jobs = [jobs[i] for i in shard_range(len(jobs), shard)]
     workers = workers or min(os.cpu_count() or 1, 8)
     if workers > 1 and len(jobs) > 1:

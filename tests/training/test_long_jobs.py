@@ -72,6 +72,7 @@ def weights(path):
     return torch.load(path, weights_only=True)
 
 
+@pytest.mark.slow
 def test_killed_and_terminated_runs_resume_to_the_uninterrupted_weights(data8, tmp_path):
     code, out = finish(start(tmp_path, "straight", data8))
     assert code == 0, out[-3000:]
@@ -190,6 +191,7 @@ def data16(tmp_path_factory):
     return generate_uapd(tmp_path_factory.mktemp("rel16") / "d", train=16, val=2, size=(24, 32), seed=6, workers=1)
 
 
+@pytest.mark.slow
 def test_two_process_ddp_resumes_mid_epoch_exactly(data16, tmp_path):
     """2 processes, persistent workers, 4 steps per epoch: stopped by max_steps (step 6) and by SIGTERM (step 3),
     each resumed from last.ckpt to step 10, equal the uninterrupted run bit for bit."""

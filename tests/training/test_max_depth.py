@@ -1,0 +1,59 @@
+"""A depth limit other than UAPD's 1000 m flows from the generator through the data to the model and metrics."""
+
+import pytest
+import torch
+
+from dapm_lightning.data.synthetic import generate_uapd
+from dapm_lightning.geometry.depth_codec import grey_to_depth
+from dapm_lightning.training.lightning_cli import run_lightning_cli
+from tests.conftest import QUICKSTART
+
+LIMIT = 500.0
+
+
+@pytest.fixture(scope="module")
+def uapd_500(tmp_path_factory):
+    return generate_uapd(tmp_path_factory.mktemp("uapd500"), train=4, val=2, size=(32, 48), seed=3, workers=1,
+                         max_depth=LIMIT)
+
+
+def common(root, model_limit):
+    return ["--config", str(QUICKSTART), "--data.class_path", "dapm_lightning.data.datamodules.UAPDDataModule",
+            "--data.init_args.root", str(root), "--data.init_args.max_depth", str(LIMIT),
+            "--model.net.igd.max_depth", str(model_limit), "--data.init_args.batch_size", "2",
+            "--data.init_args.num_workers", "0", "--trainer.logger", "false", "--trainer.enable_checkpointing",
+            "false", "--trainer.callbacks", "[]"]
+
+
+def test_a_500_m_data_set_trains_and_tests_with_its_own_limit(uapd_500, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    fit = run_lightning_cli(["fit", *common(uapd_500, LIMIT), "--trainer.max_steps", "2",
+                             "--trainer.limit_val_batches", "1"])
+    assert fit.trainer.global_step == 2
+    depths = torch.stack([fit.datamodule.datasets["val"][i]["depth"] for i in range(2)])
+    assert depths.max() == LIMIT and (depths == LIMIT).any()  # grey 255 decodes to the data set's limit
+    assert float(grey_to_depth(torch.tensor([254]).numpy(), LIMIT)[0]) < LIMIT
+    test = run_lightning_cli(["test", *common(uapd_500, LIMIT)], run=True)
+    metrics = test.trainer.callback_metrics
+    assert torch.isfinite(metrics["test_depth_abs_rel"]) and torch.isfinite(metrics["test_pose_height_median"])
+    assert test.model.metrics["test_depth"].max_depth == LIMIT
+    with torch.no_grad():
+        out = test.model.eval()(torch.rand(1, 3, 32, 48))
+    assert out.depth_m.max() <= LIMIT
+
+
+def test_a_limit_the_model_does_not_share_is_refused_before_training(uapd_500, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(ValueError, match=r"up to 500 m .* model.net.igd.max_depth: 500"):
+        run_lightning_cli(["fit", *common(uapd_500, 1000.0), "--trainer.max_steps", "1"])
+
+
+def test_the_synthetic_module_renders_and_records_its_limit(tmp_path):
+    from dapm_lightning.data.datamodules import SyntheticDataModule
+    from dapm_lightning.data.synthetic import is_current
+
+    dm = SyntheticDataModule(root=str(tmp_path / "s"), train_size=1, val_size=1, image_size=16, max_depth=LIMIT,
+                             render_workers=1, num_workers=0)
+    dm.prepare_data()
+    assert is_current(tmp_path / "s", train=1, val=1, size=16, seed=0, max_depth=LIMIT)
+    assert not is_current(tmp_path / "s", train=1, val=1, size=16, seed=0)
