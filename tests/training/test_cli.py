@@ -153,6 +153,7 @@ def test_every_config_parses_and_feeds_the_igd_to_the_depth_exactly_where_it_say
         assert not torch.equal(low, high), "the depth ignores the IGD it is given"
 
 
+@pytest.mark.slow
 def test_help_and_synth_subprocess():
     out = subprocess.run([sys.executable, "-m", "dapm_lightning", "fit", "--help"], capture_output=True, text=True,
                          check=True).stdout
