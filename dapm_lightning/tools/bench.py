@@ -118,6 +118,9 @@ class StepTimer(Callback):
         self.seconds.append(time.perf_counter() - self._start)
         loss = outputs.get("loss") if isinstance(outputs, dict) else outputs
         self.loss = float(loss) if isinstance(loss, torch.Tensor) else math.nan
+        if len(self.seconds) % 50 == 0:
+            print(f"step {len(self.seconds)}: {statistics.median(self.seconds):.2f} s/step, loss {self.loss:.3f}",
+                  file=sys.stderr, flush=True)
 
 
 def train_compare(configs: list[str], *, backbone: str, size: int, steps: int, batch: int, train_images: int,
