@@ -13,15 +13,12 @@ POSE_LINEAR_BIAS = 0.01
 
 
 def init_depth_decoder_like_authors(decoder: nn.Module) -> None:
-    """The authors' FPN: convs Kaiming-normal (``fan_out``, ReLU) with bias 0, linears Xavier-uniform with bias 0."""
+    """The authors' FPN: every conv (squeeze-excitation included) Kaiming-normal (``fan_out``, ReLU) with bias 0."""
     for module in decoder.modules():
         if isinstance(module, nn.Conv2d):
             nn.init.kaiming_normal_(module.weight, mode="fan_out", nonlinearity="relu")
             if module.bias is not None:
                 nn.init.zeros_(module.bias)
-        elif isinstance(module, nn.Linear):
-            nn.init.xavier_uniform_(module.weight)
-            nn.init.zeros_(module.bias)
 
 
 def init_pose_like_authors(pose_modules: nn.Module) -> None:
