@@ -57,7 +57,9 @@ def test_paper_configs_and_variant_overlay_say_what_the_code_builds():
         assert config["model"]["loss"]["depth_space"] == "log_norm", name
         assert config["model"]["loss"]["use_gradient_loss"] is False, name  # code-only: opt-in
     overlay = yaml.safe_load((CONFIGS / "variants" / "efficient.yaml").read_text())["model"]["net"]
-    assert overlay == dict(EFFICIENT_NETWORK)
+    assert {k: overlay[k] for k in EFFICIENT_NETWORK} == dict(EFFICIENT_NETWORK)  # + this project's training
+    assert set(overlay) - set(EFFICIENT_NETWORK) == {"input_normalization", "block_dropout", "pose_dropout",
+                                                     "linear_dropout", "weight_init", "igd"}  # test_authors_training
     assert {k: getattr(DAPMConfig(), k) for k in EFFICIENT_NETWORK} == dict(EFFICIENT_NETWORK)  # the defaults
     quick = yaml.safe_load(QUICKSTART.read_text())["model"]["net"]
     assert {k: quick[k] for k in EFFICIENT_NETWORK if k != "decoder_channels"} == {
