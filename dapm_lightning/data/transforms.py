@@ -43,7 +43,9 @@ class Augmentation:
     ``noise_p: 0.5``. Their noise is added to the float image without clipping; here the uint8 image is clipped.
 
     Args:
-        brightness, contrast, saturation: colour jitter strengths (factor drawn from ``[1 - s, 1 + s]``).
+        brightness: colour jitter strength: the brightness factor is drawn from ``[1 - s, 1 + s]``.
+        contrast: the same for the contrast.
+        saturation: the same for the saturation.
         color_jitter_p: probability of the colour jitter.
         noise_std: range of the Gaussian noise's σ, as a share of the full intensity range (0.05 = 12.75 grey levels).
         noise_p: probability of the noise.
