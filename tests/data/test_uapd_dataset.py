@@ -4,6 +4,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
+from PIL import Image
 
 from dapm_lightning.data import DatasetError, UAPDDataset, parse_uapd_filename
 from dapm_lightning.data.sample import depth_masks
@@ -77,8 +78,8 @@ def test_depth_must_be_8bit(uapd_copy, bad):
     assert str(path) in str(info.value)
 
 
-@pytest.mark.parametrize("channels", [3, 4])
-def test_depth_as_rgb_or_rgba_with_equal_channels_loads_as_grey(uapd_copy, channels):
+@pytest.mark.parametrize("container", ["RGB", "RGBA", "grey+alpha"])
+def test_depth_as_rgb_or_rgba_with_equal_channels_loads_as_grey(uapd_copy, container):
     """The authors read depth with OpenCV's grayscale flag: an RGB(A) copy of the grey map is the same map."""
     name = _name(uapd_copy)
     path = uapd_copy / "train" / "depth" / name
@@ -86,11 +87,14 @@ def test_depth_as_rgb_or_rgba_with_equal_channels_loads_as_grey(uapd_copy, chann
     before = UAPDDataset(uapd_copy, "train")
     index = before.names.index(name)
     expected = before[index]["depth"]
-    alpha = [np.full_like(grey, 7)] if channels == 4 else []  # any alpha is ignored
-    cv2.imwrite(str(path), np.dstack([grey] * 3 + alpha))
+    alpha = np.full_like(grey, 7)  # any alpha is ignored
+    if container == "grey+alpha":
+        Image.fromarray(np.dstack([grey, alpha]), "LA").save(path)
+    else:
+        cv2.imwrite(str(path), np.dstack([grey] * 3 + ([alpha] if container == "RGBA" else [])))
     after = UAPDDataset(uapd_copy, "train")
-    assert after.depth_containers[index] == {3: "RGB", 4: "RGBA"}[channels]
-    assert set(after.depth_containers) - {"grey"} == {after.depth_containers[index]}
+    assert after.depth_containers[index] == container
+    assert set(after.depth_containers) == {"grey", container}
     assert torch.equal(after[index]["depth"], expected)
     np.testing.assert_array_equal(read_depth_grey(path), cv2.imread(str(path), cv2.IMREAD_GRAYSCALE))
 
