@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Literal
 
+import albumentations as A
 import lightning as L
 import torch
 from torch.utils.data import DataLoader, Dataset
@@ -14,7 +15,7 @@ from dapm_lightning.data.potsdam import PotsdamCrops, PotsdamDataset
 from dapm_lightning.data.sample import Sample
 from dapm_lightning.data.samplers import EpochShuffleSampler
 from dapm_lightning.data.synthetic import generate_uapd, is_current
-from dapm_lightning.data.transforms import train_transform
+from dapm_lightning.data.transforms import Augmentation, train_transform
 from dapm_lightning.data.uapd import UAPDDataset
 from dapm_lightning.geometry.constants import MAX_DEPTH_M
 
@@ -34,7 +35,9 @@ class DAPMDataModule(L.LightningDataModule):
     Args:
         batch_size: per process (the global batch is ``batch_size x devices x nodes``).
         num_workers, pin_memory, persistent_workers: ``DataLoader`` settings.
-        augment: the paper's augmentation on the training split (colour jitter, noise, pose-aware flip).
+        augment: augment the training split (colour jitter, noise, pose-aware flip).
+        augmentation: its strengths (:class:`~dapm_lightning.data.transforms.Augmentation`; the defaults are
+            this project's light augmentation, the paper configs set the authors' stronger one).
         image_dtype: ``"uint8"`` ships 4x fewer bytes per sample; the model normalises on the device.
         eval_batch_size: batch size of validation/test/predict (default: ``batch_size``).
         seed: the training order is a permutation drawn from (seed, epoch) and the augmentation of
@@ -46,11 +49,12 @@ class DAPMDataModule(L.LightningDataModule):
     def __init__(self, batch_size: int = 8, num_workers: int = 2, pin_memory: bool = False,
                  persistent_workers: bool = False, augment: bool = True,
                  image_dtype: Literal["float32", "uint8"] = "uint8", eval_batch_size: int | None = None,
-                 seed: int = 0) -> None:
+                 seed: int = 0, augmentation: Augmentation = Augmentation()) -> None:  # noqa: B008 (frozen)
         super().__init__()
         self.batch_size, self.num_workers = batch_size, num_workers
         self.pin_memory, self.persistent_workers = pin_memory, persistent_workers and num_workers > 0
         self.augment, self.image_dtype = augment, image_dtype
+        self.augmentation = Augmentation(**augmentation) if isinstance(augmentation, dict) else augmentation
         self.eval_batch_size = eval_batch_size or batch_size
         self.seed = seed
         self._resume_position: dict[str, int] | None = None
@@ -59,6 +63,10 @@ class DAPMDataModule(L.LightningDataModule):
     def make_dataset(self, split: str, train: bool) -> Dataset[Sample]:
         """The data set of one split (``train`` says whether to augment)."""
         raise NotImplementedError
+
+    def split_transform(self, train: bool) -> A.Compose | None:
+        """The augmentation of a split: only the training split's, only with ``augment``."""
+        return train_transform(self.augmentation) if train and self.augment else None
 
     def setup(self, stage: str | None = None) -> None:
         if stage in (None, "fit"):
@@ -138,9 +146,8 @@ class UAPDDataModule(DAPMDataModule):
         self.max_depth = float(max_depth)
 
     def make_dataset(self, split: str, train: bool) -> Dataset[Sample]:
-        return UAPDDataset(self.root, split, train_transform() if train and self.augment else None,
-                           max_depth=self.max_depth, image_dtype=self.image_dtype, on_bad_file=self.on_bad_file,
-                           augment_seed=self.seed)
+        return UAPDDataset(self.root, split, self.split_transform(train), max_depth=self.max_depth,
+                           image_dtype=self.image_dtype, on_bad_file=self.on_bad_file, augment_seed=self.seed)
 
 
 class SyntheticDataModule(UAPDDataModule):
@@ -195,7 +202,7 @@ class PotsdamDataModule(DAPMDataModule):
 
     def make_dataset(self, split: str, train: bool) -> Dataset[Sample]:
         return PotsdamDataset(self.root, "train" if split == "train" else "val",
-                              train_transform() if train and self.augment else None, crop_size=self.crop_size,
+                              self.split_transform(train), crop_size=self.crop_size,
                               val_fraction=self.val_fraction, seed=self.split_seed, image_dtype=self.image_dtype,
                               augment_seed=self.seed, product=self.product, ndsm_scale=self.ndsm_scale)
 

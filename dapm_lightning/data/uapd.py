@@ -114,13 +114,39 @@ def read_rgb(path: Path, *, expected_hw: tuple[int, int] | None = None) -> np.nd
     return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
 
 
+DEPTH_CONTAINERS = {0: "grey", 2: "RGB", 4: "grey+alpha", 6: "RGBA"}
+"""8-bit PNG colour types a depth map may come in, by PNG colour type: the colour channels must be equal (the
+authors read depth with OpenCV's grayscale flag, so an RGB(A) copy of the grey map loads the same)."""
+
+CARLA_RAW_DEPTH_HINT = (
+    "UAPD depth is 8-bit grey in the log encoding g = floor(255 log2(d + 1) / log2(1001)) (design.md §3); unequal "
+    "channels look like CARLA's raw 24-bit depth (metres = 1000 (R + 256 G + 65536 B) / (256^3 - 1)). Convert "
+    "each file with dapm_lightning.geometry.depth_codec.depth_to_grey("
+    "dapm_lightning.tools.carla_collect.decode_carla_depth(cv2.imread(path, cv2.IMREAD_UNCHANGED))), save the "
+    "grey image, and set depth_kind: planar (CARLA's depth is planar) in the data and in model.net.igd")
+"""The fix for a depth PNG whose colour channels differ."""
+
+
 def read_depth_grey(path: Path) -> np.ndarray:
-    """Read a UAPD depth PNG as ``[H, W]`` uint8 grey; a clear error naming the file otherwise."""
-    grey = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if grey is None:
+    """Read a UAPD depth PNG as ``[H, W]`` uint8 grey; a clear error naming the file otherwise.
+
+    Grey, or RGB / RGBA (and grey+alpha) whose colour channels are equal, 8-bit (:data:`DEPTH_CONTAINERS`); the
+    alpha channel is ignored. Unequal colour channels are refused with how to convert CARLA's raw depth.
+    """
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None:
         raise ValueError(f"{path}: cannot be decoded as an image")
-    if grey.ndim != 2 or grey.dtype != np.uint8:
-        raise ValueError(f"{path}: depth must be single-channel 8-bit, got shape {grey.shape} {grey.dtype}")
+    if image.dtype != np.uint8 or image.ndim not in (2, 3) or (image.ndim == 3 and image.shape[2] not in (3, 4)):
+        raise ValueError(f"{path}: depth must be 8-bit grey, RGB or RGBA with equal colour channels, got shape "
+                         f"{image.shape} {image.dtype}")
+    if image.ndim == 2:
+        return image
+    colour = image[..., :3]
+    grey = np.ascontiguousarray(colour[..., 0])
+    if not (np.array_equal(grey, colour[..., 1]) and np.array_equal(grey, colour[..., 2])):
+        spread = int((colour.max(axis=2).astype(np.int16) - colour.min(axis=2)).max())
+        raise ValueError(f"{path}: depth PNG with {image.shape[2]} channels whose colours differ (by up to {spread} "
+                         f"levels). {CARLA_RAW_DEPTH_HINT}")
     return grey
 
 
@@ -141,6 +167,9 @@ class UAPDDataset(torch.utils.data.Dataset[Sample]):
             the Lightning module normalises on the device).
         on_bad_file: ``"raise"`` (default) or ``"skip"``.
 
+    :attr:`depth_containers` says per file (as :attr:`names`) which PNG container its depth uses
+    (:data:`DEPTH_CONTAINERS`: ``grey``, ``RGB``, ``grey+alpha``, ``RGBA``).
+
     Example:
         >>> ds = UAPDDataset("data/uapd", "val")                       # doctest: +SKIP
         >>> sample = ds[0]; sample["depth"].shape, sample["pose"]      # doctest: +SKIP
@@ -159,10 +188,10 @@ class UAPDDataset(torch.utils.data.Dataset[Sample]):
         if image_dtype not in ("float32", "uint8"):
             raise ValueError(f"image_dtype must be 'float32' or 'uint8', got {image_dtype!r}")
         self.image_dtype = image_dtype
-        self.names, self.poses, self.meta, self.skipped = self._scan(on_bad_file)
+        self.names, self.poses, self.meta, self.skipped, self.depth_containers = self._scan(on_bad_file)
         self.augment_seed = augment_seed
 
-    def _scan(self, on_bad_file: str) -> tuple[list[str], np.ndarray, list[dict[str, Any]], list[str]]:
+    def _scan(self, on_bad_file: str) -> tuple[list[str], np.ndarray, list[dict[str, Any]], list[str], list[str]]:
         split_dir = self.root / self.split
         rgb_dir, depth_dir = split_dir / self.rgb_dir, split_dir / self.depth_dir
         for folder in (split_dir, rgb_dir, depth_dir):
@@ -179,14 +208,14 @@ class UAPDDataset(torch.utils.data.Dataset[Sample]):
         for name in sorted(depth.keys() - rgb.keys()):
             problems.append(f"{depth[name]}: no rgb twin {rgb_dir / name}")
             bad.add(name)
-        names, poses, meta = [], [], []
+        names, poses, meta, containers = [], [], [], []
         for name in sorted(rgb.keys() & depth.keys()):
             try:
                 parsed = parse_uapd_filename(name)
                 rgb_info, depth_info = read_png_info(rgb[name]), read_png_info(depth[name])
-                if depth_info.bit_depth != 8 or depth_info.color_type != 0:
-                    raise ValueError(f"{depth[name]}: depth must be single-channel 8-bit, got "
-                                     f"{depth_info.bit_depth}-bit {depth_info.color}")
+                if depth_info.bit_depth != 8 or depth_info.color_type not in DEPTH_CONTAINERS:
+                    raise ValueError(f"{depth[name]}: depth must be 8-bit grey, RGB or RGBA with equal colour "
+                                     f"channels, got {depth_info.bit_depth}-bit {depth_info.color}")
                 if rgb_info.color_type not in (2, 6) or rgb_info.bit_depth != 8:
                     raise ValueError(f"{rgb[name]}: rgb must be 8-bit RGB or RGBA, got "
                                      f"{rgb_info.bit_depth}-bit {rgb_info.color}")
@@ -199,6 +228,7 @@ class UAPDDataset(torch.utils.data.Dataset[Sample]):
                 bad.add(name)
                 continue
             names.append(name)
+            containers.append(DEPTH_CONTAINERS[depth_info.color_type])
             poses.append(pose_from_parsed(parsed))
             meta.append({k: v for k, v in parsed.items() if k not in POSE_KEYS})
         if problems and on_bad_file != "skip":
@@ -209,7 +239,7 @@ class UAPDDataset(torch.utils.data.Dataset[Sample]):
         if not names:
             raise DatasetError(split_dir, problems or [f"{rgb_dir}: no PNG images"])
         pose_array = np.stack(poses) if poses else np.zeros((0, 4), np.float32)
-        return names, pose_array, meta, problems
+        return names, pose_array, meta, problems, containers
 
     def __len__(self) -> int:
         return len(self.names)

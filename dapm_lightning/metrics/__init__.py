@@ -7,7 +7,7 @@ from dapm_lightning.metrics.depth import (
                                          DepthMetrics,
                                          per_image_depth_metrics,
 )
-from dapm_lightning.metrics.pose import PoseMetrics, auc_of_recall
+from dapm_lightning.metrics.pose import AuthorsPoseMetrics, PoseMetrics, auc_of_recall, authors_auc
 
-__all__ = ["AUTHORS_DEPTH_METRIC_NAMES", "DEPTH_METRIC_NAMES", "AuthorsDepthMetrics", "DepthMetrics", "PoseMetrics",
-           "auc_of_recall", "per_image_depth_metrics"]
+__all__ = ["AUTHORS_DEPTH_METRIC_NAMES", "DEPTH_METRIC_NAMES", "AuthorsDepthMetrics", "AuthorsPoseMetrics",
+           "DepthMetrics", "PoseMetrics", "auc_of_recall", "authors_auc", "per_image_depth_metrics"]

@@ -1,4 +1,8 @@
-"""Pose metrics as a ``torchmetrics.Metric`` (design.md §5): median error and GeoCalib's AUC per component."""
+"""Pose metrics as ``torchmetrics.Metric`` subclasses (design.md §5).
+
+:class:`PoseMetrics`: median error and GeoCalib's AUC per component; :class:`AuthorsPoseMetrics`: the authors'
+protocol (3-point AUC, MAE).
+"""
 
 from __future__ import annotations
 
@@ -70,4 +74,68 @@ class PoseMetrics(Metric):
                                        else torch.tensor(math.nan)).float()
             for t in self.thresholds:
                 result[f"{key}_auc{t:g}"] = auc_of_recall(component, t).float()
+        return result
+
+
+def authors_auc(recalls: Sequence[float] | Tensor, thresholds: Sequence[float]) -> list[Tensor]:
+    """The authors' AUC (``test.py``'s ``compute_auc``): the trapezoid through (0, 0) and (t_k, recall at t_k).
+
+    With thresholds (1, 5, 10) the curve has only the points (0, 0), (1, r1), (5, r5), (10, r10); AUC@t is the
+    area up to t divided by t. Coarser than :func:`auc_of_recall`, which follows every error.
+    """
+    xs = [0.0, *(float(t) for t in thresholds)]
+    ys = [torch.zeros((), dtype=torch.float64), *(torch.as_tensor(r, dtype=torch.float64) for r in recalls)]
+    areas, area = [], torch.zeros((), dtype=torch.float64)
+    for k in range(1, len(xs)):
+        area = area + 0.5 * (ys[k - 1] + ys[k]) * (xs[k] - xs[k - 1])
+        areas.append(area / xs[k])
+    return areas
+
+
+class AuthorsPoseMetrics(Metric):
+    """The authors' pose protocol (``test.py``): per component the 3-point AUC and the mean absolute error.
+
+    Keys ``<component>_auc<t>`` (:func:`authors_auc`, recall = share of errors ``<= t``) and
+    ``<component>_mae``; logged as ``<stage>_poseauthors_*``. The paper's Table 8 AUC figures come from this
+    protocol. Sum states (counts and sums), so the values under DDP are those of the whole set.
+
+    Args:
+        thresholds: increasing AUC thresholds (degrees, metres for height); the authors' (1, 5, 10).
+    """
+
+    full_state_update = False
+    higher_is_better = None
+    within: Tensor
+    abs_sum: Tensor
+    count: Tensor
+
+    def __init__(self, thresholds: Sequence[float] = (1.0, 5.0, 10.0), **kwargs: object) -> None:
+        super().__init__(**kwargs)
+        self.thresholds = tuple(float(t) for t in thresholds)
+        if not self.thresholds or any(b <= a for a, b in zip(self.thresholds, self.thresholds[1:])) \
+                or self.thresholds[0] <= 0:
+            raise ValueError(f"thresholds must be positive and increasing, got {list(thresholds)}")
+        self.add_state("within", default=torch.zeros(4, len(self.thresholds), dtype=torch.float64),
+                       dist_reduce_fx="sum")
+        self.add_state("abs_sum", default=torch.zeros(4, dtype=torch.float64), dist_reduce_fx="sum")
+        self.add_state("count", default=torch.zeros((), dtype=torch.float64), dist_reduce_fx="sum")
+
+    def update(self, pred: Tensor, target: Tensor) -> None:
+        """``pred``, ``target``: ``[B, 4]`` (height m, pitch deg, roll deg, fov deg)."""
+        if pred.shape != target.shape or pred.shape[-1:] != (4,):
+            raise ValueError(f"pred {tuple(pred.shape)} and target {tuple(target.shape)} must both be [B, 4]")
+        errors = (pred.detach().double() - target.double()).abs()
+        thresholds = torch.tensor(self.thresholds, dtype=torch.float64, device=errors.device)
+        self.within += (errors[:, :, None] <= thresholds).sum(dim=0).double()
+        self.abs_sum += errors.sum(dim=0)
+        self.count += errors.shape[0]
+
+    def compute(self) -> dict[str, Tensor]:
+        result: dict[str, Tensor] = {}
+        count = self.count
+        for k, key in enumerate(POSE_KEYS):
+            recalls = self.within[k] / count
+            for t, auc in zip(self.thresholds, authors_auc(recalls, self.thresholds)):
+                result[f"{key}_auc{t:g}"] = auc.float()
+            result[f"{key}_mae"] = (self.abs_sum[k] / count).float()
         return result

@@ -7,6 +7,11 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 
+def relu_dropout(p: float) -> nn.Module:
+    """``ReLU``, then ``Dropout(p)`` when ``p > 0``; parameter-free, so state-dict keys stay the same either way."""
+    return nn.Sequential(nn.ReLU(inplace=True), nn.Dropout(p)) if p > 0 else nn.ReLU(inplace=True)
+
+
 def conv_bn_relu(in_channels: int, out_channels: int, kernel_size: int = 3) -> nn.Sequential:
     """``Conv(k) -> BatchNorm -> ReLU`` keeping the spatial size."""
     return nn.Sequential(nn.Conv2d(in_channels, out_channels, kernel_size, padding=kernel_size // 2, bias=False),
@@ -17,15 +22,17 @@ class ResidualConvBlock(nn.Module):
     """Two 3x3 conv-BN layers with a skip: ``relu(shortcut(x) + f(x))``.
 
     The skip is the identity when ``out_channels`` equals ``channels`` (the default), a 1x1
-    convolution otherwise.
+    convolution otherwise. ``dropout > 0`` ends the body with ``Dropout2d(dropout)``, as the authors'
+    block (0.1).
     """
 
-    def __init__(self, channels: int, out_channels: int | None = None) -> None:
+    def __init__(self, channels: int, out_channels: int | None = None, dropout: float = 0.0) -> None:
         super().__init__()
         out = out_channels or channels
         self.body = nn.Sequential(
             nn.Conv2d(channels, out, 3, padding=1, bias=False), nn.BatchNorm2d(out), nn.ReLU(inplace=True),
-            nn.Conv2d(out, out, 3, padding=1, bias=False), nn.BatchNorm2d(out))
+            nn.Conv2d(out, out, 3, padding=1, bias=False), nn.BatchNorm2d(out),
+            *([nn.Dropout2d(dropout)] if dropout > 0 else []))
         self.shortcut: nn.Module = nn.Identity() if out == channels else nn.Conv2d(channels, out, 1)
         self.act = nn.ReLU(inplace=True)
 
@@ -34,11 +41,11 @@ class ResidualConvBlock(nn.Module):
 
 
 class ResidualMLPBlock(nn.Module):
-    """``x + Linear(ReLU(LayerNorm(Linear(x))))``: works for any batch size, including 1."""
+    """``x + Linear(Dropout(ReLU(LayerNorm(Linear(x)))))``: any batch size, including 1 (no dropout by default)."""
 
-    def __init__(self, features: int) -> None:
+    def __init__(self, features: int, dropout: float = 0.0) -> None:
         super().__init__()
-        self.body = nn.Sequential(nn.Linear(features, features), nn.LayerNorm(features), nn.ReLU(inplace=True),
+        self.body = nn.Sequential(nn.Linear(features, features), nn.LayerNorm(features), relu_dropout(dropout),
                                   nn.Linear(features, features))
 
     def forward(self, x: Tensor) -> Tensor:
@@ -50,14 +57,15 @@ class ResidualLinear(nn.Module):
 
     The authors' residual linear block with LayerNorm in place of BatchNorm1d (same parameter count;
     a batch of one works); the skip is a linear map when the widths differ. ``activate=False`` drops
-    the final ReLU, for blocks whose output is a logit or a signed correction.
+    the final ReLU, for blocks whose output is a logit or a signed correction. ``dropout > 0`` puts
+    ``Dropout(dropout)`` after the inner ReLU, as the authors' block (0.3).
     """
 
-    def __init__(self, in_features: int, out_features: int, activate: bool = True) -> None:
+    def __init__(self, in_features: int, out_features: int, activate: bool = True, dropout: float = 0.0) -> None:
         super().__init__()
         self.activate = activate
         self.body = nn.Sequential(nn.Linear(in_features, out_features), nn.LayerNorm(out_features),
-                                  nn.ReLU(inplace=True), nn.Linear(out_features, out_features),
+                                  relu_dropout(dropout), nn.Linear(out_features, out_features),
                                   nn.LayerNorm(out_features))
         self.shortcut: nn.Module = (nn.Identity() if in_features == out_features
                                     else nn.Linear(in_features, out_features))

@@ -7,6 +7,7 @@ from dataclasses import asdict, dataclass, field, fields
 from typing import Any, Literal
 
 from dapm_lightning.geometry.igd import IGDSpec
+from dapm_lightning.models.init import WeightInit
 
 
 def _architecture(default: Any) -> Any:
@@ -60,6 +61,18 @@ class DAPMConfig:
             False: ``depth_m`` is the refined depth alone, as the authors' code outputs it (their binary
             stage is supervised and feeds the later stages only; with ``depth_space: log_norm`` the
             regression itself learns sky as 1.0).
+        input_normalization: ``"imagenet"`` (default): the [0, 1] image is normalised with ImageNet's mean and
+            std inside the network; ``"none"``: the [0, 1] image goes to the encoder as is, as the authors feed
+            it (``ToTensor()`` only; paper configs).
+        block_dropout: ``Dropout2d`` at the end of every residual conv block (FPN, its head, the conv pose
+            bins); the authors' 0.1 in the paper configs, 0 by default.
+        pose_dropout: ``Dropout`` on each pooled vector before the pose decoder's projections (authors: 0.2).
+        linear_dropout: ``Dropout`` after the inner ReLU of the pose branch's residual linear / MLP blocks
+            (authors: 0.3).
+        weight_init: ``"pytorch"`` (default: PyTorch's) or ``"authors"``: the depth decoder's convs
+            Kaiming-normal (fan_out) with bias 0, the pose branch's linears Xavier-normal with bias 0.01 and
+            its convs Kaiming-normal (fan_out); the depth bins heads and the IGD feature keep PyTorch's, as the
+            authors' code does. The encoder keeps its (ImageNet or random) weights.
 
     The paper's network (Table 7's 42.82 M at ResNet-50) is ``configs/paper/*.yaml``; the efficient
     variant (bins heads at 1/4 resolution) is ``configs/variants/efficient.yaml``. docs/model.md has the
@@ -89,6 +102,11 @@ class DAPMConfig:
     depth_residual_priors: bool = _architecture(False)
     decoder_squeeze_excite: bool = _architecture(False)
     sky_override: bool = True
+    input_normalization: Literal["imagenet", "none"] = "imagenet"
+    block_dropout: float = 0.0
+    pose_dropout: float = 0.0
+    linear_dropout: float = 0.0
+    weight_init: WeightInit = "pytorch"
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "depth_bins", tuple(int(n) for n in self.depth_bins))
@@ -109,6 +127,14 @@ class DAPMConfig:
         if not 1 <= self.pose_stages <= 4:
             raise ValueError("model.net.pose_stages must be 1 to 4 (deepest encoder stages pooled), "
                              f"got {self.pose_stages}")
+        if self.input_normalization not in ("imagenet", "none"):
+            raise ValueError("model.net.input_normalization must be 'imagenet' or 'none', "
+                             f"got {self.input_normalization!r}")
+        if self.weight_init not in ("pytorch", "authors"):
+            raise ValueError(f"model.net.weight_init must be 'pytorch' or 'authors', got {self.weight_init!r}")
+        for name in ("dropout", "block_dropout", "pose_dropout", "linear_dropout"):
+            if not 0.0 <= getattr(self, name) < 1.0:
+                raise ValueError(f"model.net.{name} must be in [0, 1), got {getattr(self, name)}")
         if self.head_stride not in (1, 2, 4, 8):
             raise ValueError(f"model.net.head_stride must be 1, 2, 4 or 8, got {self.head_stride}")
 
@@ -149,3 +175,9 @@ EFFICIENT_NETWORK: Mapping[str, Any] = {name: getattr(DAPMConfig, name) for name
 """The efficient variant: the :class:`DAPMConfig` defaults of the settings the paper's network changes (their
 only home; configs/variants/efficient.yaml repeats them as an overlay, checked by a test). The paper's pose
 branch with light depth heads: 38.00 M parameters and 26.9 GMAC at ResNet-50, 512² (paper: 226.3)."""
+
+AUTHORS_TRAINING: Mapping[str, Any] = {
+    "input_normalization": "none", "block_dropout": 0.1, "pose_dropout": 0.2, "linear_dropout": 0.3,
+    "weight_init": "authors"}
+"""What the authors' code adds to the network for training (configs/paper/*.yaml): no ImageNet normalisation of
+the input, their dropouts and their initialisation. No parameter count changes."""

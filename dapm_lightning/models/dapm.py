@@ -14,6 +14,7 @@ from dapm_lightning.models.config import DAPMConfig
 from dapm_lightning.models.decoders import DepthDecoder, PoseDecoder
 from dapm_lightning.models.encoder import Encoder
 from dapm_lightning.models.igd_branch import IGDFeature
+from dapm_lightning.models.init import init_depth_decoder_like_authors, init_pose_like_authors
 from dapm_lightning.models.pqb import DepthPQB, EncoderPosePQB, PosePQB
 from dapm_lightning.models.prior import PosePrior, bins_spread, fuse_pose
 from dapm_lightning.models.teacher_forcing import TeacherForcing
@@ -128,14 +129,17 @@ class DAPMNet(nn.Module):
         self.config = config = config or DAPMConfig()
         self.encoder = Encoder(config.backbone, pretrained=config.pretrained, weights_path=config.weights_path)
         channels = self.encoder.channels
-        self.register_buffer("pixel_mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
-        self.register_buffer("pixel_std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
+        imagenet = config.input_normalization == "imagenet"  # "none": the [0, 1] image as is (the authors')
+        mean, std = (IMAGENET_MEAN, IMAGENET_STD) if imagenet else ((0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
+        self.register_buffer("pixel_mean", torch.tensor(mean).view(1, 3, 1, 1), persistent=False)
+        self.register_buffer("pixel_std", torch.tensor(std).view(1, 3, 1, 1), persistent=False)
         self.depth_decoder = self.to_head = self.igd_feature = self.depth_pqb = self.upsample = None
         self.pose_decoder = None
         self.pose_pqb: EncoderPosePQB | PosePQB | None = None
         if config.use_depth:
             self.depth_decoder = DepthDecoder(channels[-3:], config.decoder_channels, config.dropout,
-                                              squeeze_excite=config.decoder_squeeze_excite)
+                                              squeeze_excite=config.decoder_squeeze_excite,
+                                              block_dropout=config.block_dropout)
             if self.refines_depth:
                 igd_channels = config.igd_channels if config.use_igd_feature else 0
                 self.to_head = conv_bn_relu(config.decoder_channels, config.head_channels, kernel_size=1)
@@ -145,12 +149,22 @@ class DAPMNet(nn.Module):
                                  if config.head_stride > 1 else None)
         if config.use_pose:
             self.pose_decoder = PoseDecoder(channels[-config.pose_stages:], projection=config.pose_projection,
-                                            hidden=config.pose_hidden, depth_grid=8 if config.use_depth else 0)
+                                            hidden=config.pose_hidden, depth_grid=8 if config.use_depth else 0,
+                                            projection_dropout=config.pose_dropout,
+                                            mlp_dropout=config.linear_dropout)
             if config.pose_bins and config.pose_bins_source == "encoder":
                 self.pose_pqb = EncoderPosePQB(channels[-1], config.pose_bins, config.pose_hidden,
-                                               residual_init=config.pose_residual_init)
+                                               residual_init=config.pose_residual_init,
+                                               block_dropout=config.block_dropout,
+                                               linear_dropout=config.linear_dropout)
             elif config.pose_bins:
                 self.pose_pqb = PosePQB(config.pose_hidden, config.pose_bins, config.pose_hidden)
+        if config.weight_init == "authors":  # the bins heads and the IGD feature keep PyTorch's, as the authors'
+            if self.depth_decoder is not None:
+                init_depth_decoder_like_authors(self.depth_decoder)
+            for part in (self.pose_decoder, self.pose_pqb):
+                if part is not None:
+                    init_pose_like_authors(part)
 
     @property
     def refines_depth(self) -> bool:

@@ -20,6 +20,7 @@ class DepthDecoder(nn.Module):
         dropout: spatial dropout (``Dropout2d``) on the laterals.
         squeeze_excite: channel attention (:class:`SqueezeExcite`) on each lateral before the dropout,
             as the authors' released code has (not in the paper's text).
+        block_dropout: ``Dropout2d`` at the end of every residual conv block (authors: 0.1).
 
     Returns (forward):
         ``(feature [B, channels, h, w], depth_norm [B, 1, h, w])`` at the shallowest fused stage;
@@ -27,14 +28,15 @@ class DepthDecoder(nn.Module):
     """
 
     def __init__(self, in_channels: Sequence[int], channels: int = 128, dropout: float = 0.1,
-                 squeeze_excite: bool = False) -> None:
+                 squeeze_excite: bool = False, block_dropout: float = 0.0) -> None:
         super().__init__()
         self.laterals = nn.ModuleList(
             nn.Sequential(nn.Conv2d(c, channels, 1), *([SqueezeExcite(channels)] if squeeze_excite else []),
                           nn.Dropout2d(dropout)) for c in in_channels)
-        self.fuse = nn.ModuleList(ResidualConvBlock(channels) for _ in in_channels)
+        self.fuse = nn.ModuleList(ResidualConvBlock(channels, dropout=block_dropout) for _ in in_channels)
         head_channels = max(channels // 2, 8)
-        self.head = nn.Sequential(nn.Conv2d(channels, head_channels, 1), ResidualConvBlock(head_channels),
+        self.head = nn.Sequential(nn.Conv2d(channels, head_channels, 1),
+                                  ResidualConvBlock(head_channels, dropout=block_dropout),
                                   nn.Conv2d(head_channels, 1, 1))
 
     def forward(self, features: Sequence[Tensor]) -> tuple[Tensor, Tensor]:
@@ -58,27 +60,32 @@ class PoseDecoder(nn.Module):
         hidden: width of the residual MLP (the pose feature).
         depth_grid: the initial depth is average-pooled to ``depth_grid x depth_grid`` (its layout
             carries the horizon); 0 for no depth input (DAPM(P)).
+        projection_dropout: ``Dropout`` on each pooled vector before its projection (authors: 0.2).
+        mlp_dropout: ``Dropout`` inside each residual MLP block (authors: 0.3).
     """
 
     def __init__(self, in_channels: Sequence[int], projection: int = 128, hidden: int = 256,
-                 depth_grid: int = 8, mlp_blocks: int = 2) -> None:
+                 depth_grid: int = 8, mlp_blocks: int = 2, projection_dropout: float = 0.0,
+                 mlp_dropout: float = 0.0) -> None:
         super().__init__()
         self.depth_grid = depth_grid
+        self.projection_dropout = nn.Dropout(projection_dropout)
         self.projections = nn.ModuleList(nn.Linear(c, projection) for c in in_channels)
         self.depth_projection = nn.Linear(depth_grid * depth_grid, projection) if depth_grid else None
         inputs = projection * (len(in_channels) + (1 if depth_grid else 0))
         self.mlp = nn.Sequential(nn.Linear(inputs, hidden), nn.ReLU(inplace=True),
-                                 *[ResidualMLPBlock(hidden) for _ in range(mlp_blocks)])
+                                 *[ResidualMLPBlock(hidden, mlp_dropout) for _ in range(mlp_blocks)])
         self.out = nn.Linear(hidden, 4)
 
     def forward(self, features: Sequence[Tensor], depth_norm: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
         """Returns ``(pose feature [B, hidden], initial pose_norm [B, 4], its logit [B, 4])``."""
-        pooled = [proj(f.mean(dim=(2, 3))) for proj, f in zip(self.projections, features)]
+        drop = self.projection_dropout
+        pooled = [proj(drop(f.mean(dim=(2, 3)))) for proj, f in zip(self.projections, features)]
         if self.depth_projection is not None:
             if depth_norm is None:
                 raise ValueError("this pose decoder was built with a depth input (depth_grid > 0) but got none")
             grid = adaptive_avg_pool2d(depth_norm, self.depth_grid).flatten(1)  # export-safe at any input size
-            pooled.append(self.depth_projection(grid))
+            pooled.append(self.depth_projection(drop(grid)))
         feature = self.mlp(torch.cat(pooled, dim=1))
         logit = self.out(feature)
         return feature, torch.sigmoid(logit), logit

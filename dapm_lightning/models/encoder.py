@@ -56,5 +56,5 @@ class Encoder(nn.Module):
         self.strides: list[int] = list(feature_info.reduction())
 
     def forward(self, image: Tensor) -> list[Tensor]:
-        """``image [B, 3, H, W]`` (ImageNet-normalised) -> feature maps ``[B, C_i, H / s_i, W / s_i]``."""
+        """``image [B, 3, H, W]`` (per ``input_normalization``) -> feature maps ``[B, C_i, H / s_i, W / s_i]``."""
         return list(self.body(image))

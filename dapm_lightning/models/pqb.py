@@ -134,21 +134,23 @@ class EncoderPosePQB(nn.Module):
     With ``in_channels=2048`` (ResNet-50), ``channels=256`` and bins ``(16, 64)`` this has the
     authors' parameter count (11.84 M + 0.23 M + 2.6 k); their residual linear blocks use
     BatchNorm1d and a final ReLU, here LayerNorm (batch of one) and no ReLU on logits/corrections.
+    ``block_dropout``/``linear_dropout``: dropout in the residual conv / linear blocks (authors: 0.1 / 0.3).
     """
 
     def __init__(self, in_channels: int, bins: Sequence[int], channels: int = 256,
-                 residual_init: bool = True) -> None:
+                 residual_init: bool = True, block_dropout: float = 0.0, linear_dropout: float = 0.0) -> None:
         super().__init__()
         self.bins = tuple(bins)
         if any(n < 2 for n in self.bins):
             raise ValueError(f"pose bins must be >= 2, got {self.bins}")
         self.residual_init = residual_init
         self.stages = nn.ModuleList(
-            nn.Sequential(ResidualConvBlock(in_channels, channels), nn.AdaptiveAvgPool2d(1), nn.Flatten(),
-                          ResidualLinear(channels, 4 * n, activate=False)) for n in self.bins)
-        self.fuse = nn.ModuleList(ResidualLinear(4 * p + 4 * n, 4 * n, activate=False)
+            nn.Sequential(ResidualConvBlock(in_channels, channels, dropout=block_dropout), nn.AdaptiveAvgPool2d(1),
+                          nn.Flatten(), ResidualLinear(channels, 4 * n, activate=False, dropout=linear_dropout))
+            for n in self.bins)
+        self.fuse = nn.ModuleList(ResidualLinear(4 * p + 4 * n, 4 * n, activate=False, dropout=linear_dropout)
                                   for p, n in zip(self.bins[:-1], self.bins[1:]))
-        self.head = ResidualLinear(4 + sum(4 * n for n in self.bins), 4, activate=False)
+        self.head = ResidualLinear(4 + sum(4 * n for n in self.bins), 4, activate=False, dropout=linear_dropout)
 
     def forward(self, feature: Tensor, pose_init_logit: Tensor) -> tuple[Tensor, list[Tensor]]:
         """``feature [B, C, h, w]`` (deepest encoder stage) -> ``(pose logit [B, 4], bin logits [B, 4, n] each)``."""

@@ -219,6 +219,7 @@ def diagnose_split(root: Path, split: str, depth_kind: DepthKind) -> dict[str, A
                            "median": float(np.median(values)), "q75": float(np.quantile(values, 0.75)),
                            "max": float(values.max()), "range": [lo, hi],
                            "outside_range": int(((values < lo) | (values > hi)).sum())}
+    containers = dict(zip(dataset.names, dataset.depth_containers))
     sky_fractions, agreements, ratios, flagged, unchecked = [], [], [], [], []
     depth_min, depth_max = math.inf, 0.0
     with one_torch_thread():
@@ -247,7 +248,10 @@ def diagnose_split(root: Path, split: str, depth_kind: DepthKind) -> dict[str, A
             "sky_fraction": {"mean": float(np.mean(sky_fractions)) if sky_fractions else None},
             "ground_agreement": {"median": float(np.median(agreements)) if agreements else None,
                                  "lower_half_median_ratio": float(np.nanmedian(ratios)) if ratios else None},
-            "depth_kind": depth_kind}
+            "depth_kind": depth_kind,
+            "depth_container": containers,
+            "depth_containers": {kind: n for kind in sorted(set(containers.values()))
+                                 if (n := sum(c == kind for c in containers.values()))}}
 
 
 def format_report(reports: list[dict[str, Any]]) -> str:
@@ -261,6 +265,9 @@ def format_report(reports: list[dict[str, Any]]) -> str:
             for key, s in r["pose"].items():
                 lines.append(f"   {key:<8}{s['min']:>9.1f}{s['q25']:>9.1f}{s['median']:>9.1f}{s['q75']:>9.1f}"
                              f"{s['max']:>9.1f}   {s['range'][0]:>5.0f}..{s['range'][1]:<5.0f}{s['outside_range']:>6}")
+            if r.get("depth_containers"):
+                kinds = ", ".join(f"{n} {kind}" for kind, n in r["depth_containers"].items())
+                lines.append(f"   depth PNGs: {kinds} (per file: depth_container in the JSON report)")
             depth, agree = r["depth_m"], r["ground_agreement"]
             if depth["min"] is not None:
                 lines.append(f"   depth {depth['min']:.2f} .. {depth['max']:.1f} m (below sky); "

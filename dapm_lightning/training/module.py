@@ -15,7 +15,7 @@ from lightning.pytorch.utilities import rank_zero_warn
 from torch import Tensor
 
 from dapm_lightning.data.sample import depth_masks
-from dapm_lightning.metrics import AuthorsDepthMetrics, DepthMetrics, PoseMetrics
+from dapm_lightning.metrics import AuthorsDepthMetrics, AuthorsPoseMetrics, DepthMetrics, PoseMetrics
 from dapm_lightning.models.config import DAPMConfig
 from dapm_lightning.models.dapm import DAPMNet, DAPMOutput
 from dapm_lightning.models.prior import PosePrior
@@ -181,6 +181,9 @@ class DAPMModule(L.LightningModule):
             grey levels, sky included, pixels pooled; RMS as ``rmse_grey`` and ``rmse_unit``), the only
             depth figures comparable with the paper's Table 4.
         pose_auc_min_error: pose errors at or below it count as perfect in the AUC (GeoCalib passes 1).
+        authors_pose_metrics: also log the authors' pose protocol (``<stage>_poseauthors_*``: the 3-point AUC
+            through (0, 0), (1, r1), (5, r5), (10, r10) and the MAE per component), the protocol of the
+            paper's Table 8 AUC figures.
         skip_nonfinite_loss: skip a training step whose loss is NaN or Inf (with a warning and
             ``train_nonfinite_steps``) instead of corrupting the weights.
         prior_training: pose priors drawn from the true pose during training (:class:`PriorTraining`), so
@@ -193,7 +196,8 @@ class DAPMModule(L.LightningModule):
 
     Logged keys: ``<stage>_loss_<term>``, ``<stage>_depth_<metric>`` (metres),
     ``<stage>_depthlog_<metric>`` (toolbox protocol on grey levels), ``<stage>_depthauthors_<metric>`` (the
-    authors' protocol), ``<stage>_pose_<component>_<stat>``.
+    authors' protocol), ``<stage>_pose_<component>_<stat>`` (GeoCalib's AUC),
+    ``<stage>_poseauthors_<component>_<stat>`` (the authors' AUC and MAE).
     """
 
     igd_predicted_share: float
@@ -203,7 +207,8 @@ class DAPMModule(L.LightningModule):
                  optimizer: OptimizerConfig = OptimizerConfig(), log_space_metrics: bool = True,  # noqa: B008
                  pose_auc_min_error: float | None = None, skip_nonfinite_loss: bool = True,
                  authors_depth_metrics: bool = True,
-                 prior_training: PriorTraining = PriorTraining()) -> None:  # noqa: B008
+                 prior_training: PriorTraining = PriorTraining(),  # noqa: B008
+                 authors_pose_metrics: bool = True) -> None:
         super().__init__()
         # settings arrive as dataclasses (CLI, Python) or as plain mappings (a checkpoint's hyper-parameters)
         self.net_config: DAPMConfig = _as_config(net, DAPMConfig)
@@ -216,7 +221,8 @@ class DAPMModule(L.LightningModule):
             "optimizer": {**asdict(self.optimizer_config), "betas": list(self.optimizer_config.betas)},
             "log_space_metrics": log_space_metrics, "pose_auc_min_error": pose_auc_min_error,
             "skip_nonfinite_loss": skip_nonfinite_loss, "authors_depth_metrics": authors_depth_metrics,
-            "prior_training": {**asdict(self.prior_training), "noise": list(self.prior_training.noise)}})
+            "prior_training": {**asdict(self.prior_training), "noise": list(self.prior_training.noise)},
+            "authors_pose_metrics": authors_pose_metrics})
         self.net = DAPMNet(self.net_config)
         igd = self.net_config.igd
         self.criterion = DAPMLoss(self.loss_config, igd)
@@ -232,6 +238,8 @@ class DAPMModule(L.LightningModule):
                     self.metrics[f"{stage}_depthauthors"] = AuthorsDepthMetrics(max_depth=igd.max_depth)
             if self.net_config.use_pose:
                 self.metrics[f"{stage}_pose"] = PoseMetrics(min_error=pose_auc_min_error)
+                if authors_pose_metrics:
+                    self.metrics[f"{stage}_poseauthors"] = AuthorsPoseMetrics()
         self.nonfinite_steps = 0
         self.train_image_size: tuple[int, int] | None = None
         """``(H, W)`` of the training images (saved in checkpoints; inference runs at the same pixel count)."""
@@ -291,7 +299,9 @@ class DAPMModule(L.LightningModule):
                     self.metrics[f"{stage}_{kind}"].update(out.depth_m, batch["depth"])
         has_pose = batch["has_pose"]
         if out.pose_physical is not None and has_pose.any():
-            self.metrics[f"{stage}_pose"].update(out.pose_physical[has_pose], batch["pose"][has_pose])
+            for kind in ("pose", "poseauthors"):
+                if f"{stage}_{kind}" in self.metrics:
+                    self.metrics[f"{stage}_{kind}"].update(out.pose_physical[has_pose], batch["pose"][has_pose])
 
     def _log_metrics(self, stage: str) -> None:
         for name, metric in self.metrics.items():

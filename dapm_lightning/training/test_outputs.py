@@ -15,6 +15,7 @@ from torch import Tensor
 
 from dapm_lightning.geometry.constants import MAX_DEPTH_M, POSE_KEYS, SKY_GREY
 from dapm_lightning.geometry.depth_codec import encode_log_depth, norm_to_grey
+from dapm_lightning.geometry.igd import IGDSpec
 from dapm_lightning.metrics.depth import DEPTH_METRIC_NAMES, per_image_depth_metrics
 from dapm_lightning.models.dapm import DAPMOutput
 
@@ -42,11 +43,28 @@ def stage_maps(out: DAPMOutput, index: int) -> dict[str, np.ndarray]:
     return maps
 
 
+def igd_maps(out: DAPMOutput, batch: Any, igd: IGDSpec) -> dict[str, Tensor]:
+    """The IGD of the predicted and of the true pose at the image size, ``[B, H, W]`` uint8 grey, by folder name.
+
+    ``igd_pred`` and ``igd_true`` (the authors' ``p2d_pred`` / ``p2d_gt`` figure): ``255 x`` the normalised log
+    IGD of the model's IGD specification. ``igd_true`` only for a batch whose images all have a pose.
+    """
+    if out.pose is None:
+        return {}
+    size = (int(batch["image"].shape[-2]), int(batch["image"].shape[-1]))
+    maps = {"igd_pred": igd.depth_norm(out.pose.pose_norm.detach().double(), size)[:, 0]}
+    has_pose = batch.get("has_pose")
+    if has_pose is not None and bool(has_pose.all()):
+        maps["igd_true"] = igd.depth_norm(igd.normalize(batch["pose"].double()), size)[:, 0]
+    return {key: (value.float().clamp(0, 1) * 255.0).round().to(torch.uint8).cpu() for key, value in maps.items()}
+
+
 class TestOutputWriter(L.Callback):
     """Writes, during ``dapm-lightning test``, what the paper's PQB figure and a worst-image search need.
 
     - ``<dirpath>/maps/<stage>/<name>.png`` for every test image (``write_maps``): the sky map, each depth
-      bins stage's arg-max class, the initial and the refined depth (:func:`stage_maps`);
+      bins stage's arg-max class, the initial and the refined depth (:func:`stage_maps`), and the IGD of the
+      predicted and of the true pose (``igd_pred``, ``igd_true``: :func:`igd_maps`);
     - ``<dirpath>/per_image.csv`` (``write_csv``), one row per image: ``name``, the true pose
       (``height, pitch, roll, fov``), the predicted pose (``pred_*``), its absolute errors (``err_*``) and the
       toolbox depth metrics of the image in metres (``depth_d1``, ``depth_abs_rel``, ...; NaN without a
@@ -76,10 +94,13 @@ class TestOutputWriter(L.Callback):
         names = list(batch.get("name", [])) or [f"b{batch_idx:06d}_{i}" for i in range(batch["image"].shape[0])]
         metrics = (per_image_depth_metrics(outputs.depth_m, batch["depth"], max_depth=self.max_depth)
                    if outputs.depth_m is not None else {})
+        config = getattr(pl_module, "net_config", None)
+        igd_images = igd_maps(outputs, batch, config.igd) if self.write_maps and config is not None else {}
         for i, name in enumerate(names):
             stem = str(name).replace("/", "_").replace("\\", "_")  # sample names are stems already
             if self.write_maps:
-                for stage, image in stage_maps(outputs, i).items():
+                maps = {**stage_maps(outputs, i), **{key: value[i].numpy() for key, value in igd_images.items()}}
+                for stage, image in maps.items():
                     folder = self._root / "maps" / stage
                     folder.mkdir(parents=True, exist_ok=True)
                     cv2.imwrite(str(folder / f"{stem}.png"), image)
@@ -110,4 +131,4 @@ class TestOutputWriter(L.Callback):
             writer.writerows(self._rows)
 
 
-__all__ = ["TestOutputWriter", "stage_maps"]
+__all__ = ["TestOutputWriter", "igd_maps", "stage_maps"]

@@ -4,9 +4,11 @@ import cv2
 import numpy as np
 import pytest
 import torch
+from PIL import Image
 
 from dapm_lightning.data import DatasetError, UAPDDataset, parse_uapd_filename
 from dapm_lightning.data.sample import depth_masks
+from dapm_lightning.data.uapd import read_depth_grey
 from dapm_lightning.geometry import grey_to_depth
 from tests.conftest import TINY_HW
 
@@ -66,14 +68,50 @@ def test_not_a_png(uapd_copy):
         UAPDDataset(uapd_copy, "train")
 
 
-@pytest.mark.parametrize("bad", ["rgb", "16bit"])
-def test_depth_must_be_single_channel_8bit(uapd_copy, bad):
+@pytest.mark.parametrize("bad", ["16bit", "grey16+rgb"])
+def test_depth_must_be_8bit(uapd_copy, bad):
     path = uapd_copy / "train" / "depth" / _name(uapd_copy)
-    grey = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    cv2.imwrite(str(path), np.dstack([grey] * 3) if bad == "rgb" else grey.astype(np.uint16) * 257)
-    with pytest.raises(DatasetError, match="single-channel 8-bit") as info:
+    grey = cv2.imread(str(path), cv2.IMREAD_UNCHANGED).astype(np.uint16) * 257
+    cv2.imwrite(str(path), grey if bad == "16bit" else np.dstack([grey] * 3))
+    with pytest.raises(DatasetError, match="depth must be 8-bit grey, RGB or RGBA") as info:
         UAPDDataset(uapd_copy, "train")
     assert str(path) in str(info.value)
+
+
+@pytest.mark.parametrize("container", ["RGB", "RGBA", "grey+alpha"])
+def test_depth_as_rgb_or_rgba_with_equal_channels_loads_as_grey(uapd_copy, container):
+    """The authors read depth with OpenCV's grayscale flag: an RGB(A) copy of the grey map is the same map."""
+    name = _name(uapd_copy)
+    path = uapd_copy / "train" / "depth" / name
+    grey = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    before = UAPDDataset(uapd_copy, "train")
+    index = before.names.index(name)
+    expected = before[index]["depth"]
+    alpha = np.full_like(grey, 7)  # any alpha is ignored
+    if container == "grey+alpha":
+        Image.fromarray(np.dstack([grey, alpha]), "LA").save(path)
+    else:
+        cv2.imwrite(str(path), np.dstack([grey] * 3 + ([alpha] if container == "RGBA" else [])))
+    after = UAPDDataset(uapd_copy, "train")
+    assert after.depth_containers[index] == container
+    assert set(after.depth_containers) == {"grey", container}
+    assert torch.equal(after[index]["depth"], expected)
+    np.testing.assert_array_equal(read_depth_grey(path), cv2.imread(str(path), cv2.IMREAD_GRAYSCALE))
+
+
+def test_depth_with_unequal_channels_names_carlas_raw_encoding(uapd_copy):
+    """CARLA's raw 24-bit depth (R + 256 G + 65536 B) must not be read as grey: refused with the conversion."""
+    name = _name(uapd_copy)
+    path = uapd_copy / "train" / "depth" / name
+    grey = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    bgr = np.dstack([grey // 3, grey // 2, grey])
+    cv2.imwrite(str(path), bgr)
+    dataset = UAPDDataset(uapd_copy, "train")  # the header is fine; the channels are checked when read
+    with pytest.raises(ValueError, match="colours differ") as info:
+        dataset[dataset.names.index(name)]
+    text = str(info.value)
+    assert str(path) in text and "CARLA's raw 24-bit depth" in text and "decode_carla_depth" in text
+    assert "depth_to_grey" in text and "design.md §3" in text
 
 
 def test_size_mismatch(uapd_copy):

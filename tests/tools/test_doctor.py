@@ -2,6 +2,7 @@ import json
 import shutil
 from collections import Counter
 
+import cv2
 import numpy as np
 import pytest
 import yaml
@@ -173,3 +174,18 @@ def test_cli_doctor_exit_status_and_settings_file(synthetic, tmp_path, capsys):
         main(["doctor", str(synthetic), "--json", str(tmp_path / "r.json")])
     assert info.value.code == 0
     assert np.isfinite(json.loads((tmp_path / "r.json").read_text())[0]["ground_agreement"]["median"])
+
+
+def test_the_report_names_each_depth_files_container(synthetic, tmp_path, capsys):
+    root = tmp_path / "d"
+    shutil.copytree(synthetic, root)
+    name = sorted(p.name for p in (root / "val" / "depth").iterdir())[0]
+    path = root / "val" / "depth" / name
+    grey = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    cv2.imwrite(str(path), np.dstack([grey] * 3 + [np.full_like(grey, 255)]))  # RGBA, equal colours
+    assert doctor_main([str(root), "--splits", "[val]", "--json", str(tmp_path / "r.json")]) == 0
+    (report,) = json.loads((tmp_path / "r.json").read_text())
+    assert report["depth_container"][name] == "RGBA"
+    assert report["depth_containers"] == {"RGBA": 1, "grey": 3}
+    assert sum(kind == "grey" for kind in report["depth_container"].values()) == 3
+    assert "depth PNGs: 1 RGBA, 3 grey" in capsys.readouterr().out
