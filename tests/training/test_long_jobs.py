@@ -164,8 +164,7 @@ def test_bad_files_at_scale_are_all_listed_and_skippable(tmp_path, monkeypatch):
     for sub in (rgb, depth):
         (sub / names[30]).rename(sub / "no_pose_here.png")                                  # unparsable name
     cv2.imwrite(str(rgb / names[40]), np.zeros((9, 12, 3), np.uint8))                       # wrong size
-    cv2.imwrite(str(depth / names[50]), np.dstack([np.zeros((8, 12), np.uint8)] * 2          # raw RGB depth
-                                                   + [np.full((8, 12), 9, np.uint8)]))
+    cv2.imwrite(str(depth / names[50]), np.zeros((8, 12), np.uint16))                       # 16-bit depth
     with pytest.raises(DatasetError) as info:
         UAPDDataset(root, "train")
     problems = info.value.problems
