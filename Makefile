@@ -4,8 +4,9 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 OUT ?= outputs/quickstart
+WHEELS ?= wheels
 
-.PHONY: install demo test test-all bench lint clean
+.PHONY: install demo test test-all bench bench-gpu wheels install-offline lint clean
 
 $(STAMP): pyproject.toml constraints.txt
 	test -d $(VENV) || $(PYTHON) -m venv $(VENV)
@@ -28,6 +29,22 @@ bench: $(STAMP)
 	$(BIN)/python -m dapm_lightning.tools.bench
 	$(BIN)/python -m dapm_lightning.tools.bench_synth speed
 	$(BIN)/python -m dapm_lightning.tools.bench_predict speed --rounds 3
+
+# the GPU kit (docs/gpu.md): one command, <= 9 minutes on one GPU; BENCH_GPU_ARGS="--device cpu --tiny" checks it
+bench-gpu: $(STAMP)
+	$(BIN)/python -m dapm_lightning.tools.bench_gpu $(BENCH_GPU_ARGS)
+
+# air-gapped GPU nodes (docs/gpu.md): wheels of everything but the node's PyTorch stack, then install from them;
+# WHEELS_TARGET="--python-version 3.10 --platform manylinux2014_x86_64" collects for another Python
+wheels:
+	mkdir -p $(WHEELS)
+	$(PYTHON) scripts/offline_requirements.py > $(WHEELS)/requirements.txt
+	$(PYTHON) -m pip download --dest $(WHEELS) --only-binary=:all: $(WHEELS_TARGET) -c constraints.txt \
+		-r $(WHEELS)/requirements.txt
+	$(PYTHON) -m pip wheel --no-deps --no-build-isolation --wheel-dir $(WHEELS) .
+
+install-offline:
+	$(PYTHON) -m pip install --no-index --find-links $(WHEELS) "dapm-lightning[export]"
 
 lint: $(STAMP)
 	$(BIN)/ruff check dapm_lightning tests

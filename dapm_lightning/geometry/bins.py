@@ -5,7 +5,10 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from dapm_lightning.geometry.precision import float32
 
+
+@float32
 def quantize(x_norm: Tensor, num_bins: int) -> Tensor:
     """Class id ``floor(x * n)`` clamped to ``[0, n - 1]`` (long), for ``x`` in [0, 1]."""
     if num_bins < 1:

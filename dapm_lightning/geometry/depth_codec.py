@@ -9,8 +9,10 @@ import torch
 from torch import Tensor
 
 from dapm_lightning.geometry.constants import MAX_DEPTH_M, SKY_GREY
+from dapm_lightning.geometry.precision import float32
 
 
+@float32
 def encode_log_depth(depth_m: Tensor, max_depth: float = MAX_DEPTH_M) -> Tensor:
     """Metres to normalised log depth ``log2(d + 1) / log2(max_depth + 1)`` in [0, 1].
 
@@ -23,6 +25,7 @@ def encode_log_depth(depth_m: Tensor, max_depth: float = MAX_DEPTH_M) -> Tensor:
     return torch.log2(depth_m.clamp(0.0, max_depth) + 1.0) / math.log2(max_depth + 1.0)
 
 
+@float32
 def decode_log_depth(depth_norm: Tensor, max_depth: float = MAX_DEPTH_M) -> Tensor:
     """Inverse of :func:`encode_log_depth`: normalised log depth in [0, 1] to metres."""
     return torch.exp2(depth_norm.clamp(0.0, 1.0) * math.log2(max_depth + 1.0)) - 1.0

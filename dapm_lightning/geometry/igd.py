@@ -14,6 +14,7 @@ from dapm_lightning.geometry.camera import _plane_coords
 from dapm_lightning.geometry.constants import MAX_DEPTH_M, POSE_RANGES
 from dapm_lightning.geometry.depth_codec import encode_log_depth
 from dapm_lightning.geometry.pose import denormalize_pose, normalize_pose
+from dapm_lightning.geometry.precision import float32
 
 IGDModel = Literal["pinhole", "paper"]
 DepthKind = Literal["range", "planar"]
@@ -22,6 +23,7 @@ _MIN_DOWNWARD = 1e-6
 """Rays whose downward component is below this never meet the ground (they get ``max_depth``)."""
 
 
+@float32
 def ideal_ground_depth(pose: Tensor, size: tuple[int, int], *, model: IGDModel = "pinhole",
                        depth_kind: DepthKind = "range", max_depth: float = MAX_DEPTH_M) -> Tensor:
     """Depth of the flat ground ``Z = 0`` seen by a camera of the given pose, per pixel.

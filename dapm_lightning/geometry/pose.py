@@ -8,6 +8,7 @@ import torch
 from torch import Tensor
 
 from dapm_lightning.geometry.constants import POSE_KEYS, POSE_RANGES
+from dapm_lightning.geometry.precision import float32
 
 PoseRanges = Mapping[str, tuple[float, float]]
 
@@ -24,6 +25,7 @@ def pose_bounds(ranges: PoseRanges, like: Tensor) -> tuple[Tensor, Tensor]:
     return lo, hi - lo
 
 
+@float32
 def normalize_pose(pose: Tensor, ranges: PoseRanges = POSE_RANGES) -> Tensor:
     """Map a physical pose to ``[0, 1]`` per component (values outside the ranges map outside [0, 1]).
 
@@ -39,6 +41,7 @@ def normalize_pose(pose: Tensor, ranges: PoseRanges = POSE_RANGES) -> Tensor:
     return (pose - lo) / span
 
 
+@float32
 def denormalize_pose(pose_norm: Tensor, ranges: PoseRanges = POSE_RANGES) -> Tensor:
     """Inverse of :func:`normalize_pose`: ``[..., 4]`` in [0, 1] to (m, deg, deg, deg)."""
     _check_pose(pose_norm)

@@ -5,6 +5,10 @@ channels-last, ``torch.compile`` and the exported ONNX model in onnxruntime, mea
 rounds in one process; each row is a ratio to eager with the largest depth (metres) and pose difference
 to eager on the same input.
 
+``python -m dapm_lightning.tools.bench_predict int8``: eager PyTorch, the float32 ONNX model and its int8
+quantisation (``export --int8``) side by side in one process, batch 1: median latency, and the toolbox d1 and
+pose medians on a fixed synthetic split, with each one's change against eager.
+
 ``python -m dapm_lightning.tools.bench_predict memory``: ``dapm-lightning predict`` on a 2,000-frame video
 (tiny model, 64x64 frames, every output written), printing the process's resident memory every 200
 frames: it stays flat because nothing is kept once written.
@@ -150,6 +154,85 @@ def format_speed(rows: Sequence[dict[str, Any]], title: str) -> str:
     return "\n".join(lines)
 
 
+def int8_compare(ckpt_path: str | None = None, backbone: str = "resnet50", size: int = 512, images: int = 16,
+                 calibration_images: int = 32, threads: int | None = None) -> list[dict[str, Any]]:
+    """Eager, float32 ONNX and int8 ONNX on the same ``images`` synthetic val images at ``size``², batch 1.
+
+    The variants alternate image by image (a noisy machine slows them alike); the median latency counts.
+    Accuracy: toolbox d1 (metres) and the pose medians against the rendered truth; the int8 model is calibrated
+    on other rendered images (:func:`~dapm_lightning.inference.onnx.synthetic_calibration`).
+    """
+    import onnxruntime
+
+    from dapm_lightning.data.synthetic import generate_uapd
+    from dapm_lightning.data.uapd import UAPDDataset
+    from dapm_lightning.inference.onnx import export_onnx, quantize_int8, synthetic_calibration
+    from dapm_lightning.metrics import DepthMetrics, PoseMetrics
+
+    if threads:
+        torch.set_num_threads(threads)
+    net, own_threads = _network(ckpt_path, backbone), torch.get_num_threads()
+    with tempfile.TemporaryDirectory() as folder:
+        root = generate_uapd(Path(folder) / "split", train=0, val=images, size=size, seed=1, workers=1)
+        torch.set_num_threads(own_threads)  # rendering in this process leaves one thread
+        float_path, int8_path = Path(folder) / "float.onnx", Path(folder) / "int8.onnx"
+        export_onnx(net, float_path, (size, size), checks=1, dynamic=True)
+        quantize_int8(float_path, int8_path, synthetic_calibration((size, size), calibration_images))
+        options = onnxruntime.SessionOptions()
+        if threads:
+            options.intra_op_num_threads = threads
+        sessions = {name: onnxruntime.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+                    for name, path in (("onnx float32", float_path), ("onnx int8", int8_path))}
+        samples = [UAPDDataset(root, "val")[k] for k in range(images)]
+
+    def run_session(session: Any) -> Callable[[Tensor], tuple[Tensor, Tensor]]:
+        names = [o.name for o in session.get_outputs()]
+
+        def run(image: Tensor) -> tuple[Tensor, Tensor]:
+            result = dict(zip(names, session.run(None, {"image": image.numpy()})))
+            return torch.from_numpy(result["depth_m"]), torch.from_numpy(result["pose"])
+
+        return run
+
+    variants: dict[str, Callable[[Tensor], tuple[Tensor, Tensor]]] = {"eager": lambda x: _outputs(net(x))}
+    variants.update({name: run_session(session) for name, session in sessions.items()})
+    times: dict[str, list[float]] = {name: [] for name in variants}
+    depth = {name: DepthMetrics() for name in variants}
+    pose = {name: PoseMetrics() for name in variants}
+    with torch.inference_mode():
+        for run in variants.values():  # warm-up
+            run(samples[0]["image"][None])
+        for sample in samples:
+            for name, run in variants.items():
+                start = time.perf_counter()
+                depth_m, pose_physical = run(sample["image"][None])
+                times[name].append(time.perf_counter() - start)
+                depth[name].update(depth_m, sample["depth"][None])
+                pose[name].update(pose_physical, sample["pose"][None])
+    rows = []
+    for name in variants:
+        d, p = depth[name].compute(), pose[name].compute()
+        rows.append({"variant": name, "median_ms": 1000 * statistics.median(times[name]), "d1": float(d["d1"]),
+                     **{f"{k}_median": float(p[f"{k}_median"]) for k in ("height", "pitch", "roll", "fov")}})
+    for row in rows:
+        row["speedup"] = rows[0]["median_ms"] / row["median_ms"]
+        row["d1_change"] = row["d1"] - rows[0]["d1"]
+        row["worst_median_growth"] = max(row[f"{k}_median"] - rows[0][f"{k}_median"]
+                                         for k in ("height", "pitch", "roll", "fov"))
+    return rows
+
+
+def format_int8(rows: Sequence[dict[str, Any]], title: str) -> str:
+    """The int8 rows as a table."""
+    lines = [title, f"{'variant':<14}{'median ms':>10}{'x eager':>8}{'d1':>7}{'d1 change':>10}{'h med':>7}"
+                    f"{'p med':>7}{'r med':>7}{'f med':>7}{'worst med growth':>17}"]
+    for r in rows:
+        lines.append(f"{r['variant']:<14}{r['median_ms']:>10.1f}{r['speedup']:>8.2f}{r['d1']:>7.3f}"
+                     f"{r['d1_change']:>+10.3f}{r['height_median']:>7.2f}{r['pitch_median']:>7.2f}"
+                     f"{r['roll_median']:>7.2f}{r['fov_median']:>7.2f}{r['worst_median_growth']:>+17.2f}")
+    return "\n".join(lines)
+
+
 def write_video(path: Path, frames: int, size: int = 64, seed: int = 0) -> Path:
     """A synthetic MJPG video of ``frames`` frames (moving gradients and noise)."""
     writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 25.0, (size, size))
@@ -221,6 +304,16 @@ def main(argv: Sequence[str] | None = None) -> None:
                                      f"median of {rounds} alternating rounds, torch {torch.__version__}"))
 
         auto_cli(run_speed, args=args[1:], prog="bench_predict speed")
+    elif args and args[0] == "int8":
+        def run_int8(ckpt_path: str | None = None, backbone: str = "resnet50", size: int = 512, images: int = 16,
+                     calibration_images: int = 32, threads: int | None = None) -> None:
+            """Eager vs float32 ONNX vs int8 ONNX: latency, d1 and pose medians on a fixed synthetic split."""
+            rows = int8_compare(ckpt_path, backbone, size, images, calibration_images, threads)
+            what = ckpt_path or f"DAPM ({backbone}, random weights: accuracy shows fidelity only)"
+            print(format_int8(rows, f"{what}, {size}x{size}, batch 1, {torch.get_num_threads()} threads, "
+                                    f"{images} synthetic images, torch {torch.__version__}"))
+
+        auto_cli(run_int8, args=args[1:], prog="bench_predict int8")
     elif args and args[0] == "memory":
         def run_memory(frames: int = 2000, every: int = 200, batch_size: int = 16) -> None:
             """Resident memory while predicting a long video (tiny model, every output written)."""
@@ -236,4 +329,4 @@ if __name__ == "__main__":
     main()
 
 
-__all__ = ["memory", "speed"]
+__all__ = ["int8_compare", "memory", "speed"]

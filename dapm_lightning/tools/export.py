@@ -3,10 +3,11 @@
 Any DAPM checkpoint exports: the full model (depth_m, sky_prob, pose), DAPM(D) (depth_m, sky_prob) and
 DAPM(P) (pose). Batch, height and width are dynamic by default (height and width multiples of 32, as
 the predict path feeds them); --fp16 true stores the weights and runs the network in half precision with
-float32 input and outputs. After writing, onnxruntime and PyTorch run the same random inputs at two
-sizes and the largest difference of each output is printed. A large model's weights go beside the graph in
-NAME.onnx.data (keep both files together). Settings can come from a YAML file (--config FILE; --print_config
-shows one).
+float32 input and outputs; --int8 true quantises it for CPUs and edge boards (onnxruntime static QDQ
+quantisation, calibrated on images the synthetic generator renders; same input and outputs). After writing,
+onnxruntime and PyTorch run the same random inputs at two sizes and the largest difference of each output is
+printed. A large model's weights go beside the graph in NAME.onnx.data (keep both files together). Settings
+can come from a YAML file (--config FILE; --print_config shows one).
 """
 
 from __future__ import annotations
@@ -20,7 +21,8 @@ from dapm_lightning.inference.onnx import export_onnx
 
 
 def export(ckpt_path: Path, out: Path | None = None, height: int | None = None, width: int | None = None,
-           dynamic: bool = True, fp16: bool = False, checks: int = 2) -> Path:
+           dynamic: bool = True, fp16: bool = False, checks: int = 2, int8: bool = False,
+           calibration_images: int = 32) -> Path:
     """Export a DAPM checkpoint to ONNX and check it with onnxruntime against PyTorch.
 
     Args:
@@ -32,6 +34,9 @@ def export(ckpt_path: Path, out: Path | None = None, height: int | None = None, 
         dynamic: dynamic batch, height and width; false: fixed [1, 3, height, width].
         fp16: half-precision weights and arithmetic (float32 input and outputs); for GPUs and Jetsons.
         checks: random inputs compared with PyTorch at each checked size.
+        int8: static int8 quantisation (QDQ, per-channel weights) of the float32 model; written as
+            ``NAME_int8.onnx``; the float32 model is written too (``NAME.onnx``).
+        calibration_images: synthetic images rendered at the example size to calibrate the int8 ranges.
     """
     from dapm_lightning.training.checkpointing import load_dapm_module
 
@@ -40,9 +45,17 @@ def export(ckpt_path: Path, out: Path | None = None, height: int | None = None, 
     if height is None or width is None:
         trained = checkpoint_network_size(module)
         height, width = network_size(height or trained[0], width or trained[1], None, SIZE_MULTIPLE)
-    out = Path(out) if out else ckpt_path.with_name(ckpt_path.stem + ("_fp16" if fp16 else "") + ".onnx")
+    if int8 and fp16:
+        raise ValueError("--int8 quantises the float32 model: leave --fp16 out")
+    suffix = "_fp16" if fp16 else "_int8" if int8 else ""
+    out = Path(out) if out else ckpt_path.with_name(ckpt_path.stem + suffix + ".onnx")
+    float_out = out.with_name(out.stem.removesuffix("_int8") + ".onnx") if int8 else out
+    if float_out == out:
+        float_out = out.with_name(out.stem + "_float32.onnx") if int8 else out
     start = time.perf_counter()
-    rows = export_onnx(module.net.eval(), out, (height, width), checks=checks, dynamic=dynamic, fp16=fp16)
+    rows = export_onnx(module.net.eval(), float_out, (height, width), checks=checks, dynamic=dynamic, fp16=fp16)
+    if int8:
+        _quantize(float_out, out, (height, width), calibration_images)
     names = [k for k in rows[0] if k != "shape"]
     shape = "[batch, 3, height, width] (multiples of 32)" if dynamic else f"[1, 3, {height}, {width}]"
     data = out.with_name(out.name + ".data")
@@ -53,6 +66,25 @@ def export(ckpt_path: Path, out: Path | None = None, height: int | None = None, 
         print(f"check {tuple(row['shape'])}: max |onnxruntime - PyTorch fp32|: "
               + ", ".join(f"{n} {row[n]:.3g}" for n in names))
     return out
+
+
+def _quantize(float_out: Path, out: Path, size: tuple[int, int], images: int) -> None:
+    import numpy as np
+    import onnxruntime
+
+    from dapm_lightning.inference.onnx import quantize_int8, synthetic_calibration
+
+    start = time.perf_counter()
+    quantize_int8(float_out, out, synthetic_calibration(size, images))
+    sessions = [onnxruntime.InferenceSession(str(p), providers=["CPUExecutionProvider"]) for p in (float_out, out)]
+    names = [o.name for o in sessions[0].get_outputs()]
+    gaps = dict.fromkeys(names, 0.0)
+    for image in synthetic_calibration(size, 4, seed=1):  # images the calibration did not see
+        reference, got = (s.run(None, {"image": image}) for s in sessions)
+        gaps = {n: max(gaps[n], float(np.abs(g - r).max())) for n, g, r in zip(names, got, reference)}
+    print(f"wrote {out} in {time.perf_counter() - start:.0f} s: int8 (QDQ), calibrated on {images} synthetic images; "
+          f"float32 model {float_out}; max |int8 - float32| on 4 other synthetic images: "
+          + ", ".join(f"{n} {v:.3g}" for n, v in gaps.items()))
 
 
 def export_main(argv: Sequence[str]) -> None:

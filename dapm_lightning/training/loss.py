@@ -14,6 +14,7 @@ from dapm_lightning.geometry.bins import quantize
 from dapm_lightning.geometry.constants import MIN_DEPTH_M
 from dapm_lightning.geometry.depth_codec import decode_log_depth, encode_log_depth
 from dapm_lightning.geometry.igd import IGDSpec
+from dapm_lightning.geometry.precision import float32
 from dapm_lightning.models.dapm import DAPMOutput, DepthPrediction, PosePrediction
 
 IGNORE = -100
@@ -168,6 +169,7 @@ class DAPMLoss(nn.Module):
         self.config = config or LossConfig()
         self.igd = igd or IGDSpec()
 
+    @float32
     def forward(self, out: DAPMOutput, targets: LossTargets) -> dict[str, Tensor]:
         terms: dict[str, Tensor] = {}
         if out.depth is not None:
