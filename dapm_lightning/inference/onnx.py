@@ -135,7 +135,7 @@ def quantize_int8(float_path: str | Path, int8_path: str | Path, calibration: Se
     import onnx
     import onnxruntime.quantization as quantization
 
-    class Images(quantization.CalibrationDataReader):
+    class Images(quantization.CalibrationDataReader):  # type: ignore[misc]  # onnxruntime is untyped
         def __init__(self) -> None:
             self.items = iter(calibration)
 
