@@ -35,7 +35,7 @@ def export(ckpt_path: Path, out: Path | None = None, height: int | None = None, 
         fp16: half-precision weights and arithmetic (float32 input and outputs); for GPUs and Jetsons.
         checks: random inputs compared with PyTorch at each checked size.
         int8: static int8 quantisation (QDQ, per-channel weights) of the float32 model; written as
-            ``NAME_int8.onnx``; the float32 model is written too (``NAME.onnx``).
+            NAME_int8.onnx; the float32 model is written too (NAME.onnx).
         calibration_images: synthetic images rendered at the example size to calibrate the int8 ranges.
     """
     from dapm_lightning.training.checkpointing import load_dapm_module
