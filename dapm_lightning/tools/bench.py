@@ -13,6 +13,7 @@ import statistics
 import subprocess
 import sys
 import time
+from collections.abc import Sequence
 from typing import Any
 
 import torch
@@ -178,16 +179,25 @@ def train_compare(configs: list[str], *, backbone: str, size: int, steps: int, b
     return rows
 
 
-def print_table(rows: list[dict[str, Any]], columns: list[tuple[str, str, int, str]]) -> None:
-    """Print ``rows`` under a header.
+def format_table(rows: Sequence[dict[str, Any]], columns: list[tuple[str, str, int, str]]) -> str:
+    """``rows`` under a header and a rule, one line each.
 
-    ``columns``: (row key, title, width, number format such as ``.2f``; empty for a left-aligned text column).
+    ``columns``: (row key, title, width, number format such as ``.2f`` or ``+.3f``; empty for a left-aligned
+    text column).
     """
+    def spec(width: int, fmt: str) -> str:
+        sign = "+" if fmt.startswith("+") else ""
+        return f"{'>' if fmt else '<'}{sign}{width}{fmt.removeprefix('+')}"
+
     header = "".join(f"{title:{'>' if fmt else '<'}{width}}" for _, title, width, fmt in columns)
-    print(header)
-    print("-" * len(header))
-    for row in rows:
-        print("".join(f"{row[key]:{'>' if fmt else '<'}{width}{fmt}}" for key, _, width, fmt in columns))
+    lines = [header, "-" * len(header)]
+    lines += ["".join(f"{row[key]:{spec(width, fmt)}}" for key, _, width, fmt in columns) for row in rows]
+    return "\n".join(lines)
+
+
+def print_table(rows: Sequence[dict[str, Any]], columns: list[tuple[str, str, int, str]]) -> None:
+    """Print :func:`format_table`."""
+    print(format_table(rows, columns))
 
 
 def print_train_compare(rows: list[dict[str, Any]], args: argparse.Namespace) -> None:

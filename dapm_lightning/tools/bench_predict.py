@@ -31,8 +31,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from dapm_lightning.geometry.constants import POSE_KEYS
 from dapm_lightning.models.config import DAPMConfig
 from dapm_lightning.models.dapm import DAPMNet
+from dapm_lightning.tools.bench import format_table
 
 
 def current_rss_mb() -> float:
@@ -146,12 +148,10 @@ def speed(ckpt_path: str | None = None, backbone: str = "resnet50", size: int = 
 
 def format_speed(rows: Sequence[dict[str, Any]], title: str) -> str:
     """The speed rows as a table."""
-    lines = [title, f"{'variant':<15}{'median ms':>11}{'x eager':>9}{'max |depth - eager| m':>24}"
-                    f"{'max |pose - eager|':>20}{'setup s':>9}"]
-    for r in rows:
-        lines.append(f"{r['variant']:<15}{r['median_ms']:>11.1f}{r['speedup']:>9.2f}{r['max_depth_diff_m']:>24.3g}"
-                     f"{r['max_pose_diff']:>20.3g}{r['setup_s']:>9.0f}")
-    return "\n".join(lines)
+    return title + "\n" + format_table(rows, [
+        ("variant", "variant", 15, ""), ("median_ms", "median ms", 11, ".1f"), ("speedup", "x eager", 9, ".2f"),
+        ("max_depth_diff_m", "max |depth - eager| m", 24, ".3g"), ("max_pose_diff", "max |pose - eager|", 20, ".3g"),
+        ("setup_s", "setup s", 9, ".0f")])
 
 
 def int8_compare(ckpt_path: str | None = None, backbone: str = "resnet50", size: int = 512, images: int = 16,
@@ -218,19 +218,17 @@ def int8_compare(ckpt_path: str | None = None, backbone: str = "resnet50", size:
         row["speedup"] = rows[0]["median_ms"] / row["median_ms"]
         row["d1_change"] = row["d1"] - rows[0]["d1"]
         row["worst_median_growth"] = max(row[f"{k}_median"] - rows[0][f"{k}_median"]
-                                         for k in ("height", "pitch", "roll", "fov"))
+                                         for k in POSE_KEYS)
     return rows
 
 
 def format_int8(rows: Sequence[dict[str, Any]], title: str) -> str:
     """The int8 rows as a table."""
-    lines = [title, f"{'variant':<14}{'median ms':>10}{'x eager':>8}{'d1':>7}{'d1 change':>10}{'h med':>7}"
-                    f"{'p med':>7}{'r med':>7}{'f med':>7}{'worst med growth':>17}"]
-    for r in rows:
-        lines.append(f"{r['variant']:<14}{r['median_ms']:>10.1f}{r['speedup']:>8.2f}{r['d1']:>7.3f}"
-                     f"{r['d1_change']:>+10.3f}{r['height_median']:>7.2f}{r['pitch_median']:>7.2f}"
-                     f"{r['roll_median']:>7.2f}{r['fov_median']:>7.2f}{r['worst_median_growth']:>+17.2f}")
-    return "\n".join(lines)
+    return title + "\n" + format_table(rows, [
+        ("variant", "variant", 14, ""), ("median_ms", "median ms", 10, ".1f"), ("speedup", "x eager", 8, ".2f"),
+        ("d1", "d1", 7, ".3f"), ("d1_change", "d1 change", 10, "+.3f"),
+        *((f"{k}_median", f"{k[0]} med", 7, ".2f") for k in POSE_KEYS),
+        ("worst_median_growth", "worst med growth", 17, "+.2f")])
 
 
 def write_video(path: Path, frames: int, size: int = 64, seed: int = 0) -> Path:
