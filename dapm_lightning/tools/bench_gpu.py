@@ -46,6 +46,7 @@ from dapm_lightning.data.sample import depth_masks
 from dapm_lightning.data.synthetic import generate_uapd, is_current
 from dapm_lightning.data.transforms import train_transform
 from dapm_lightning.data.uapd import UAPDDataset
+from dapm_lightning.geometry.constants import POSE_KEYS
 from dapm_lightning.metrics import DepthMetrics, PoseMetrics
 from dapm_lightning.models import EFFICIENT_NETWORK, PAPER_NETWORK, DAPMConfig, DAPMNet
 from dapm_lightning.training.loss import DAPMLoss, LossConfig
@@ -333,7 +334,7 @@ def learn(root: Path, scale: Scale, seconds: float, device: torch.device, worker
     return {"network": "efficient", "precision": precision, "size": scale.learn_size, "steps": steps,
             "train_s": train_seconds, "images_per_s": steps * scale.batch / train_seconds, "final_loss": loss,
             "val_images": scale.learn_val, "d1": float(d["d1"]), "abs_rel": float(d["abs_rel"]),
-            **{f"{k}_median": float(p[f"{k}_median"]) for k in ("height", "pitch", "roll", "fov")}}
+            **{f"{k}_median": float(p[f"{k}_median"]) for k in POSE_KEYS}}
 
 
 def device_name(device: torch.device) -> str:

@@ -213,7 +213,7 @@ def int8_compare(ckpt_path: str | None = None, backbone: str = "resnet50", size:
     for name in variants:
         d, p = depth[name].compute(), pose[name].compute()
         rows.append({"variant": name, "median_ms": 1000 * statistics.median(times[name]), "d1": float(d["d1"]),
-                     **{f"{k}_median": float(p[f"{k}_median"]) for k in ("height", "pitch", "roll", "fov")}})
+                     **{f"{k}_median": float(p[f"{k}_median"]) for k in POSE_KEYS}})
     for row in rows:
         row["speedup"] = rows[0]["median_ms"] / row["median_ms"]
         row["d1_change"] = row["d1"] - rows[0]["d1"]
