@@ -16,7 +16,7 @@ import numpy as np
 from embreex import rtcore_scene
 from embreex.mesh_construction import TriangleMesh
 
-from dapm_lightning.data.synthetic.scene import BLOB, BOX, CONE, GABLE_X, GABLE_Y, Objects
+from dapm_lightning.data.synthetic.objects import BLOB, BOX, CONE, GABLE_X, GABLE_Y, Objects
 
 LOD_PIXELS = 0.5
 """Objects whose angular radius is below this share of a pixel are not meshed."""

@@ -14,12 +14,8 @@ import cv2
 import numpy as np
 
 from dapm_lightning.data.synthetic.noise import fade, fbm, ihash, value_noise
-from dapm_lightning.data.synthetic.scene import (
+from dapm_lightning.data.synthetic.objects import (
     BLOB,
-    LOT_BUILT,
-    LOT_PARKING,
-    LOT_PLAZA,
-    LOT_YARD,
     M_BOAT,
     M_CAR,
     M_CONIFER,
@@ -32,10 +28,10 @@ from dapm_lightning.data.synthetic.scene import (
     M_TREE,
     M_UNIT,
     Objects,
-    _road_distance,
-    lot_type,
-    water_mask,
 )
+from dapm_lightning.data.synthetic.rural import road_distance
+from dapm_lightning.data.synthetic.urban import LOT_BUILT, LOT_PARKING, LOT_PLAZA, LOT_YARD, lot_type
+from dapm_lightning.data.synthetic.water import water_mask
 
 _ASPHALT = np.array([0.27, 0.27, 0.28])
 _PAINT = np.array([0.88, 0.88, 0.84])
@@ -131,7 +127,7 @@ def ground_color(x: np.ndarray, y: np.ndarray, fp: np.ndarray, layout: dict[str,
         color = np.where(town[:, None], city, color)
     road = layout.get("road")
     if road:
-        across, along = _road_distance(x, y, road)
+        across, along = road_distance(x, y, road)
         on = np.abs(across) < road["width"] / 2
         if road["paved"]:
             paint = ((np.abs(across) < 0.08) & (np.mod(along, 9.0) < 3.0)) | (
