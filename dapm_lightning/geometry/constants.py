@@ -1,4 +1,4 @@
-"""The only home of the UAPD pose ranges, the depth limit and the sky grey level (design.md §1, §3)."""
+"""The only home of the UAPD pose ranges and units, the depth limit, the sky threshold and grey (design.md §1, §3)."""
 
 from __future__ import annotations
 
@@ -8,6 +8,16 @@ POSE_KEYS: Final[tuple[str, str, str, str]] = ("height", "pitch", "roll", "fov")
 """Order of the pose vector ``[..., 4]``: height m, pitch deg, roll deg, fov deg (UAPD's order)."""
 
 POSE_UNITS: Final[dict[str, str]] = {"height": "m", "pitch": "deg", "roll": "deg", "fov": "deg"}
+"""Unit of each pose component."""
+
+
+def pose_field(key: str) -> str:
+    """File column / JSON key of a pose component: ``height_m``, ``pitch_deg``, ..."""
+    return f"{key}_{POSE_UNITS[key]}"
+
+
+POSE_FIELDS: Final[tuple[str, ...]] = tuple(pose_field(key) for key in POSE_KEYS)
+"""Column names of the pose in files (telemetry CSV, poses table, camera.json): :func:`pose_field` of each key."""
 
 POSE_RANGES: Final[dict[str, tuple[float, float]]] = {
     "height": (10.0, 100.0),
@@ -19,6 +29,9 @@ POSE_RANGES: Final[dict[str, tuple[float, float]]] = {
 
 MAX_DEPTH_M: Final[float] = 1000.0
 """Depth beyond which a pixel counts as sky ("beyond d_max"), paper Eq. 20."""
+
+SKY_PROBABILITY_THRESHOLD: Final[float] = 0.5
+"""A pixel is sky where the sky probability exceeds this (the network's own override: logit > 0, the same)."""
 
 SKY_GREY: Final[int] = 255
 """8-bit grey level of the log depth encoding that means "at or beyond MAX_DEPTH_M"."""

@@ -54,3 +54,12 @@ def grey_to_depth(grey: np.ndarray, max_depth: float = MAX_DEPTH_M) -> np.ndarra
     norm = grey.astype(np.float64) / SKY_GREY
     depth = (np.exp2(norm * math.log2(max_depth + 1.0)) - 1.0).astype(np.float32)
     return np.where(grey == SKY_GREY, np.float32(max_depth), depth)  # exact, so sky = (depth >= max_depth)
+
+
+def sky_at_limit(depth_m: Tensor, sky: Tensor, max_depth: float = MAX_DEPTH_M) -> Tensor:
+    """``depth_m`` exactly ``max_depth`` where ``sky``, strictly below it (the float32 just under) elsewhere.
+
+    So that ``depth >= max_depth`` is the sky mask again, whatever the interpolation or a scale did to the ground.
+    """
+    below = float(np.nextafter(np.float32(max_depth), np.float32(0)))
+    return torch.where(sky, torch.full_like(depth_m, max_depth), depth_m.clamp(max=below))

@@ -3,21 +3,19 @@
 from __future__ import annotations
 
 import warnings
-from typing import Any, Literal
 
-from torch.utils.data import DataLoader, Dataset
+from torch.utils.data import DataLoader
 
-from dapm_lightning.data.datamodules import DAPMDataModule, collate_samples
-from dapm_lightning.data.sample import Sample
+from dapm_lightning.data.datamodules import DAPMDataModule
+from dapm_lightning.data.unlabelled import PredictBatch
 from dapm_lightning.inference.inputs import (
-    ImageFilesDataset,
+    DEFAULT_BATCH_SIZE,
     NetworkSize,
-    PriorSettings,
-    SizeBatchSampler,
-    VideoFramesDataset,
+    PredictSource,
     checkpoint_network_size,
-    source_dataset,
+    predict_loader,
 )
+from dapm_lightning.models.prior import EXACT_SIGMA, PriorMode, PriorSettings
 
 
 class PredictDataModule(DAPMDataModule):
@@ -46,16 +44,15 @@ class PredictDataModule(DAPMDataModule):
             more fuses the two (docs/predict.md).
     """
 
-    def __init__(self, source: str = "images", image_width: int | None = None, batch_size: int = 4,
+    def __init__(self, source: str = "images", image_width: int | None = None, batch_size: int = DEFAULT_BATCH_SIZE,
                  num_workers: int = 0, frame_step: int = 1, max_frames: int | None = None,
                  keep_rgb: bool = True, pin_memory: bool = False, telemetry: str | None = None,
                  read_metadata: bool = True, sensor_width_mm: float | None = None,
-                 telemetry_mode: Literal["condition", "scale", "both"] = "condition",
-                 telemetry_sigma: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)) -> None:
+                 telemetry_mode: PriorMode = "condition",
+                 telemetry_sigma: tuple[float, float, float, float] = EXACT_SIGMA) -> None:
         super().__init__(batch_size=batch_size, num_workers=num_workers, augment=False, pin_memory=pin_memory)
-        self.source, self.image_width = source, image_width
-        self.frame_step, self.max_frames, self.keep_rgb = frame_step, max_frames, keep_rgb
-        self.telemetry, self.read_metadata, self.sensor_width_mm = telemetry, read_metadata, sensor_width_mm
+        self.source = PredictSource(source, frame_step, max_frames, telemetry, read_metadata, sensor_width_mm)
+        self.image_width, self.keep_rgb = image_width, keep_rgb
         self.prior_settings = PriorSettings(telemetry_mode, telemetry_sigma)
 
     def setup(self, stage: str | None = None) -> None:
@@ -70,25 +67,12 @@ class PredictDataModule(DAPMDataModule):
         module = self.trainer.lightning_module if self.trainer is not None else None
         return checkpoint_network_size(module)
 
-    def dataset(self) -> Dataset[Sample]:
-        """The images' or the video's data set."""
-        dataset = source_dataset(self.source, self.network_target(), self.frame_step, self.max_frames,
-                                 self.batch_size, self.keep_rgb, self.telemetry, self.read_metadata,
-                                 self.sensor_width_mm, self.prior_settings)
-        if isinstance(dataset, VideoFramesDataset) and self.trainer is not None:
-            dataset.rank, dataset.world_size = self.trainer.global_rank, self.trainer.world_size
-        return dataset
-
-    def predict_dataloader(self) -> DataLoader[Any]:
+    def predict_dataloader(self) -> DataLoader[PredictBatch]:
         # Lightning's notes on custom batch samplers and on iterable data sets concern writers that need batch
         # indices; PredictionWriter names its files from the samples, and the size batches return every image
         warnings.filterwarnings("ignore", message="You are using a custom batch sampler `SizeBatchSampler`")
         warnings.filterwarnings("ignore", message="Couldn't infer the batch indices fetched from your dataloader")
-        dataset = self.dataset()
-        if isinstance(dataset, ImageFilesDataset):
-            world_size, rank = self._processes()
-            sampler = SizeBatchSampler(dataset.network_sizes(), self.batch_size, rank, world_size)
-            return DataLoader(dataset, batch_sampler=sampler, num_workers=self.num_workers,
-                              collate_fn=collate_samples, pin_memory=self.pin_memory)
-        return DataLoader(dataset, batch_size=self.batch_size, num_workers=self.num_workers,
-                          collate_fn=collate_samples, pin_memory=self.pin_memory)
+        world_size, rank = self._processes()
+        return predict_loader(self.source, self.network_target(), self.prior_settings, batch_size=self.batch_size,
+                              num_workers=self.num_workers, keep_rgb=self.keep_rgb, pin_memory=self.pin_memory,
+                              rank=rank, world_size=world_size)

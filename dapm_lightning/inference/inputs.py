@@ -1,10 +1,9 @@
-"""Prediction inputs: image files, folders, glob patterns and videos as data sets of the data layer's samples.
+"""Prediction inputs: image files, folders, glob patterns and videos, and the one loader that batches them.
 
-Each sample is a :class:`~dapm_lightning.data.sample.Sample` without labels: ``image`` uint8 ``[3, h, w]`` at
-the network size, ``pose`` the pose prior (``[4]``, NaN where unknown: telemetry) and ``pose_sigma`` its
-uncertainty, ``has_pose`` False, ``name`` (the file stem, or ``STEM_f<frame>`` for a video) and ``meta`` with
-``size`` (the input's ``(H, W)``), ``source`` (the file), ``prior_mode`` (how the prior is used, see
-:mod:`dapm_lightning.inference.prior`) and, when asked for, ``rgb`` (the input's ``[H, W, 3]`` uint8 pixels).
+Each data set yields :class:`~dapm_lightning.data.unlabelled.PredictInput` (the image at the network size, its
+name, original size, source file, telemetry prior and, when asked for, its pixels); :func:`predict_loader`
+batches them by network size into :class:`~dapm_lightning.data.unlabelled.PredictBatch`, for the one-line
+command, the Lightning ``predict`` subcommand and the Python API alike.
 """
 
 from __future__ import annotations
@@ -20,11 +19,14 @@ from typing import Any, Literal
 import cv2
 import numpy as np
 import torch
-from torch.utils.data import Dataset, IterableDataset, Sampler, get_worker_info
+import torch.nn.functional as F
+from torch import Tensor
+from torch.utils.data import DataLoader, Dataset, IterableDataset, Sampler, get_worker_info
 
-from dapm_lightning.data.sample import Sample
 from dapm_lightning.data.uapd import IMAGE_SUFFIXES
+from dapm_lightning.data.unlabelled import PredictBatch, PredictCollate, PredictInput
 from dapm_lightning.inference import telemetry as flight
+from dapm_lightning.models.prior import PriorSettings
 
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg", ".wmv")
 SIZE_MULTIPLE = 32
@@ -34,10 +36,8 @@ DEFAULT_NETWORK_SIZE = (512, 512)
 MAX_UPSCALE = 4.0
 """An input enlarged more than this for the network is warned about (little detail to see)."""
 
-PriorMode = Literal["condition", "scale", "both"]
-"""How pose priors are used: into the network, to rescale its depth afterwards, or both
-(:mod:`dapm_lightning.inference.prior`)."""
-PRIOR_MODES: tuple[str, ...] = ("condition", "scale", "both")
+DEFAULT_BATCH_SIZE = 4
+"""Images per forward pass in prediction, unless told otherwise (every entry point)."""
 NetworkSize = tuple[int, int] | int | None
 """How big the network input is: ``(H, W)`` (the pixel count kept, each image's aspect), a width (height
 from the aspect), or None (the image's own size, rounded)."""
@@ -105,6 +105,17 @@ def prepare_image(rgb: np.ndarray, target: NetworkSize, multiple: int = 1) -> to
     return torch.from_numpy(np.ascontiguousarray(rgb.transpose(2, 0, 1)))
 
 
+def resize_images(images: Tensor, size: tuple[int, int]) -> Tensor:
+    """``[B, 3, H, W]`` float images to ``size`` (antialiased bilinear).
+
+    For float tensors given to the API and the exported model's sizes; 8-bit pixels go through
+    :func:`prepare_image` (OpenCV) instead.
+    """
+    if tuple(images.shape[-2:]) == size:
+        return images
+    return F.interpolate(images, size=size, mode="bilinear", align_corners=False, antialias=True)
+
+
 def _has_magic(text: str) -> bool:
     return any(c in text for c in "*?[")
 
@@ -162,55 +173,30 @@ def image_size(path: Path) -> tuple[int, int]:
         return int(height), int(width)
 
 
-@dataclass(frozen=True)
-class PriorSettings:
-    """How a data set's pose priors are used.
-
-    ``mode``: condition, scale or both (:mod:`dapm_lightning.inference.prior`); ``sigma`` per component (height m,
-    pitch, roll, fov deg; 0: the prior replaces the network's value).
-    """
-
-    mode: str = "condition"
-    sigma: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
-
-    def __post_init__(self) -> None:
-        if self.mode not in PRIOR_MODES:
-            raise ValueError(f"telemetry_mode must be one of {', '.join(PRIOR_MODES)}, got {self.mode!r}")
-        sigma = tuple(float(v) for v in self.sigma)
-        if len(sigma) != 4 or min(sigma) < 0:
-            raise ValueError(f"telemetry_sigma: four standard deviations >= 0 (height m, pitch, roll, fov deg), "
-                             f"got {list(self.sigma)}")
-        object.__setattr__(self, "sigma", sigma)
+def predict_input(rgb: np.ndarray, name: str, source: str, target: NetworkSize, keep_rgb: bool,
+                  prior: np.ndarray | None = None) -> PredictInput:
+    """One image to predict at the network size; ``prior``: ``[4]`` telemetry, NaN where unknown."""
+    item = PredictInput(prepare_image(rgb, target), name, (int(rgb.shape[0]), int(rgb.shape[1])), source,
+                        rgb=rgb if keep_rgb else None)
+    if prior is not None:
+        item.prior = torch.as_tensor(prior, dtype=torch.float32)
+    return item
 
 
-def predict_sample(rgb: np.ndarray, name: str, source: str, target: NetworkSize, keep_rgb: bool,
-                   prior: np.ndarray | None = None, settings: PriorSettings = PriorSettings()) -> Sample:  # noqa: B008
-    """One unlabelled :class:`Sample` at the network size; ``prior``: ``[4]`` pose prior, NaN where unknown."""
-    meta: dict[str, Any] = {"size": (int(rgb.shape[0]), int(rgb.shape[1])), "source": source,
-                            "prior_mode": settings.mode}
-    if keep_rgb:
-        meta["rgb"] = rgb
-    pose = torch.full((4,), float("nan")) if prior is None else torch.as_tensor(prior, dtype=torch.float32)
-    sample = Sample(image=prepare_image(rgb, target), pose=pose, has_pose=torch.tensor(False), name=name, meta=meta)
-    sample["pose_sigma"] = torch.tensor(settings.sigma, dtype=torch.float32)  # type: ignore[typeddict-unknown-key]
-    return sample
-
-
-class ImageFilesDataset(Dataset[Sample]):
+class ImageFilesDataset(Dataset[PredictInput]):
     """Image files (png, jpg, tif, bmp, webp; grey, RGBA and 16-bit handled) as unlabelled samples.
 
     Args:
         paths: the files. target: the network size (:data:`NetworkSize`). keep_rgb: also return the original
             pixels (to colour point clouds). priors: ``[N, 4]`` pose priors (NaN where unknown), one per path.
-        prior_settings: how the priors are used.
     """
 
     def __init__(self, paths: Sequence[Path], target: NetworkSize = DEFAULT_NETWORK_SIZE, keep_rgb: bool = False,
-                 priors: np.ndarray | None = None, prior_settings: PriorSettings = PriorSettings()) -> None:  # noqa: B008
+                 priors: np.ndarray | None = None) -> None:
         self.paths, self.target, self.keep_rgb = list(paths), target, keep_rgb
         if priors is not None and len(priors) != len(self.paths):
             raise ValueError(f"{len(priors)} pose priors for {len(self.paths)} images")
-        self.priors, self.prior_settings = priors, prior_settings
+        self.priors = priors
         stems: dict[str, Path] = {}
         for p in self.paths:
             if p.stem in stems:
@@ -238,11 +224,10 @@ class ImageFilesDataset(Dataset[Sample]):
             warnings.warn(notes[0] + more, stacklevel=2)
         return nets
 
-    def __getitem__(self, index: int) -> Sample:
+    def __getitem__(self, index: int) -> PredictInput:
         path = self.paths[index]
         prior = None if self.priors is None else self.priors[index]
-        return predict_sample(read_image(path), path.stem, str(path), self.target, self.keep_rgb, prior,
-                              self.prior_settings)
+        return predict_input(read_image(path), path.stem, str(path), self.target, self.keep_rgb, prior)
 
 
 class SizeBatchSampler(Sampler[list[int]]):
@@ -266,7 +251,7 @@ class SizeBatchSampler(Sampler[list[int]]):
         return len(self.batches)
 
 
-class VideoFramesDataset(IterableDataset[Sample]):
+class VideoFramesDataset(IterableDataset[PredictInput]):
     """Frames of a video file (anything OpenCV's FFmpeg back-end reads), named ``STEM_f<frame number>``.
 
     Args:
@@ -275,17 +260,14 @@ class VideoFramesDataset(IterableDataset[Sample]):
             batch size keeps the frames in order with several workers; each worker decodes the whole video
             but converts only its own frames). keep_rgb: also return the frame's pixels.
         priors: frame number -> ``[4]`` pose prior (NaN where unknown), e.g. from the video's SRT telemetry.
-        prior_settings: how the priors are used.
 
     Under DDP each process takes its own share of the chunks.
     """
 
     def __init__(self, path: str | Path, target: NetworkSize = DEFAULT_NETWORK_SIZE, frame_step: int = 1,
                  max_frames: int | None = None, chunk: int = 1, keep_rgb: bool = False,
-                 priors: dict[int, np.ndarray] | None = None,
-                 prior_settings: PriorSettings = PriorSettings()) -> None:  # noqa: B008
+                 priors: dict[int, np.ndarray] | None = None) -> None:
         self.path, self.target, self.keep_rgb = Path(path), target, keep_rgb
-        self.prior_settings = prior_settings
         if frame_step < 1 or chunk < 1:
             raise ValueError(f"frame_step and chunk must be >= 1, got {frame_step} and {chunk}")
         self.frame_step, self.max_frames, self.chunk = frame_step, max_frames, chunk
@@ -306,7 +288,7 @@ class VideoFramesDataset(IterableDataset[Sample]):
                              "lacks: convert it, e.g. ffmpeg -i IN -c:v libx264 OUT.mp4, or extract frames)")
         return capture
 
-    def __iter__(self) -> Iterator[Sample]:
+    def __iter__(self) -> Iterator[PredictInput]:
         info = get_worker_info()
         workers, worker = (info.num_workers, info.id) if info is not None else (1, 0)
         shards, shard = workers * self.world_size, self.rank * workers + worker
@@ -326,9 +308,8 @@ class VideoFramesDataset(IterableDataset[Sample]):
                 ok, bgr = capture.retrieve()
                 if not ok:
                     break
-                yield predict_sample(to_rgb8(bgr, f"{self.path} frame {frame}"), f"{self.path.stem}_f{frame:06d}",
-                                     f"{self.path}#{frame}", self.target, self.keep_rgb, self.priors.get(frame),
-                                     self.prior_settings)
+                yield predict_input(to_rgb8(bgr, f"{self.path} frame {frame}"), f"{self.path.stem}_f{frame:06d}",
+                                    f"{self.path}#{frame}", self.target, self.keep_rgb, self.priors.get(frame))
         finally:
             capture.release()
 
@@ -344,31 +325,68 @@ def checkpoint_network_size(module: torch.nn.Module | None) -> tuple[int, int]:
     return DEFAULT_NETWORK_SIZE
 
 
-def source_dataset(source: str | Path, target: NetworkSize, frame_step: int = 1, max_frames: int | None = None,
-                   chunk: int = 1, keep_rgb: bool = False, telemetry: str | Path | None = None,
-                   read_metadata: bool = True, sensor_width_mm: float | None = None,
-                   prior_settings: PriorSettings = PriorSettings()) -> ImageFilesDataset | VideoFramesDataset:  # noqa: B008
-    """The data set of a source, each image with its pose prior from telemetry.
+@dataclass(frozen=True)
+class PredictSource:
+    """What to predict and where its telemetry comes from.
 
-    Images: ``telemetry`` a CSV (``name,height_m,pitch_deg,roll_deg,fov_deg``; see
-    :func:`~dapm_lightning.inference.telemetry.read_telemetry_csv`), each component it lacks taken from the
-    image's own DJI XMP / EXIF when ``read_metadata``. Videos: ``telemetry`` a DJI SRT file; without it, the
-    video's own ``.SRT`` beside it when ``read_metadata``.
+    Args:
+        path: a folder of images, a glob pattern ('flight/**/*.jpg'), one image, or a video file.
+        frame_step: videos: keep every ``frame_step``-th frame. max_frames: videos: stop after this many.
+        telemetry: images: a CSV (``name,height_m,pitch_deg,roll_deg,fov_deg``; see
+            :func:`~dapm_lightning.inference.telemetry.read_telemetry_csv`); videos: a DJI SRT file.
+        read_metadata: images: each component the CSV lacks from the image's own DJI XMP / EXIF; videos: the
+            video's own ``.SRT`` beside it when no ``telemetry`` is given.
+        sensor_width_mm: sensor width, for an EXIF FocalLength without a 35 mm equivalent.
     """
-    kind, paths = resolve_source(source)
+
+    path: str | Path
+    frame_step: int = 1
+    max_frames: int | None = None
+    telemetry: str | Path | None = None
+    read_metadata: bool = True
+    sensor_width_mm: float | None = None
+
+
+def source_dataset(source: PredictSource, target: NetworkSize, keep_rgb: bool = False,
+                   chunk: int = 1) -> ImageFilesDataset | VideoFramesDataset:
+    """The data set of a source at the network size ``target``, each image with its telemetry prior.
+
+    ``chunk``: video frames a loader worker takes in a row (the batch size keeps frames in order).
+    """
+    kind, paths = resolve_source(source.path)
     if kind == "video":
-        video = VideoFramesDataset(paths[0], target, frame_step, max_frames, chunk, keep_rgb,
-                                   prior_settings=prior_settings)
-        srt = Path(telemetry) if telemetry is not None else next(
+        video = VideoFramesDataset(paths[0], target, source.frame_step, source.max_frames, chunk, keep_rgb)
+        srt = Path(source.telemetry) if source.telemetry is not None else next(
             (p for p in (paths[0].with_suffix(".SRT"), paths[0].with_suffix(".srt")) if p.is_file()), None)
-        if srt is not None and (telemetry is not None or read_metadata):
+        if srt is not None and (source.telemetry is not None or source.read_metadata):
             height, width = video.frame_size
             video.priors = {frame: t.values() for frame, t in flight.read_srt(srt, width=width, height=height).items()}
         return video
     priors = None
-    if telemetry is not None or read_metadata:
-        found = flight.telemetry_for_images(paths, telemetry, read_metadata=read_metadata,
-                                            sensor_width_mm=sensor_width_mm)
+    if source.telemetry is not None or source.read_metadata:
+        found = flight.telemetry_for_images(paths, source.telemetry, read_metadata=source.read_metadata,
+                                            sensor_width_mm=source.sensor_width_mm)
         rows = np.stack([t.values() for t in found])
         priors = rows if np.isfinite(rows).any() else None
-    return ImageFilesDataset(paths, target, keep_rgb, priors, prior_settings)
+    return ImageFilesDataset(paths, target, keep_rgb, priors)
+
+
+def predict_loader(source: PredictSource, target: NetworkSize, settings: PriorSettings = PriorSettings(),  # noqa: B008
+                   *, batch_size: int = DEFAULT_BATCH_SIZE, num_workers: int = 0, keep_rgb: bool = False,
+                   pin_memory: bool = False, rank: int = 0, world_size: int = 1) -> DataLoader[PredictBatch]:
+    """The one loader of prediction: :class:`PredictBatch` of a source, images batched by network size.
+
+    Every entry point uses it: the one-line command and the Python API (through
+    :class:`~dapm_lightning.inference.predictor.DAPMPredictor`) and the Lightning ``predict`` subcommand
+    (:class:`~dapm_lightning.inference.datamodule.PredictDataModule`). Under several processes (``rank`` of
+    ``world_size``) each process takes every ``world_size``-th batch of images, or its share of a video's frames.
+    """
+    dataset = source_dataset(source, target, keep_rgb, chunk=batch_size)
+    collate = PredictCollate(settings)
+    if isinstance(dataset, VideoFramesDataset):
+        dataset.rank, dataset.world_size = rank, world_size
+        return DataLoader(dataset, batch_size=batch_size, num_workers=num_workers, collate_fn=collate,
+                          pin_memory=pin_memory)
+    sampler = SizeBatchSampler(dataset.network_sizes(), batch_size, rank, world_size)
+    return DataLoader(dataset, batch_sampler=sampler, num_workers=num_workers, collate_fn=collate,
+                      pin_memory=pin_memory)

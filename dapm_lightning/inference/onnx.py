@@ -34,11 +34,11 @@ class ExportWrapper(nn.Module):
         dtype = next(net.parameters()).dtype
         with torch.no_grad():
             out = net(torch.rand(1, 3, SIZE_MULTIPLE * 2, SIZE_MULTIPLE * 2, dtype=dtype))
-        self.names = tuple(out.inference_outputs())
+        self.names = tuple(out.inference_outputs().named())
         self.eval()
 
     def forward(self, image: Tensor) -> tuple[Tensor, ...]:
-        outputs = self.net(image.half() if self.half_precision else image).inference_outputs()
+        outputs = self.net(image.half() if self.half_precision else image).inference_outputs().named()
         return tuple(outputs[name].float() for name in self.names)
 
 

@@ -1,17 +1,18 @@
 """From the network's outputs to per-image predictions at each input's own size.
 
-:func:`predictions_from_outputs` is the one post-processing step: the Lightning prediction writer, the Python
-API and the ONNX runtime path all call it with the :data:`~dapm_lightning.models.dapm.INFERENCE_OUTPUTS` of a
-batch. It resizes depth in the log space without mixing sky into the ground, keeps the sky exactly at the depth
-limit where the model sees sky (``sky_prob > 0.5``) and strictly below it elsewhere, and derives the intrinsics
-and the camera-to-world transform of the pose at the input's size.
+:func:`batch_predictions` is the one post-processing step: the Lightning prediction writer and the Python API
+(PyTorch or onnxruntime alike) call it with a batch's :class:`~dapm_lightning.models.dapm.InferenceOutput` and
+its :class:`~dapm_lightning.data.unlabelled.PredictBatch`. It applies the batch's pose prior as its mode says
+(:mod:`dapm_lightning.inference.prior`), resizes depth in the log space without mixing sky into the ground,
+keeps the sky exactly at the depth limit where the model sees sky (``sky_prob > 0.5``) and strictly below it
+elsewhere, and derives the intrinsics and the camera-to-world transform of the pose at the input's size.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -20,21 +21,15 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from dapm_lightning.data.unlabelled import PredictBatch
 from dapm_lightning.geometry.camera import intrinsics_matrix
-from dapm_lightning.geometry.constants import MAX_DEPTH_M, POSE_KEYS
-from dapm_lightning.geometry.depth_codec import decode_log_depth, encode_log_depth
+from dapm_lightning.geometry.constants import MAX_DEPTH_M, POSE_KEYS, SKY_PROBABILITY_THRESHOLD, pose_field
+from dapm_lightning.geometry.depth_codec import decode_log_depth, encode_log_depth, sky_at_limit
 from dapm_lightning.geometry.igd import DepthKind, IGDSpec
 from dapm_lightning.geometry.pointcloud import camera_to_world, depth_to_points, valid_points
 from dapm_lightning.inference.ply import write_ply
-
-SKY_THRESHOLD = 0.5
-"""A pixel is sky where the sky probability exceeds this (the network's own depth override uses the same)."""
-POSE_UNITS = {"height": "m", "pitch": "deg", "roll": "deg", "fov": "deg"}
-
-
-def pose_field(key: str) -> str:
-    """File column / JSON key of a pose component: ``height_m``, ``pitch_deg``, ..."""
-    return f"{key}_{POSE_UNITS[key]}"
+from dapm_lightning.inference.prior import apply_pose_prior
+from dapm_lightning.models.dapm import InferenceOutput
 
 
 def _resize(values: Tensor, size: tuple[int, int]) -> Tensor:
@@ -91,8 +86,12 @@ class Prediction:
             under the camera, Z up), None without a pose.
         depth_kind: ``"range"`` or ``"planar"``: what ``depth_m`` measures (the model's setting).
         max_depth: the model's depth limit (sky).
+        name: what its files are called.
+        size: ``(H, W)`` of the input image.
         pose_network: the network's own estimate per component (equal to ``pose`` without a prior).
         pose_source: per component, where ``pose`` comes from: ``"network"``, ``"telemetry"`` or ``"fused"``.
+        scale_from: how the telemetry scale fit found its factor: ``ground``, ``height`` or ``none``.
+        rgb: the input's ``[H, W, 3]`` uint8 pixels, when the loader was asked to keep them.
     """
 
     depth_m: np.ndarray | None
@@ -104,15 +103,11 @@ class Prediction:
     depth_kind: DepthKind = "range"
     max_depth: float = MAX_DEPTH_M
     name: str = ""
-    extras: dict[str, Any] = field(default_factory=dict)
+    size: tuple[int, int] = (0, 0)
     pose_network: dict[str, float] | None = None
     pose_source: dict[str, str] | None = None
-
-    @property
-    def size(self) -> tuple[int, int]:
-        """``(H, W)`` of the input."""
-        height, width = self.extras["size"]
-        return int(height), int(width)
+    scale_from: str = "none"
+    rgb: np.ndarray | None = None
 
     def points(self, stride: int = 1, max_depth: float | None = None, rgb: np.ndarray | None = None) -> PointCloud:
         """Metric point cloud of the non-sky pixels, every ``stride``-th row and column, in the world frame.
@@ -177,15 +172,14 @@ def make_prediction(name: str, size: Sequence[int], depth_m: Tensor | None, sky_
     if sky_prob is not None:
         prob_t = _resize(sky_prob.detach().float().cpu()[None], size)[0].clamp(0, 1)
         prob = prob_t[0].numpy()
-        sky_t = prob_t > SKY_THRESHOLD
-        sky_net = sky_prob.detach().float().cpu() > SKY_THRESHOLD
+        sky_t = prob_t > SKY_PROBABILITY_THRESHOLD
+        sky_net = sky_prob.detach().float().cpu() > SKY_PROBABILITY_THRESHOLD
     elif depth_m is not None:
         sky_net = depth_m.detach().float().cpu() >= spec.max_depth
-        sky_t = _resize(sky_net[None].float(), size)[0] > SKY_THRESHOLD
+        sky_t = _resize(sky_net[None].float(), size)[0] > SKY_PROBABILITY_THRESHOLD
     if depth_m is not None:
         resized = resize_depth(depth_m.detach().float().cpu(), size, spec.max_depth, sky_net)
-        below = float(np.nextafter(np.float32(spec.max_depth), np.float32(0)))
-        depth_t = torch.where(sky_t, torch.full_like(resized, spec.max_depth), resized.clamp(max=below))
+        depth_t = sky_at_limit(resized, sky_t, spec.max_depth)
         depth, sky = depth_t[0].numpy(), sky_t[0].numpy()
     pose_dict = _pose_dict(pose)
     k = c2w = None
@@ -193,27 +187,38 @@ def make_prediction(name: str, size: Sequence[int], depth_m: Tensor | None, sky_
         pose64 = pose.detach().double().cpu()[None]
         k = intrinsics_matrix(pose64[:, 3], size)[0].numpy()
         c2w = camera_to_world(pose64)[0].numpy()
-    return Prediction(depth, sky, pose_dict, prob, k, c2w, spec.depth_kind, spec.max_depth, name, {"size": size},
+    return Prediction(depth, sky, pose_dict, prob, k, c2w, spec.depth_kind, spec.max_depth, name, size,
                       _pose_dict(pose_network) or pose_dict, dict(pose_source) if pose_source else None)
 
 
-def predictions_from_outputs(outputs: Mapping[str, Tensor], names: Sequence[str], sizes: Sequence[Sequence[int]],
-                             spec: IGDSpec | None = None, *, pose_network: Tensor | None = None,
+def predictions_from_outputs(output: InferenceOutput, names: Sequence[str], sizes: Sequence[Sequence[int]],
+                             spec: IGDSpec | None = None, *,
                              pose_sources: Sequence[Mapping[str, str]] | None = None) -> list[Prediction]:
-    """A batch's :class:`Prediction` per image, each at its input size.
+    """A batch's :class:`Prediction` per image, each at its input size (no prior applied here).
 
     Args:
-        outputs: ``{depth_m, sky_prob, pose}`` (those the model has) at the network size, as
-            :meth:`~dapm_lightning.models.dapm.DAPMOutput.inference_outputs` gives them.
+        output: at the network size; ``pose`` the pose used, ``pose_network`` the network's own where they differ.
         names, sizes: per image, its name and ``(H, W)``. spec: the model's IGD settings.
-        pose_network: ``[B, 4]`` the network's own pose where ``outputs["pose"]`` holds the pose used.
         pose_sources: per image, per component, where the pose used comes from.
     """
-    def row(key: str, k: int) -> Tensor | None:
-        value = outputs.get(key)
+    def row(value: Tensor | None, k: int) -> Tensor | None:
         return None if value is None else value[k]
 
-    return [make_prediction(names[k], sizes[k], row("depth_m", k), row("sky_prob", k), row("pose", k), spec,
-                            pose_network=None if pose_network is None else pose_network[k],
+    return [make_prediction(names[k], sizes[k], row(output.depth_m, k), row(output.sky_prob, k),
+                            row(output.pose, k), spec, pose_network=row(output.pose_network, k),
                             pose_source=None if pose_sources is None else pose_sources[k])
             for k in range(len(names))]
+
+
+def batch_predictions(output: InferenceOutput, batch: PredictBatch, spec: IGDSpec) -> list[Prediction]:
+    """The predictions of one predict batch: its network output, its pose prior applied as its mode says.
+
+    The one step from a network output to :class:`Prediction`: the Lightning writer and
+    :class:`~dapm_lightning.inference.predictor.DAPMPredictor` (any runtime) both call it.
+    """
+    applied = apply_pose_prior(output, batch.prior, batch.mode, spec)
+    predictions = predictions_from_outputs(applied.output, batch.names, batch.sizes, spec,
+                                           pose_sources=applied.sources if batch.prior is not None else None)
+    for prediction, scale_from, rgb in zip(predictions, applied.scale_from, batch.rgb or [None] * len(batch)):
+        prediction.scale_from, prediction.rgb = scale_from, rgb
+    return predictions

@@ -13,18 +13,18 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from dapm_lightning.geometry.constants import POSE_KEYS
+from dapm_lightning.geometry.constants import POSE_KEYS, SKY_PROBABILITY_THRESHOLD, pose_field
+from dapm_lightning.geometry.depth_codec import sky_at_limit
 from dapm_lightning.geometry.igd import IGDSpec
-from dapm_lightning.inference.inputs import PRIOR_MODES, PriorMode
-from dapm_lightning.inference.postprocess import pose_field
 from dapm_lightning.inference.telemetry import PoseTelemetry
-from dapm_lightning.models.prior import PosePrior, fuse_pose
+from dapm_lightning.models.dapm import InferenceOutput
+from dapm_lightning.models.prior import EXACT_SIGMA, PRIOR_MODES, PosePrior, PriorMode, fuse_pose
 
 GROUND_AGREEMENT = 0.25
 """A pixel is ground to the model where its depth is within 25 % of the flat ground of its own pose."""
@@ -32,7 +32,7 @@ MIN_GROUND_SHARE = 0.02
 """Below this share of ground pixels, the scale comes from the heights (known / predicted) instead."""
 
 
-def as_prior(values: Sequence[Any], sigma: Sequence[float] | Tensor = (0.0, 0.0, 0.0, 0.0)) -> PosePrior | None:
+def as_prior(values: Sequence[Any], sigma: Sequence[float] | Tensor = EXACT_SIGMA) -> PosePrior | None:
     """A :class:`PosePrior` from one entry per image, or None when nothing is known.
 
     An entry: None; a ``[4]`` array / sequence (height m, pitch, roll, fov deg; NaN unknown); a mapping with
@@ -58,9 +58,7 @@ def as_prior(values: Sequence[Any], sigma: Sequence[float] | Tensor = (0.0, 0.0,
             if row.shape != (4,):
                 raise ValueError(f"pose prior {k}: expected 4 values (height m, pitch, roll, fov deg), got {row.shape}")
             rows[k] = row
-    if not np.isfinite(rows).any():
-        return None
-    return PosePrior(torch.from_numpy(rows).float(), torch.as_tensor(sigma, dtype=torch.float32))
+    return PosePrior.from_rows(torch.from_numpy(rows).float(), torch.as_tensor(sigma, dtype=torch.float32))
 
 
 def pose_sources(prior: PosePrior | None, batch: int) -> list[dict[str, str]]:
@@ -112,52 +110,62 @@ def ground_scale(depth_m: Tensor, sky: Tensor, igd_used: Tensor, igd_network: Te
     return torch.tensor(scales, dtype=depth_m.dtype, device=depth_m.device), methods
 
 
-def apply_pose_prior(outputs: Mapping[str, Tensor], prior: PosePrior | None, mode: PriorMode,
-                     spec: IGDSpec) -> tuple[dict[str, Tensor], list[dict[str, str]], list[str]]:
+class PriorApplied(NamedTuple):
+    """What :func:`apply_pose_prior` returns: the outputs with the prior applied, and how, per image."""
+
+    output: InferenceOutput
+    sources: list[dict[str, str]]
+    """Per image and component: ``network``, ``telemetry`` or ``fused`` (:func:`pose_sources`)."""
+    scale_from: list[str]
+    """Per image, how the scale fit found its factor: ``ground``, ``height`` or ``none``."""
+
+
+def apply_pose_prior(output: InferenceOutput, prior: PosePrior | None, mode: PriorMode,
+                     spec: IGDSpec) -> PriorApplied:
     """Network outputs with a prior applied as ``mode`` says.
 
     Args:
-        outputs: ``{depth_m, sky_prob, pose[, pose_network, pose_spread]}`` at the network size (``pose_spread``:
-            the network's pose-bins spread, for fusing here; without it a fixed spread); with ``condition`` or
-            ``both`` the network has already fused the prior (``pose`` the pose used, ``pose_network`` its own).
-            Without ``pose`` (a depth-only model), a prior that knows all four components is the pose.
+        output: at the network size, with ``pose_spread`` (the network's pose-bins spread, for fusing here;
+            without it a fixed spread); with ``condition`` or ``both`` the network has already fused the prior
+            (``pose`` the pose used, ``pose_network`` its own). Without ``pose`` (a depth-only model), a prior
+            that knows all four components is the pose.
         prior: the batch's prior (None: nothing known; the outputs come back unchanged).
 
     The scale fit compares the depth with the ground of the pose it was made with: the network's own pose
     in ``scale`` mode, the pose used in ``both`` (there it corrects only what conditioning left).
 
     Returns:
-        ``(outputs, sources, scale methods)``: with ``scale``/``both``, ``depth_m`` rescaled to the pose used
-        (sky kept at the limit) and ``pose``/``pose_network`` the pose used and the network's own.
+        with ``scale``/``both``, ``depth_m`` rescaled to the pose used (sky kept at the limit); ``pose`` and
+        ``pose_network`` the pose used and the network's own.
     """
-    result = dict(outputs)
-    batch = next(iter(outputs.values())).shape[0]
+    batch = output.batch_size
     if prior is None:
-        return result, pose_sources(None, batch), ["none"] * batch
+        return PriorApplied(output, pose_sources(None, batch), ["none"] * batch)
     if mode not in PRIOR_MODES:
         raise ValueError(f"unknown telemetry mode {mode!r}; choose from {', '.join(PRIOR_MODES)}")
-    device = next(iter(outputs.values())).device
+    device = output.device
     prior = prior.to(device)
     made_with: Tensor | None
-    if "pose" not in outputs:  # a depth-only model: a fully known pose is the pose, for K, points and the scale
+    if output.pose is None:  # a depth-only model: a fully known pose is the pose, for K, points and the scale
         if not bool(prior.known.all()):
-            return result, pose_sources(None, batch), ["none"] * batch
-        result["pose"] = prior.value.to(device)
+            return PriorApplied(output, pose_sources(None, batch), ["none"] * batch)
+        output = output.replace(pose=prior.value.to(device))
         made_with = None
-    elif "pose_network" in outputs:  # the network was given the prior: its depth is made with the pose used
-        made_with = outputs["pose"]
+    elif output.pose_network is not None:  # the network was given the prior: its depth is made with the pose used
+        made_with = output.pose
     else:  # the network ran without the prior: fuse here, with its bins spread when given
-        network = outputs["pose"]
+        network = output.pose
         used = spec.denormalize(fuse_pose(spec.normalize(network.float()), prior, spec,
-                                          outputs.get("pose_spread"))).to(network.dtype)
-        result.update(pose=used, pose_network=network)
+                                          output.pose_spread)).to(network.dtype)
+        output = output.replace(pose=used, pose_network=network)
         made_with = network
     methods = ["none"] * batch
-    if mode in ("scale", "both") and "depth_m" in outputs:
-        depth = outputs["depth_m"]
+    if mode in ("scale", "both") and output.depth_m is not None and output.pose is not None:
+        depth = output.depth_m
         size = (depth.shape[-2], depth.shape[-1])
-        sky = (outputs["sky_prob"] > 0.5) if "sky_prob" in outputs else depth >= spec.max_depth
-        used_pose = result["pose"].float()
+        sky = (output.sky_prob > SKY_PROBABILITY_THRESHOLD) if output.sky_prob is not None \
+            else depth >= spec.max_depth
+        used_pose = output.pose.float()
         ratio = torch.full_like(used_pose[:, 0], float("nan"))
         if made_with is not None:
             made_with = made_with.float()
@@ -165,7 +173,5 @@ def apply_pose_prior(outputs: Mapping[str, Tensor], prior: PosePrior | None, mod
         scale, methods = ground_scale(depth, sky, spec.depth(used_pose, size),
                                       None if made_with is None else spec.depth(made_with, size), ratio,
                                       spec.max_depth)
-        below = float(np.nextafter(np.float32(spec.max_depth), np.float32(0)))
-        scaled = (depth * scale.view(-1, 1, 1, 1)).clamp(max=below)
-        result["depth_m"] = torch.where(sky, torch.full_like(depth, spec.max_depth), scaled)
-    return result, pose_sources(prior, batch), methods
+        output = output.replace(depth_m=sky_at_limit(depth * scale.view(-1, 1, 1, 1), sky, spec.max_depth))
+    return PriorApplied(output, pose_sources(prior, batch), methods)

@@ -26,12 +26,11 @@ from lightning.pytorch.callbacks import BasePredictionWriter
 from lightning.pytorch.utilities import rank_zero_info
 
 from dapm_lightning.geometry.camera import horizon_segment
-from dapm_lightning.geometry.constants import POSE_KEYS
+from dapm_lightning.geometry.constants import POSE_FIELDS, POSE_KEYS, pose_field
 from dapm_lightning.geometry.igd import IGDSpec
-from dapm_lightning.inference.inputs import PriorMode
-from dapm_lightning.inference.postprocess import Prediction, pose_field, predictions_from_outputs
-from dapm_lightning.inference.prior import apply_pose_prior
-from dapm_lightning.training.module import batch_prior
+from dapm_lightning.inference.postprocess import Prediction, batch_predictions
+from dapm_lightning.inference.runtime import apply_inference_options
+from dapm_lightning.models.dapm import DAPMOutput
 from dapm_lightning.training.visualize import colorize_depth
 
 Output = Literal["depth_npy", "depth_tiff", "depth16", "depth_color", "sky", "camera", "points", "npz"]
@@ -41,7 +40,7 @@ DEFAULT_OUTPUTS: tuple[str, ...] = tuple(k for k in OUTPUT_KINDS if k != "npz")
 """What is written when nothing is chosen: every kind but the compact ``npz``."""
 DEPTH16_SCALE = 64.0
 """``depth16.png`` stores ``round(depth_m * 64)``: 1/64 m steps, 1000 m = 64000."""
-POSE_COLUMNS = ["name", *(pose_field(k) for k in POSE_KEYS)]
+POSE_COLUMNS = ["name", *POSE_FIELDS]
 CONTACT_TILE = 160
 """Height in pixels of one contact-sheet row."""
 
@@ -56,9 +55,11 @@ def check_outputs(outputs: Iterable[str] | None) -> list[str]:
 
 
 def write_prediction(out: Path, prediction: Prediction, outputs: Iterable[str] = DEFAULT_OUTPUTS,
-                     rgb: np.ndarray | None = None, points_stride: int = 2,
-                     points_max_depth: float | None = None) -> list[Path]:
-    """Write the selected per-image files of one prediction (``OUT/NAME_*``); returns the paths written."""
+                     points_stride: int = 2, points_max_depth: float | None = None) -> list[Path]:
+    """Write the selected per-image files of one prediction (``OUT/NAME_*``); returns the paths written.
+
+    The point cloud is coloured with the prediction's ``rgb`` when it carries the input's pixels.
+    """
     outputs, written, name = set(outputs), [], prediction.name
     if prediction.depth_m is not None:
         depth = prediction.depth_m.astype(np.float32)
@@ -83,7 +84,7 @@ def write_prediction(out: Path, prediction: Prediction, outputs: Iterable[str] =
         written[-1].write_text(_json_rows(prediction.camera_dict()))
     if "points" in outputs and prediction.depth_m is not None and prediction.pose is not None:
         written.append(out / f"{name}_points.ply")
-        prediction.points(points_stride, points_max_depth, rgb).write_ply(written[-1])
+        prediction.points(points_stride, points_max_depth, prediction.rgb).write_ply(written[-1])
     if "npz" in outputs:
         written.append(out / f"{name}.npz")
         arrays: dict[str, Any] = npz_arrays(prediction)
@@ -160,8 +161,8 @@ def _number(value: Any) -> Any:
     return value
 
 
-def contact_row(prediction: Prediction, rgb: np.ndarray | None, tile: int = CONTACT_TILE) -> np.ndarray:
-    """``image | depth | sky | pose`` for one prediction, ``tile`` pixels high.
+def contact_row(prediction: Prediction, tile: int = CONTACT_TILE) -> np.ndarray:
+    """``image | depth | sky | pose`` for one prediction (its ``rgb``, grey without), ``tile`` pixels high.
 
     The horizon of the pose used is drawn on the image, the pose written on the last tile.
     """
@@ -172,7 +173,7 @@ def contact_row(prediction: Prediction, rgb: np.ndarray | None, tile: int = CONT
         return cv2.resize(picture, (w, tile), interpolation=cv2.INTER_AREA)
 
     grey = np.full((tile, w, 3), 40, np.uint8)
-    image = fit(rgb) if rgb is not None else grey.copy()
+    image = fit(prediction.rgb) if prediction.rgb is not None else grey.copy()
     if prediction.pose is not None:
         segment = horizon_segment(prediction.pose["pitch"], prediction.pose["roll"], prediction.pose["fov"],
                                   (height, width))
@@ -237,13 +238,13 @@ class PredictionFiles:
         self.images = 0
         self.output_dir.mkdir(parents=True, exist_ok=True)
 
-    def add(self, prediction: Prediction, rgb: np.ndarray | None = None) -> None:
-        """Write one prediction's files (``rgb``: the input's pixels, for point colours and the contact sheet)."""
-        write_prediction(self.output_dir, prediction, self.outputs, rgb, self.points_stride, self.points_max_depth)
+    def add(self, prediction: Prediction) -> None:
+        """Write one prediction's files (its ``rgb``, when kept, colours the points and the contact sheet)."""
+        write_prediction(self.output_dir, prediction, self.outputs, self.points_stride, self.points_max_depth)
         if prediction.pose is not None:
             self.rows.append(pose_row(prediction))
         if len(self.contact_rows) < self.contact_images:
-            self.contact_rows.append(contact_row(prediction, rgb))
+            self.contact_rows.append(contact_row(prediction))
         self.images += 1
 
     def finish(self, suffix: str = "") -> str:
@@ -281,9 +282,12 @@ class PredictionWriter(BasePredictionWriter):
         self.files = PredictionFiles(output_dir, outputs, points_stride, points_max_depth, contact_sheet)
         self.spec = IGDSpec()
 
-    def on_predict_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        from dapm_lightning.inference.predictor import apply_inference_options
+    @property
+    def output_dir(self) -> Path:
+        """Where the files go."""
+        return self.files.output_dir
 
+    def on_predict_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         trainer.predict_loop.return_predictions = False  # the files are the result: keep nothing in memory
         apply_inference_options(pl_module, self.channels_last, self.compile)
         config = getattr(pl_module, "net_config", None)
@@ -295,8 +299,9 @@ class PredictionWriter(BasePredictionWriter):
     def write_on_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, prediction: Any,
                            batch_indices: Sequence[int] | None, batch: Any, batch_idx: int,
                            dataloader_idx: int = 0) -> None:
-        for meta, result in zip(batch["meta"], predictions_from_batch(prediction, batch, self.spec)):
-            self.files.add(result, meta.get("rgb"))
+        output: DAPMOutput = prediction  # DAPMModule.predict_step's
+        for result in batch_predictions(output.inference_outputs(spread=True), batch, self.spec):
+            self.files.add(result)
 
     def on_predict_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         suffix = f"_rank{trainer.global_rank}" if trainer.world_size > 1 else ""
@@ -305,26 +310,6 @@ class PredictionWriter(BasePredictionWriter):
             print(f"{message} (process {trainer.global_rank} of {trainer.world_size})", flush=True)
         else:
             rank_zero_info(message)
-
-
-def predictions_from_batch(output: Any, batch: dict[str, Any], spec: IGDSpec) -> list[Prediction]:
-    """The predictions of one predict batch from the module's output (a ``DAPMOutput``), its prior applied."""
-    outputs = output.inference_outputs(spread=True) if hasattr(output, "inference_outputs") else dict(output)
-    return predictions_with_prior(outputs, batch, spec)
-
-
-def predictions_with_prior(outputs: dict[str, Any], batch: dict[str, Any], spec: IGDSpec) -> list[Prediction]:
-    """Per-image predictions of a batch's network outputs, with the batch's pose prior applied (telemetry)."""
-    metas = batch["meta"]
-    prior = batch_prior(batch)
-    mode: PriorMode = metas[0].get("prior_mode", "condition") if metas else "condition"
-    outputs, sources, methods = apply_pose_prior(outputs, prior, mode, spec)
-    predictions = predictions_from_outputs(outputs, batch["name"], [meta["size"] for meta in metas], spec,
-                                           pose_network=outputs.get("pose_network"),
-                                           pose_sources=sources if prior is not None else None)
-    for prediction, method in zip(predictions, methods):
-        prediction.extras["scale_from"] = method
-    return predictions
 
 
 def summary_line(images: int, outputs: Sequence[str], out: Path, extra: Sequence[str] = ()) -> str:

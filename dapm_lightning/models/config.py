@@ -159,10 +159,22 @@ class DAPMConfig:
         values["igd"]["pose_ranges"] = {k: list(v) for k, v in self.igd.pose_ranges.items()}
         return values
 
-    def architecture_differences(self, other: DAPMConfig) -> list[str]:
-        """``"name: A vs B"`` for every architecture setting where ``self`` and ``other`` differ."""
-        return [f"{name}: {getattr(self, name)!r} vs {getattr(other, name)!r}"
-                for name in self.architecture_fields() if getattr(self, name) != getattr(other, name)]
+    def check_loads(self, saved: Mapping[str, Any] | DAPMConfig, source: str) -> None:
+        """Raise a ValueError listing every architecture setting where ``saved`` differs from this config.
+
+        Args:
+            saved: the network settings a checkpoint was trained with (``hyper_parameters["net"]``).
+            source: what ``saved`` came from, for the message (a checkpoint path).
+        """
+        saved_config = saved if isinstance(saved, DAPMConfig) else DAPMConfig.from_dict(saved)
+        differences = [f"model.net.{name}: checkpoint {getattr(saved_config, name)!r}, this run "
+                       f"{getattr(self, name)!r}"
+                       for name in self.architecture_fields() if getattr(saved_config, name) != getattr(self, name)]
+        if differences:
+            raise ValueError(f"{source} was trained with another network; it cannot be loaded into this one:\n  "
+                             + "\n  ".join(differences)
+                             + "\nFix: pass the config it was trained with (the config.yaml next to its log), or "
+                               "set the settings above to the checkpoint's values.")
 
 
 PAPER_NETWORK: Mapping[str, Any] = {

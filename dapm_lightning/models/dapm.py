@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import torch
@@ -66,28 +68,60 @@ INFERENCE_OUTPUTS = ("depth_m", "sky_prob", "pose", "pose_network")
 (``pose_network`` only with a pose prior)."""
 
 
+@dataclass(frozen=True)
+class InferenceOutput:
+    """What prediction takes from a forward pass, at the network size; what the model lacks is None.
+
+    Every runtime (PyTorch, onnxruntime) returns this, so all go through the same post-processing.
+
+    Attributes:
+        depth_m: ``[B, 1, h, w]`` metres, sky at the depth limit.
+        sky_prob: ``[B, 1, h, w]`` probability of "beyond max depth".
+        pose: ``[B, 4]`` (height m, pitch, roll, fov deg): the pose used (fused with a prior where one was given).
+        pose_network: ``[B, 4]`` the network's own estimate, when a prior was given to the network.
+        pose_spread: ``[B, 4]`` normalised standard deviation of the last pose-bins distribution (to fuse a
+            prior after the network).
+    """
+
+    depth_m: Tensor | None = None
+    sky_prob: Tensor | None = None
+    pose: Tensor | None = None
+    pose_network: Tensor | None = None
+    pose_spread: Tensor | None = None
+
+    def named(self) -> dict[str, Tensor]:
+        """The :data:`INFERENCE_OUTPUTS` present, by name, in that order (the ONNX model's outputs)."""
+        return {name: value for name in INFERENCE_OUTPUTS if (value := getattr(self, name)) is not None}
+
+    @property
+    def batch_size(self) -> int:
+        """Images in the batch."""
+        return int(next(iter(self.named().values())).shape[0])
+
+    @property
+    def device(self) -> torch.device:
+        """Where the outputs are."""
+        return next(iter(self.named().values())).device
+
+    def replace(self, **changes: Tensor | None) -> InferenceOutput:
+        """A copy with ``changes``."""
+        return dataclasses.replace(self, **changes)
+
+
 class DAPMOutput(NamedTuple):
     """Everything one forward pass predicts; a branch switched off is ``None``."""
 
     depth: DepthPrediction | None
     pose: PosePrediction | None
 
-    def inference_outputs(self, spread: bool = False) -> dict[str, Tensor]:
-        """The :data:`INFERENCE_OUTPUTS` this model has, by name.
-
-        ``depth_m [B, 1, H, W]`` metres (sky at the depth limit), ``sky_prob [B, 1, H, W]``, ``pose [B, 4]``
-        (height m, pitch, roll, fov deg; fused with the prior where one was given) and, with a prior,
-        ``pose_network [B, 4]``: the network's own estimate. ``spread``: also ``pose_spread [B, 4]``, the
-        normalised standard deviation of the last pose-bins distribution (to fuse a prior afterwards).
-        """
+    def inference_outputs(self, spread: bool = False) -> InferenceOutput:
+        """The :class:`InferenceOutput` of this pass; ``spread``: with ``pose_spread`` (pose bins models)."""
         used = None if self.pose is None else self.pose.used
-        values = {"depth_m": self.depth_m, "sky_prob": self.sky_prob,
-                  "pose": self.pose_physical if used is None else used,
-                  "pose_network": None if used is None else self.pose_physical}
-        result = {name: value for name in INFERENCE_OUTPUTS if (value := values[name]) is not None}
+        pose_spread = None
         if spread and self.pose is not None and self.pose.bin_logits:
-            result["pose_spread"] = bins_spread(self.pose.bin_logits[-1])  # for fusing a prior afterwards
-        return result
+            pose_spread = bins_spread(self.pose.bin_logits[-1])
+        return InferenceOutput(self.depth_m, self.sky_prob, self.pose_physical if used is None else used,
+                               None if used is None else self.pose_physical, pose_spread)
 
     @property
     def depth_m(self) -> Tensor | None:

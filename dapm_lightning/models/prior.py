@@ -10,17 +10,52 @@ IGD feature sees and what inference reports; the losses keep training the networ
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Final, Literal, get_args
 
 import torch
 from torch import Tensor
 
-from dapm_lightning.geometry.constants import POSE_KEYS
 from dapm_lightning.geometry.igd import IGDSpec
+from dapm_lightning.geometry.pose import pose_bounds
 
 NETWORK_SPREAD_WITHOUT_BINS = 0.05
 """Normalised standard deviation assumed for a network without pose bins (about 4.5 m of height, 5.5° of pitch)."""
 MIN_NETWORK_SPREAD = 1e-3
 """Lower bound of the network's normalised standard deviation (a bins distribution can be one-hot)."""
+
+
+PriorMode = Literal["condition", "scale", "both"]
+"""How pose priors are used in prediction: ``condition`` (into the network, fused before its IGD feature),
+``scale`` (the network's depth fitted to the known pose's ground afterwards; any checkpoint) or ``both``."""
+PRIOR_MODES: Final[tuple[str, ...]] = get_args(PriorMode)
+EXACT_SIGMA: Final[tuple[float, float, float, float]] = (0.0, 0.0, 0.0, 0.0)
+"""The default telemetry σ (height m, pitch, roll, fov deg): the telemetry replaces the network's values."""
+
+
+@dataclass(frozen=True)
+class PriorSettings:
+    """How one prediction run uses its pose priors: ``mode`` (:data:`PriorMode`) and ``sigma``.
+
+    ``sigma``: per component (height m, pitch, roll, fov deg) the telemetry's standard deviation where a prior
+    gives none; 0 replaces the network's value, more fuses the two. Both are checked here, once.
+    """
+
+    mode: PriorMode = "condition"
+    sigma: tuple[float, float, float, float] = EXACT_SIGMA
+
+    def __post_init__(self) -> None:
+        if self.mode not in PRIOR_MODES:
+            raise ValueError(f"telemetry_mode must be one of {', '.join(PRIOR_MODES)}, got {self.mode!r}")
+        sigma = tuple(float(v) for v in self.sigma)
+        if len(sigma) != 4 or min(sigma) < 0:
+            raise ValueError(f"telemetry_sigma: four standard deviations >= 0 (height m, pitch, roll, fov deg), "
+                             f"got {list(self.sigma)}")
+        object.__setattr__(self, "sigma", sigma)
+
+    @property
+    def conditions(self) -> bool:
+        """Whether the prior goes into the network (``condition`` or ``both``)."""
+        return self.mode != "scale"
 
 
 @dataclass(frozen=True)
@@ -46,9 +81,11 @@ class PosePrior:
         object.__setattr__(self, "sigma", sigma)
 
     @classmethod
-    def unknown(cls, batch: int, device: torch.device | None = None) -> PosePrior:
-        """A prior that knows nothing (the network's pose is used unchanged)."""
-        return cls(torch.full((batch, 4), float("nan"), device=device), torch.zeros(4, device=device))
+    def from_rows(cls, value: Tensor, sigma: Tensor | tuple[float, ...]) -> PosePrior | None:
+        """A prior from ``[B, 4]`` rows (NaN where unknown), or None when nothing at all is known."""
+        if not bool(torch.isfinite(value).any()):
+            return None
+        return cls(value.float(), torch.as_tensor(sigma, dtype=torch.float32, device=value.device))
 
     @property
     def known(self) -> Tensor:
@@ -80,8 +117,7 @@ def fuse_pose(pose_norm: Tensor, prior: PosePrior, spec: IGDSpec, network_spread
     if not known.any():
         return pose_norm
     own = pose_norm.float()  # float32 whatever the autocast: an exact prior comes back exact
-    ranges = torch.tensor([spec.pose_ranges[k][1] - spec.pose_ranges[k][0] for k in POSE_KEYS],
-                          device=own.device, dtype=own.dtype)
+    _, ranges = pose_bounds(spec.pose_ranges, own)
     prior_norm = spec.normalize(torch.nan_to_num(prior.value.to(own), nan=0.0))
     prior_spread = prior.sigma.to(own) / ranges
     spread = torch.full_like(own, NETWORK_SPREAD_WITHOUT_BINS) if network_spread is None else network_spread.to(own)

@@ -15,7 +15,10 @@ import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
+from dapm_lightning.inference.inputs import DEFAULT_BATCH_SIZE, PredictSource
+from dapm_lightning.inference.runtime import PRECISIONS
 from dapm_lightning.inference.writers import DEFAULT_OUTPUTS, OUTPUT_KINDS, PredictionFiles
+from dapm_lightning.models.prior import EXACT_SIGMA, PRIOR_MODES
 
 LIGHTNING_OPTIONS = ("--config", "--data", "--trainer", "--model", "--print_config", "--seed_everything")
 """Options that select the Lightning form of ``predict``."""
@@ -49,8 +52,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help=f"per-image files, any of {', '.join(OUTPUT_KINDS)} (default: all but npz)")
     parser.add_argument("--image_width", type=int, default=None,
                         help="network input width (default: the checkpoint's training size)")
-    parser.add_argument("--batch_size", type=int, default=4, help="images per forward pass (default: %(default)s)")
-    parser.add_argument("--precision", choices=("32", "bf16", "16"), default="32", help="(default: %(default)s)")
+    parser.add_argument("--batch_size", type=int, default=DEFAULT_BATCH_SIZE,
+                        help="images per forward pass (default: %(default)s)")
+    parser.add_argument("--precision", choices=PRECISIONS, default="32", help="(default: %(default)s)")
     parser.add_argument("--frame_step", type=int, default=1, help="videos: every N-th frame (default: 1)")
     parser.add_argument("--max_frames", type=int, default=None, help="videos: stop after this many frames")
     parser.add_argument("--contact_sheet", type=int, default=8,
@@ -64,10 +68,10 @@ def build_parser() -> argparse.ArgumentParser:
                         help="ignore the images' DJI XMP / EXIF and a video's own .SRT")
     flight.add_argument("--sensor_width_mm", type=float, default=None,
                         help="sensor width, for an EXIF FocalLength without a 35 mm equivalent")
-    flight.add_argument("--telemetry_mode", choices=("condition", "scale", "both"), default="condition",
+    flight.add_argument("--telemetry_mode", choices=PRIOR_MODES, default="condition",
                         help="into the network's IGD (condition), depth fitted afterwards (scale), or both "
                              "(default: %(default)s)")
-    flight.add_argument("--telemetry_sigma", type=float, nargs=4, default=(0.0, 0.0, 0.0, 0.0),
+    flight.add_argument("--telemetry_sigma", type=float, nargs=4, default=EXACT_SIGMA,
                         metavar=("HEIGHT_M", "PITCH", "ROLL", "FOV"),
                         help="telemetry uncertainty; 0 replaces the network's value (default: 0 0 0 0)")
     return parser
@@ -107,9 +111,9 @@ def predict_main(argv: Sequence[str]) -> None:
                                               precision=args.precision, batch_size=args.batch_size,
                                               telemetry_mode=args.telemetry_mode,
                                               telemetry_sigma=args.telemetry_sigma)
+    source = PredictSource(args.source, args.frame_step, args.max_frames, args.telemetry, not args.no_metadata,
+                           args.sensor_width_mm)
     keep_rgb = "points" in files.outputs or files.contact_images > 0
-    for prediction in predictor.predict_source(args.source, args.frame_step, args.max_frames, keep_rgb,
-                                               args.num_workers, args.telemetry, not args.no_metadata,
-                                               args.sensor_width_mm):
-        files.add(prediction, prediction.extras.get("rgb"))
+    for prediction in predictor.predict_source(source, keep_rgb=keep_rgb, num_workers=args.num_workers):
+        files.add(prediction)
     print(files.finish(), file=sys.stdout, flush=True)

@@ -1,4 +1,4 @@
-"""Checkpoints for long jobs: safe loading, the architecture check, RNG states, ``last.ckpt``, SIGTERM saves.
+"""Checkpoints for long jobs: safe loading, ``last.ckpt``, SIGTERM saves (RNG states: :mod:`.rng`).
 
 ``last.ckpt`` is kept at the latest state (:class:`LastCheckpoint`) and ``--ckpt_path last`` finds it in
 any of the run's log versions (:func:`find_last_checkpoint`). :func:`load_dapm_module` is the one way to
@@ -9,27 +9,20 @@ that are not dapm-lightning checkpoints.
 from __future__ import annotations
 
 import inspect
-import math
-import random
 import re
 import signal
 from collections.abc import Iterable, Mapping
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import lightning as L
-import numpy as np
-import torch
 from lightning.fabric.plugins.io.torch_io import TorchCheckpointIO
 from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.trainer.states import TrainerFn
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 from torch import Tensor
 
-from dapm_lightning.models.config import DAPMConfig
-
-if TYPE_CHECKING:  # module.py imports this module: DAPMModule is imported inside load_dapm_module
-    from dapm_lightning.training.module import DAPMModule
+from dapm_lightning.training.module import DAPMModule
 
 EXIT_SIGTERM = 128 + signal.SIGTERM
 """Exit status of a run stopped by SIGTERM after saving ``last.ckpt`` (143: a job script can tell it from 0)."""
@@ -125,8 +118,6 @@ def load_dapm_module(path: str | Path, map_location: Any = "cpu") -> DAPMModule:
         Its backbone is built without ImageNet weights (``pretrained`` and ``weights_path`` are not used:
         every weight comes from the checkpoint), so loading needs no internet.
     """
-    from dapm_lightning.training.module import DAPMModule  # module.py imports this module
-
     if not Path(path).is_file():
         raise FileNotFoundError(f"{path}: no such checkpoint file")
     checkpoint = SafeCheckpointIO().load_checkpoint(path, map_location=map_location)
@@ -145,77 +136,6 @@ def load_dapm_module(path: str | Path, map_location: Any = "cpu") -> DAPMModule:
             "Fix: pass a checkpoint written by `dapm-lightning fit`, unmodified.") from error
     first = next((t for t in checkpoint["state_dict"].values() if isinstance(t, Tensor)), None)
     return module.to(first.device) if first is not None else module
-
-
-def check_architecture(saved: Mapping[str, Any] | DAPMConfig, current: DAPMConfig, source: str) -> None:
-    """Raise a ValueError listing every architecture setting (:meth:`DAPMConfig.architecture_fields`) that differs.
-
-    Args:
-        saved: the network settings a checkpoint was trained with (``hyper_parameters["net"]``).
-        current: this run's.
-        source: what ``saved`` came from, for the message (a checkpoint path).
-    """
-    saved_config = saved if isinstance(saved, DAPMConfig) else DAPMConfig.from_dict(saved)
-    differences = [f"model.net.{name}: checkpoint {getattr(saved_config, name)!r}, this run "
-                   f"{getattr(current, name)!r}"
-                   for name in DAPMConfig.architecture_fields()
-                   if getattr(saved_config, name) != getattr(current, name)]
-    if differences:
-        raise ValueError(f"{source} was trained with another network; it cannot be loaded into this one:\n  "
-                         + "\n  ".join(differences)
-                         + "\nFix: pass the config it was trained with (the config.yaml next to its log), or set "
-                           "the settings above to the checkpoint's values.")
-
-
-def rng_states() -> dict[str, Any]:
-    """Python, NumPy, CPU torch and (when CUDA is initialised) every GPU's RNG state, as tensors and plain values.
-
-    Lightning's own ``_collect_rng_states`` keeps NumPy's state as an ``ndarray``, which a
-    ``weights_only`` load refuses; these are the same states in types such a load accepts.
-    """
-    numpy_state = np.random.get_state()
-    states: dict[str, Any] = {"python": random.getstate(),
-                              "numpy_keys": torch.from_numpy(numpy_state[1].astype(np.int64)),
-                              "numpy_pos": int(numpy_state[2]), "torch": torch.get_rng_state()}
-    if torch.cuda.is_available() and torch.cuda.is_initialized():
-        states["cuda"] = torch.cuda.get_rng_state_all()
-    return states
-
-
-def pack_rng_states(states: Mapping[str, Any]) -> dict[str, Tensor]:
-    """:func:`rng_states` as fixed-shape tensors, so that every process's can be gathered into one checkpoint."""
-    version, internal, gauss = states["python"]
-    packed = {"python": torch.tensor([version, *internal], dtype=torch.int64),
-              "python_gauss": torch.tensor([math.nan if gauss is None else gauss], dtype=torch.float64),
-              "numpy_keys": states["numpy_keys"], "numpy_pos": torch.tensor([states["numpy_pos"]]),
-              "torch": states["torch"]}
-    if "cuda" in states:
-        packed["cuda"] = states["cuda"][torch.cuda.current_device()]
-    return packed
-
-
-def unpack_rng_states(packed: Mapping[str, Tensor]) -> dict[str, Any]:
-    """Inverse of :func:`pack_rng_states` (the GPU state becomes that of the current device)."""
-    python = packed["python"].tolist()
-    gauss = float(packed["python_gauss"][0])
-    states: dict[str, Any] = {"python": (python[0], tuple(python[1:]), None if math.isnan(gauss) else gauss),
-                              "numpy_keys": packed["numpy_keys"], "numpy_pos": int(packed["numpy_pos"][0]),
-                              "torch": packed["torch"]}
-    if "cuda" in packed and torch.cuda.is_available():
-        states["cuda"] = [torch.cuda.get_rng_state(d) for d in range(torch.cuda.device_count())]
-        states["cuda"][torch.cuda.current_device()] = packed["cuda"]
-    return states
-
-
-def set_rng_states(states: Mapping[str, Any]) -> None:
-    """Restore what :func:`rng_states` saved (GPU states when saved and this process has as many GPUs)."""
-    version, internal, gauss = states["python"]
-    random.setstate((version, tuple(internal), gauss))
-    np.random.set_state(("MT19937", states["numpy_keys"].numpy().astype(np.uint32), states["numpy_pos"], 0, 0.0))
-    torch.set_rng_state(states["torch"])
-    cuda = states.get("cuda")
-    if cuda is not None and torch.cuda.is_available() and len(cuda) == torch.cuda.device_count():
-        torch.cuda.set_rng_state_all(cuda)
 
 
 class LastCheckpoint(ModelCheckpoint):

@@ -21,7 +21,6 @@ from dapm_lightning.data.datamodules import DAPMDataModule
 from dapm_lightning.models.config import DAPMConfig
 from dapm_lightning.training.checkpointing import (
     SafeCheckpointIO,
-    check_architecture,
     check_dapm_checkpoint,
     find_last_checkpoint,
 )
@@ -216,7 +215,7 @@ class DAPMCLI(LightningCLI):
             net = self.config[subcommand].get("model", {}).get("net")
             if subcommand == "fit" and saved is not None and net is not None:
                 current = DAPMConfig.from_dict(net.as_dict() if hasattr(net, "as_dict") else dict(net))
-                check_architecture(saved, current, str(ckpt_path))
+                current.check_loads(saved, str(ckpt_path))
         super()._parse_ckpt_path()
 
     def before_instantiate_classes(self) -> None:

@@ -15,19 +15,15 @@ from lightning.pytorch.utilities import rank_zero_warn
 from torch import Tensor
 
 from dapm_lightning.data.sample import depth_masks
+from dapm_lightning.data.unlabelled import PredictBatch
+from dapm_lightning.geometry.image import unit_image
 from dapm_lightning.metrics import AuthorsDepthMetrics, AuthorsPoseMetrics, DepthMetrics, PoseMetrics
 from dapm_lightning.models.config import DAPMConfig
 from dapm_lightning.models.dapm import DAPMNet, DAPMOutput
 from dapm_lightning.models.prior import PosePrior
 from dapm_lightning.models.teacher_forcing import TeacherForcing
-from dapm_lightning.training.checkpointing import (
-    check_architecture,
-    pack_rng_states,
-    rng_states,
-    set_rng_states,
-    unpack_rng_states,
-)
 from dapm_lightning.training.loss import DAPMLoss, LossConfig
+from dapm_lightning.training.rng import pack_rng_states, rng_states, set_rng_states, unpack_rng_states
 
 Stage = Literal["train", "val", "test"]
 
@@ -134,24 +130,6 @@ def _as_config(value: Any, kind: type[Any]) -> Any:
     raise TypeError(f"expected {kind.__name__} or a mapping, got {type(value).__name__}")
 
 
-def batch_prior(batch: dict[str, Any]) -> PosePrior | None:
-    """The pose prior a predict batch carries (``pose``, NaN where unknown, and ``pose_sigma``), or None."""
-    value = batch.get("pose")
-    if value is None or not torch.isfinite(value).any():
-        return None
-    sigma = batch.get("pose_sigma")
-    return PosePrior(value.float(), torch.zeros(4, device=value.device) if sigma is None else sigma.float())
-
-
-def network_prior(batch: dict[str, Any]) -> PosePrior | None:
-    """The prior the network is given for a predict batch: its :func:`batch_prior`.
-
-    None when its ``meta`` asks for ``prior_mode`` ``scale`` (the prior is then applied after the network).
-    """
-    metas = batch.get("meta") or [{}]
-    return None if metas[0].get("prior_mode") == "scale" else batch_prior(batch)
-
-
 def training_image_size(checkpoint: dict[str, Any]) -> tuple[int, int] | None:
     """``(H, W)`` a checkpoint was trained at; None when it does not say.
 
@@ -223,26 +201,39 @@ class DAPMModule(L.LightningModule):
             "skip_nonfinite_loss": skip_nonfinite_loss, "authors_depth_metrics": authors_depth_metrics,
             "prior_training": {**asdict(self.prior_training), "noise": list(self.prior_training.noise)},
             "authors_pose_metrics": authors_pose_metrics})
-        self.net = DAPMNet(self.net_config)
-        igd = self.net_config.igd
-        self.criterion = DAPMLoss(self.loss_config, igd)
         self.igd_predicted_share = 1.0
         self.skip_nonfinite_loss = skip_nonfinite_loss
+        self.configure_models()
+        self.configure_losses()
+        self.configure_metrics(log_space_metrics, authors_depth_metrics, pose_auc_min_error, authors_pose_metrics)
+        self.nonfinite_steps = 0
+        self.train_image_size: tuple[int, int] | None = None
+        """``(H, W)`` of the training images (saved in checkpoints; inference runs at the same pixel count)."""
+
+    def configure_models(self) -> None:
+        """The network, :attr:`net`, from ``net``."""
+        self.net = DAPMNet(self.net_config)
+
+    def configure_losses(self) -> None:
+        """The training objective (Eq. 16-19), :attr:`criterion`, from ``loss`` and the network's IGD settings."""
+        self.criterion = DAPMLoss(self.loss_config, self.net_config.igd)
+
+    def configure_metrics(self, log_space_metrics: bool, authors_depth_metrics: bool,
+                          pose_auc_min_error: float | None, authors_pose_metrics: bool) -> None:
+        """Validation and test metrics, :attr:`metrics`, named ``<stage>_<kind>``, for the branches the network has."""
+        max_depth = self.net_config.igd.max_depth
         self.metrics = torch.nn.ModuleDict()
         for stage in ("val", "test"):
             if self.net_config.use_depth:
-                self.metrics[f"{stage}_depth"] = DepthMetrics(max_depth=igd.max_depth)
+                self.metrics[f"{stage}_depth"] = DepthMetrics(max_depth=max_depth)
                 if log_space_metrics:
-                    self.metrics[f"{stage}_depthlog"] = DepthMetrics(max_depth=igd.max_depth, space="uapd_log")
+                    self.metrics[f"{stage}_depthlog"] = DepthMetrics(max_depth=max_depth, space="uapd_log")
                 if authors_depth_metrics:
-                    self.metrics[f"{stage}_depthauthors"] = AuthorsDepthMetrics(max_depth=igd.max_depth)
+                    self.metrics[f"{stage}_depthauthors"] = AuthorsDepthMetrics(max_depth=max_depth)
             if self.net_config.use_pose:
                 self.metrics[f"{stage}_pose"] = PoseMetrics(min_error=pose_auc_min_error)
                 if authors_pose_metrics:
                     self.metrics[f"{stage}_poseauthors"] = AuthorsPoseMetrics()
-        self.nonfinite_steps = 0
-        self.train_image_size: tuple[int, int] | None = None
-        """``(H, W)`` of the training images (saved in checkpoints; inference runs at the same pixel count)."""
 
     def setup(self, stage: str) -> None:
         datamodule = getattr(self._trainer, "datamodule", None) if self._trainer is not None else None
@@ -262,14 +253,10 @@ class DAPMModule(L.LightningModule):
 
         ``prior``: known pose components (telemetry), see :class:`~dapm_lightning.models.prior.PosePrior`.
         """
-        return self.net(self._image(image), prior=prior)
-
-    @staticmethod
-    def _image(image: Tensor) -> Tensor:
-        return image.float().div(255.0) if image.dtype == torch.uint8 else image
+        return self.net(unit_image(image), prior=prior)
 
     def _shared_step(self, batch: dict[str, Any], stage: Stage) -> tuple[Tensor, DAPMOutput]:
-        image = self._image(batch["image"])
+        image = unit_image(batch["image"])
         teacher_forcing = None
         if stage == "train" and self.igd_predicted_share < 1.0:
             teacher_forcing = TeacherForcing(self.net_config.igd.normalize(batch["pose"]), self.igd_predicted_share)
@@ -339,7 +326,7 @@ class DAPMModule(L.LightningModule):
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         saved = checkpoint.get("hyper_parameters", {}).get("net")
         if saved is not None:
-            check_architecture(saved, self.net_config, "the checkpoint")
+            self.net_config.check_loads(saved, "the checkpoint")
         self.train_image_size = training_image_size(checkpoint)
         if self._trainer is None:
             return
@@ -364,9 +351,12 @@ class DAPMModule(L.LightningModule):
     def on_test_epoch_end(self) -> None:
         self._log_metrics("test")
 
-    def predict_step(self, batch: dict[str, Any], batch_idx: int) -> DAPMOutput:
-        """The batch's ``pose`` (NaN where unknown) and ``pose_sigma``, when given, are its pose prior."""
-        return self(batch["image"], network_prior(batch))
+    def predict_step(self, batch: PredictBatch, batch_idx: int) -> DAPMOutput:
+        """The network's output for a :class:`~dapm_lightning.data.unlabelled.PredictBatch`, given its prior.
+
+        :class:`~dapm_lightning.inference.writers.PredictionWriter` turns it into files.
+        """
+        return self(batch.images, batch.network_prior)
 
     @property
     def planned_steps(self) -> int:

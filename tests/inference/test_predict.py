@@ -19,7 +19,7 @@ from dapm_lightning.inference.inputs import (
 from dapm_lightning.inference.postprocess import make_prediction
 from dapm_lightning.inference.predictor import DAPMPredictor
 from dapm_lightning.inference.writers import DEPTH16_SCALE, PredictionWriter, write_prediction
-from dapm_lightning.models import DAPMConfig
+from dapm_lightning.models import DAPMConfig, InferenceOutput
 from dapm_lightning.training.lightning_cli import run_lightning_cli
 from dapm_lightning.training.module import DAPMModule
 from tests.conftest import CONFIGS
@@ -67,9 +67,9 @@ def test_any_input_kind_is_handled_or_refused(image_folder):
     ds = ImageFilesDataset(resolve_source(image_folder)[1], 64)
     for i in range(len(ds)):
         item = ds[i]
-        assert item["image"].dtype == torch.uint8 and item["image"].shape[0] == 3
-        height, width = item["meta"]["size"]
-        assert item["image"].shape[2] == 64 and item["image"].shape[1] == max(32, round(height * 64 / width))
+        assert item.image.dtype == torch.uint8 and item.image.shape[0] == 3
+        height, width = item.size
+        assert item.image.shape[2] == 64 and item.image.shape[1] == max(32, round(height * 64 / width))
     with pytest.raises(ValueError, match="float32"):
         to_rgb8(np.zeros((4, 4), np.float32), "x.tif")
     with pytest.raises(ValueError, match="channels"):
@@ -105,11 +105,11 @@ def test_sources_folder_glob_image_video_and_mistakes(image_folder, tmp_path):
 def test_video_frames_in_order_with_step_limit_and_workers(tmp_path):
     video = write_video(tmp_path / "flight.avi", frames=9)
     frames = list(VideoFramesDataset(video, 32, frame_step=2, max_frames=4))
-    assert [f["name"] for f in frames] == ["flight_f000000", "flight_f000002", "flight_f000004", "flight_f000006"]
-    assert frames[0]["meta"]["size"] == (36, 48) and frames[0]["pose"].isnan().all()
+    assert [f.name for f in frames] == ["flight_f000000", "flight_f000002", "flight_f000004", "flight_f000006"]
+    assert frames[0].size == (36, 48) and frames[0].prior.isnan().all()
     # 2 workers, chunks of the batch size: the loader gives the frames back in video order
     loader = torch.utils.data.DataLoader(VideoFramesDataset(video, 32, chunk=2), batch_size=2, num_workers=2,
-                                         collate_fn=lambda items: [i["name"] for i in items])
+                                         collate_fn=lambda items: [i.name for i in items])
     assert [n for batch in loader for n in batch] == [f"flight_f{k:06d}" for k in range(9)]
 
 
@@ -214,7 +214,7 @@ def test_python_api_video_and_single_branch_models(tmp_path):
     results = list(depth_only.predict_source(video, keep_rgb=True))
     assert [r.name for r in results] == [f"v_f{k:06d}" for k in range(5)]
     r = results[0]
-    assert r.depth_m.shape == (36, 48) and r.pose is None and r.K is None and r.extras["rgb"].shape == (36, 48, 3)
+    assert r.depth_m.shape == (36, 48) and r.pose is None and r.K is None and r.rgb.shape == (36, 48, 3)
     with pytest.raises(ValueError, match="needs depth and pose"):
         r.points()
     written = write_prediction(tmp_path, r)
@@ -245,7 +245,7 @@ def test_cli_predict_honours_precision_and_a_video_source(checkpoint, tmp_path, 
         [f"{n}_{s}" for n in names for s in ("depth.npy", "camera.json")]
         + ["poses.csv", "poses.json", "contact_sheet.png"])
     fp32 = DAPMPredictor.from_checkpoint(checkpoint, image_width=64)(next(iter(
-        VideoFramesDataset(video, None, keep_rgb=True)))["meta"]["rgb"])
+        VideoFramesDataset(video, None, keep_rgb=True))).rgb)
     bf16 = np.load(out / "clip_f000000_depth.npy")
     assert bf16.dtype == np.float32 and not np.array_equal(bf16, fp32.depth_m)  # bf16 ran, not float32
     np.testing.assert_allclose(bf16, fp32.depth_m, rtol=0.1)
@@ -275,7 +275,7 @@ def sky_outputs(net_size=(64, 64), sky_rows=24, seed=0):
     prob[..., :sky_rows, :] += 0.55
     depth = 20 + 80 * torch.rand(1, 1, *net_size, generator=rng)
     depth = torch.where(prob > 0.5, torch.full_like(depth, 1000.0), depth)
-    return {"depth_m": depth, "sky_prob": prob, "pose": torch.tensor([[40.0, -20.0, 5.0, 70.0]])}
+    return InferenceOutput(depth, prob, torch.tensor([[40.0, -20.0, 5.0, 70.0]]))
 
 
 @pytest.mark.parametrize("size", [(64, 64), (30, 40), (200, 300), (120, 24), (7, 5)])

@@ -12,6 +12,7 @@ from dapm_lightning.cli import main
 from dapm_lightning.geometry.igd import IGDSpec, ideal_ground_depth
 from dapm_lightning.inference.predictor import DAPMPredictor
 from dapm_lightning.inference.prior import apply_pose_prior, as_prior, ground_scale
+from dapm_lightning.models.dapm import InferenceOutput
 from dapm_lightning.models.prior import PosePrior
 from dapm_lightning.training.module import DAPMModule, PriorTraining
 
@@ -85,13 +86,13 @@ def test_ground_scale_recovers_a_known_scale_and_falls_back_to_the_heights():
     assert method == ["height"] and float(scale[0]) == pytest.approx(1.7)
     scale, method = ground_scale(depth, nadir_sky, igd, igd, torch.tensor([NAN]), 1000.0)
     assert method == ["none"] and float(scale[0]) == 1.0
-    outputs = {"depth_m": depth, "sky_prob": sky.float(), "pose": network}
+    outputs = InferenceOutput(depth_m=depth, sky_prob=sky.float(), pose=network)
     fixed, sources, methods = apply_pose_prior(outputs, PosePrior(torch.tensor([[40.0, NAN, NAN, NAN]]),
                                                                   torch.zeros(4)), "scale", spec)
     assert methods == ["ground"] and sources[0] == {"height": "telemetry", "pitch": "network", "roll": "network",
                                                     "fov": "network"}
-    torch.testing.assert_close(fixed["depth_m"][~sky], igd[~sky], rtol=1e-4, atol=1e-3)
-    assert (fixed["depth_m"][sky] == 1000.0).all() and float(fixed["pose"][0, 0]) == pytest.approx(40.0)
+    torch.testing.assert_close(fixed.depth_m[~sky], igd[~sky], rtol=1e-4, atol=1e-3)
+    assert (fixed.depth_m[sky] == 1000.0).all() and float(fixed.pose[0, 0]) == pytest.approx(40.0)
 
 
 def test_python_api_priors_as_dicts_arrays_and_modes(checkpoint):
@@ -154,19 +155,20 @@ def test_both_mode_leaves_conditioned_metric_depth_alone_and_depth_only_models_t
     own = torch.tensor([[60.0, -40.0, 0.0, 60.0]])
     depth = spec.depth(used, (32, 48))  # conditioned: already the ground of the pose used, in metres
     sky = depth >= 1000
-    outputs = {"depth_m": depth, "sky_prob": sky.float(), "pose": used, "pose_network": own}
+    outputs = InferenceOutput(depth_m=depth, sky_prob=sky.float(), pose=used, pose_network=own)
     prior = PosePrior(torch.tensor([[100.0, NAN, NAN, NAN]]), torch.zeros(4))
     fixed, _, methods = apply_pose_prior(outputs, prior, "both", spec)
     assert methods == ["ground"]
-    torch.testing.assert_close(fixed["depth_m"], depth)  # scale 1, not known / network height
+    torch.testing.assert_close(fixed.depth_m, depth)  # scale 1, not known / network height
     full = PosePrior(used, torch.zeros(4))
-    depth_only, sources, methods = apply_pose_prior({"depth_m": depth * 0.5, "sky_prob": sky.float()}, full,
-                                                    "scale", spec)
-    assert torch.equal(depth_only["pose"], used) and set(sources[0].values()) == {"telemetry"}
-    assert methods == ["ground"] and torch.allclose(depth_only["depth_m"][~sky], depth[~sky], rtol=1e-4)
+    depth_only, sources, methods = apply_pose_prior(InferenceOutput(depth_m=depth * 0.5, sky_prob=sky.float()),
+                                                    full, "scale", spec)
+    assert torch.equal(depth_only.pose, used) and set(sources[0].values()) == {"telemetry"}
+    assert methods == ["ground"] and torch.allclose(depth_only.depth_m[~sky], depth[~sky], rtol=1e-4)
     partial = PosePrior(torch.tensor([[100.0, NAN, NAN, NAN]]), torch.zeros(4))
-    unchanged, _, methods = apply_pose_prior({"depth_m": depth, "sky_prob": sky.float()}, partial, "scale", spec)
-    assert "pose" not in unchanged and methods == ["none"]
+    unchanged, _, methods = apply_pose_prior(InferenceOutput(depth_m=depth, sky_prob=sky.float()), partial,
+                                             "scale", spec)
+    assert unchanged.pose is None and methods == ["none"]
 
 
 def test_csv_telemetry_through_the_documented_config_form(checkpoint, flight, tmp_path, monkeypatch):
@@ -194,8 +196,8 @@ def test_scale_mode_fuses_with_the_networks_own_bins_spread():
     sure, unsure = torch.full((1, 4), 0.01), torch.full((1, 4), 0.5)
     height = {}
     for name, spread in (("sure", sure), ("unsure", unsure), ("fixed", None)):
-        outputs = {"pose": network} | ({} if spread is None else {"pose_spread": spread})
+        outputs = InferenceOutput(pose=network, pose_spread=spread)
         fused, _, _ = apply_pose_prior(outputs, prior, "scale", spec)
-        height[name] = float(fused["pose"][0, 0])
+        height[name] = float(fused.pose[0, 0])
     assert 59.0 < height["sure"] < 60.0 and 30.0 < height["unsure"] < 32.0  # the surer side wins
     assert height["unsure"] < height["fixed"] < height["sure"]

@@ -52,12 +52,12 @@ def test_prior_reaches_the_depth_through_the_igd_and_is_reported_beside_the_netw
         given = net(image, prior=PosePrior(torch.tensor([[20.0, -30.0, NAN, NAN], [NAN] * 4]), torch.zeros(4)))
     assert torch.equal(given.pose.pose, plain.pose.pose)  # the network's own estimate is unchanged (losses)
     used = given.inference_outputs()
-    assert used["pose"][0, 0] == pytest.approx(20.0) and used["pose"][0, 1] == pytest.approx(-30.0, abs=1e-4)
-    assert torch.equal(used["pose"][0, 2:], plain.pose.pose[0, 2:])
-    assert torch.equal(used["pose_network"], plain.pose.pose)
+    assert used.pose[0, 0] == pytest.approx(20.0) and used.pose[0, 1] == pytest.approx(-30.0, abs=1e-4)
+    assert torch.equal(used.pose[0, 2:], plain.pose.pose[0, 2:])
+    assert torch.equal(used.pose_network, plain.pose.pose)
     assert not torch.allclose(given.depth_m[0], plain.depth_m[0])  # the depth head saw the prior's ground
     assert torch.equal(given.depth_m[1], plain.depth_m[1])  # nothing known: the same as without a prior
-    assert set(plain.inference_outputs()) == {"depth_m", "sky_prob", "pose"}
+    assert set(plain.inference_outputs().named()) == {"depth_m", "sky_prob", "pose"}
 
 
 def test_without_pose_bins_the_fixed_spread_is_used():
