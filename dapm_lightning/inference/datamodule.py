@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import warnings
+from typing import Any
 
 from torch.utils.data import DataLoader
 
 from dapm_lightning.data.datamodules import DAPMDataModule
-from dapm_lightning.data.unlabelled import PredictBatch
 from dapm_lightning.inference.inputs import (
     DEFAULT_BATCH_SIZE,
     NetworkSize,
@@ -67,7 +67,7 @@ class PredictDataModule(DAPMDataModule):
         module = self.trainer.lightning_module if self.trainer is not None else None
         return checkpoint_network_size(module)
 
-    def predict_dataloader(self) -> DataLoader[PredictBatch]:
+    def predict_dataloader(self) -> DataLoader[Any]:  # batches of PredictBatch
         # Lightning's notes on custom batch samplers and on iterable data sets concern writers that need batch
         # indices; PredictionWriter names its files from the samples, and the size batches return every image
         warnings.filterwarnings("ignore", message="You are using a custom batch sampler `SizeBatchSampler`")

@@ -24,7 +24,7 @@ from torch import Tensor
 from torch.utils.data import DataLoader, Dataset, IterableDataset, Sampler, get_worker_info
 
 from dapm_lightning.data.uapd import IMAGE_SUFFIXES
-from dapm_lightning.data.unlabelled import PredictBatch, PredictCollate, PredictInput
+from dapm_lightning.data.unlabelled import PredictCollate, PredictInput
 from dapm_lightning.inference import telemetry as flight
 from dapm_lightning.models.prior import PriorSettings
 
@@ -373,7 +373,7 @@ def source_dataset(source: PredictSource, target: NetworkSize, keep_rgb: bool = 
 
 def predict_loader(source: PredictSource, target: NetworkSize, settings: PriorSettings = PriorSettings(),  # noqa: B008
                    *, batch_size: int = DEFAULT_BATCH_SIZE, num_workers: int = 0, keep_rgb: bool = False,
-                   pin_memory: bool = False, rank: int = 0, world_size: int = 1) -> DataLoader[PredictBatch]:
+                   pin_memory: bool = False, rank: int = 0, world_size: int = 1) -> DataLoader[PredictInput]:
     """The one loader of prediction: :class:`PredictBatch` of a source, images batched by network size.
 
     Every entry point uses it: the one-line command and the Python API (through

@@ -17,6 +17,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from dapm_lightning.geometry.image import unit_image
 from dapm_lightning.inference.inputs import SIZE_MULTIPLE
 
 
@@ -118,7 +119,7 @@ def synthetic_calibration(size: tuple[int, int], count: int, seed: int = 0) -> l
     images = []
     for index in range(count):
         _, rgb, _, _ = render_sample(seed, "calibration", index, size)
-        images.append(np.ascontiguousarray(rgb.transpose(2, 0, 1)[None], dtype=np.float32) / 255.0)
+        images.append(unit_image(torch.from_numpy(np.ascontiguousarray(rgb.transpose(2, 0, 1)[None]))).numpy())
     return images
 
 

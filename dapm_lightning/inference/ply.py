@@ -8,9 +8,7 @@ import numpy as np
 
 PLY_COMMENT = ("dapm-lightning point cloud: metres, gravity-aligned world frame (origin on the ground under the "
                "camera, X horizontal along the optical axis, Y left, Z up; ground at z = 0)")
-_TYPES = {"char": "i1", "uchar": "u1", "short": "<i2", "ushort": "<u2", "int": "<i4", "uint": "<u4",
-          "float": "<f4", "double": "<f8", "int8": "i1", "uint8": "u1", "int16": "<i2", "uint16": "<u2",
-          "int32": "<i4", "uint32": "<u4", "float32": "<f4", "float64": "<f8"}
+
 
 
 def write_ply(path: str | Path, xyz: np.ndarray, rgb: np.ndarray | None = None, comment: str = PLY_COMMENT) -> Path:
@@ -36,51 +34,3 @@ def write_ply(path: str | Path, xyz: np.ndarray, rgb: np.ndarray | None = None, 
         handle.write(("\n".join(header) + "\n").encode("ascii"))
         handle.write(vertices.tobytes())
     return path
-
-
-def read_ply(path: str | Path) -> dict[str, np.ndarray]:
-    """Vertices of a PLY point cloud (ascii or binary little-endian) as ``{property: [N] array}``.
-
-    Only the ``vertex`` element is returned; scalar properties only (no lists), as point clouds use.
-    """
-    path = Path(path)
-    data = path.read_bytes()
-    end = data.find(b"end_header")
-    if not data.startswith(b"ply") or end < 0:
-        raise ValueError(f"{path}: not a PLY file (no 'ply' magic or no 'end_header')")
-    body_start = data.index(b"\n", end) + 1
-    lines = data[:end].decode("ascii").splitlines()
-    fmt = ""
-    elements: list[tuple[str, int, list[tuple[str, str]]]] = []  # (name, count, [(property, dtype)])
-    for line in lines[1:]:
-        words = line.split()
-        if not words or words[0] in ("comment", "obj_info"):
-            continue
-        if words[0] == "format":
-            fmt = words[1]
-        elif words[0] == "element":
-            elements.append((words[1], int(words[2]), []))
-        elif words[0] == "property":
-            if words[1] == "list":
-                raise ValueError(f"{path}: list properties are not supported by this reader")
-            if words[1] not in _TYPES:
-                raise ValueError(f"{path}: unknown property type {words[1]!r}")
-            elements[-1][2].append((words[2], _TYPES[words[1]]))
-    if fmt not in ("ascii", "binary_little_endian"):
-        raise ValueError(f"{path}: PLY format {fmt!r} not supported (ascii or binary_little_endian)")
-    offset, text_rows = body_start, data[body_start:].decode("ascii").split("\n") if fmt == "ascii" else []
-    row = 0
-    for name, count, props in elements:
-        dtype = np.dtype(props)
-        if fmt == "ascii":
-            values = np.array([r.split() for r in text_rows[row:row + count]], dtype=np.float64).reshape(count, -1)
-            row += count
-            table = np.empty(count, dtype)
-            for k, (prop, _) in enumerate(props):
-                table[prop] = values[:, k]
-        else:
-            table = np.frombuffer(data, dtype, count=count, offset=offset)
-            offset += dtype.itemsize * count
-        if name == "vertex":
-            return {prop: np.array(table[prop]) for prop, _ in props}
-    raise ValueError(f"{path}: no vertex element")

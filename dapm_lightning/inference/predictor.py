@@ -163,7 +163,7 @@ class DAPMPredictor:
         return results[0] if single else results
 
     def loader(self, source: str | Path | PredictSource, keep_rgb: bool = False,
-               num_workers: int = 0) -> DataLoader[PredictBatch]:
+               num_workers: int = 0) -> DataLoader[PredictInput]:
         """Batches of a folder, glob pattern, image or video at the network size, with their telemetry.
 
         ``source``: a path, or a :class:`~dapm_lightning.inference.inputs.PredictSource` saying also which frames

@@ -87,7 +87,7 @@ class TorchRuntime:
             images = images.contiguous(memory_format=torch.channels_last)
         with self._autocast():
             out = self.module(images, prior.to(self.device)) if prior is not None else self.module(images)
-        return out.inference_outputs(spread=True)  # type: ignore[no-any-return]
+        return out.inference_outputs(spread=True)
 
 
 class OnnxRuntime:

@@ -7,4 +7,5 @@ from dapm_lightning.models.prior import PosePrior, PriorMode, PriorSettings, fus
 from dapm_lightning.models.teacher_forcing import TeacherForcing, predicted_share_at
 
 __all__ = ["EFFICIENT_NETWORK", "PAPER_NETWORK", "DAPMConfig", "DAPMNet", "DAPMOutput", "DepthPrediction", "Encoder",
-           "InferenceOutput", "PosePrediction", "PosePrior", "PriorMode", "PriorSettings", "TeacherForcing", "fuse_pose", "predicted_share_at"]
+           "InferenceOutput", "PosePrediction", "PosePrior", "PriorMode", "PriorSettings", "TeacherForcing",
+           "fuse_pose", "predicted_share_at"]

@@ -1,6 +1,6 @@
 """The README's main job: synthetic data -> train a small DAPM on the CPU -> test -> metrics vs baselines -> pictures.
 
-``python -m dapm_lightning.quickstart --out outputs/quickstart`` (what ``make demo`` runs).
+``python -m dapm_lightning.tools.quickstart --out outputs/quickstart`` (what ``make demo`` runs).
 """
 
 from __future__ import annotations
@@ -15,6 +15,7 @@ from pathlib import Path
 import torch
 
 from dapm_lightning.data.uapd import UAPDDataset
+from dapm_lightning.geometry.constants import POSE_KEYS
 from dapm_lightning.geometry.igd import ideal_ground_depth
 from dapm_lightning.metrics import DepthMetrics, PoseMetrics
 from dapm_lightning.training.checkpointing import best_or_last_checkpoint
@@ -22,8 +23,8 @@ from dapm_lightning.training.lightning_cli import run_lightning_cli
 
 DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "quickstart.yaml"
 ROWS = [("depth", "d1", "higher"), ("depth", "abs_rel", "lower"), ("depth", "rmse", "lower"),
-        *[("pose", f"{c}_median", "lower") for c in ("height", "pitch", "roll", "fov")],
-        *[("pose", f"{c}_auc5", "higher") for c in ("height", "pitch", "roll", "fov")]]
+        *[("pose", f"{c}_median", "lower") for c in POSE_KEYS],
+        *[("pose", f"{c}_auc5", "higher") for c in POSE_KEYS]]
 """(group, metric, better) rows of the report; the model must beat both baselines on d1, abs_rel and every median."""
 
 

@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
-import torch
 from torch import Tensor
 
 from dapm_lightning.geometry.constants import MAX_DEPTH_M, MIN_DEPTH_M
 from dapm_lightning.geometry.depth_codec import encode_log_depth
 from dapm_lightning.geometry.igd import IGDSpec
+from dapm_lightning.geometry.image import unit_image
 from dapm_lightning.models.dapm import DAPMOutput
 
 
@@ -49,8 +49,7 @@ def depth_panel(image: Tensor, depth_true: Tensor | None, out: DAPMOutput, max_i
     if out.pose_physical is not None:
         igd_m = igd.depth(out.pose_physical.detach().float(), size)  # [B, 1, H, W] metres
     for b in range(min(max_images, image.shape[0])):
-        rgb = image[b].float()
-        rgb = rgb / 255 if image.dtype == torch.uint8 else rgb
+        rgb = unit_image(image[b]).float()
         tiles = [(rgb.clamp(0, 1).permute(1, 2, 0).cpu().numpy() * 255).astype(np.uint8)]
         blank = np.zeros_like(tiles[0])
         tiles.append(colorize_depth(depth_true[b, 0], max_depth) if depth_true is not None else blank)

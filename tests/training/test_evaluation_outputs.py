@@ -1,4 +1,4 @@
-"""`dapm-lightning test` writes the per-stage bins maps and a per-image CSV (TestOutputWriter)."""
+"""`dapm-lightning test` writes the per-stage bins maps and a per-image CSV (EvaluationOutputWriter)."""
 
 import csv
 from pathlib import Path
@@ -12,8 +12,8 @@ from dapm_lightning.data import parse_uapd_filename
 from dapm_lightning.data.datamodules import UAPDDataModule
 from dapm_lightning.geometry import encode_log_depth, ideal_ground_depth
 from dapm_lightning.models import DAPMConfig
+from dapm_lightning.training.evaluation_outputs import EvaluationOutputWriter
 from dapm_lightning.training.module import DAPMModule
-from dapm_lightning.training.test_outputs import TestOutputWriter
 
 
 def test_writer_writes_stage_maps_and_per_image_rows(tiny_uapd, tmp_path):
@@ -21,7 +21,7 @@ def test_writer_writes_stage_maps_and_per_image_rows(tiny_uapd, tmp_path):
     model = DAPMModule(net=net)
     data = UAPDDataModule(root=str(tiny_uapd), test_split="val", batch_size=2, num_workers=0, pin_memory=False,
                           persistent_workers=False)
-    writer = TestOutputWriter(dirpath=str(tmp_path / "out"))
+    writer = EvaluationOutputWriter(dirpath=str(tmp_path / "out"))
     trainer = L.Trainer(accelerator="cpu", devices=1, logger=False, enable_checkpointing=False,
                         enable_progress_bar=False, enable_model_summary=False, callbacks=[writer],
                         default_root_dir=str(tmp_path))
@@ -52,7 +52,7 @@ def test_writer_writes_the_igd_of_the_predicted_and_true_pose(tiny_uapd, tmp_pat
                           persistent_workers=False)
     trainer = L.Trainer(accelerator="cpu", devices=1, logger=False, enable_checkpointing=False,
                         enable_progress_bar=False, enable_model_summary=False,
-                        callbacks=[TestOutputWriter(dirpath=str(tmp_path / "out"), write_csv=True)],
+                        callbacks=[EvaluationOutputWriter(dirpath=str(tmp_path / "out"), write_csv=True)],
                         default_root_dir=str(tmp_path))
     trainer.test(model, datamodule=data)
     rows = {r["name"]: r for r in csv.DictReader(open(tmp_path / "out" / "per_image.csv"))}

@@ -59,7 +59,7 @@ def igd_maps(out: DAPMOutput, batch: Any, igd: IGDSpec) -> dict[str, Tensor]:
     return {key: (value.float().clamp(0, 1) * 255.0).round().to(torch.uint8).cpu() for key, value in maps.items()}
 
 
-class TestOutputWriter(L.Callback):
+class EvaluationOutputWriter(L.Callback):
     """Writes, during ``dapm-lightning test``, what the paper's PQB figure and a worst-image search need.
 
     - ``<dirpath>/maps/<stage>/<name>.png`` for every test image (``write_maps``): the sky map, each depth
@@ -131,4 +131,4 @@ class TestOutputWriter(L.Callback):
             writer.writerows(self._rows)
 
 
-__all__ = ["TestOutputWriter", "igd_maps", "stage_maps"]
+__all__ = ["EvaluationOutputWriter", "igd_maps", "stage_maps"]
