@@ -81,7 +81,7 @@ class DepthPanelLogger(L.Callback):
                             _dapm_module(pl_module).net_config.igd)
         step = trainer.global_step
         experiment = getattr(trainer.logger, "experiment", None)
-        if hasattr(experiment, "add_image"):
+        if experiment is not None and hasattr(experiment, "add_image"):
             experiment.add_image(f"panels/{tag}", panel, step, dataformats="HWC")
         if trainer.is_global_zero:
             folder = Path(self.output_dir or trainer.log_dir or ".") / "panels"

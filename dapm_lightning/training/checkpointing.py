@@ -157,7 +157,7 @@ class LastCheckpoint(ModelCheckpoint):
 
     def on_train_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         super().on_train_end(trainer, pl_module)
-        if trainer.sanity_checking or trainer.fast_dev_run or trainer.global_step == 0:
+        if trainer.sanity_checking or getattr(trainer, "fast_dev_run", False) or trainer.global_step == 0:
             return
         if self._last_global_step_saved != trainer.global_step:  # the final step fell between two saves
             self.best_model_path = self.format_checkpoint_name({})

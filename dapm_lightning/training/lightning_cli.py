@@ -248,9 +248,10 @@ class DAPMCLI(LightningCLI):
     def instantiate_trainer(self, **kwargs: Any) -> L.Trainer:
         trainer = super().instantiate_trainer(**kwargs)
         if not trainer.loggers:
-            dropped = [callback for callback in trainer.callbacks if needs_logger(callback)]
+            callbacks: list[L.Callback] = getattr(trainer, "callbacks", [])  # set by Lightning's connector
+            dropped = [callback for callback in callbacks if needs_logger(callback)]
             if dropped:
-                trainer.callbacks = [callback for callback in trainer.callbacks if callback not in dropped]
+                trainer.callbacks = [callback for callback in callbacks if callback not in dropped]  # type: ignore[attr-defined]
                 names = ", ".join(type(callback).__name__ for callback in dropped)
                 rank_zero_info(f"note: no logger (trainer.logger false): left out {names}, which need one")
         return trainer

@@ -6,13 +6,14 @@ import math
 import zlib
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass
-from typing import Any, Literal
+from typing import Any, Literal, cast
 
 import lightning as L
 import numpy as np
 import torch
 from lightning.pytorch.utilities import rank_zero_warn
 from torch import Tensor
+from torchmetrics import Metric
 
 from dapm_lightning.data.sample import depth_masks
 from dapm_lightning.data.unlabelled import PredictBatch
@@ -278,20 +279,22 @@ class DAPMModule(L.LightningModule):
             self._update_metrics(out, batch, stage)
         return terms["total"], out
 
+    def _stage_metrics(self, stage: str, kinds: tuple[str, ...]) -> list[Metric]:
+        """The metrics of ``stage`` among ``kinds`` that this module has."""
+        return [cast(Metric, self.metrics[f"{stage}_{kind}"]) for kind in kinds if f"{stage}_{kind}" in self.metrics]
+
     def _update_metrics(self, out: DAPMOutput, batch: dict[str, Any], stage: str) -> None:
         if out.depth_m is not None:
-            self.metrics[f"{stage}_depth"].update(out.depth_m, batch["depth"])
-            for kind in ("depthlog", "depthauthors"):
-                if f"{stage}_{kind}" in self.metrics:
-                    self.metrics[f"{stage}_{kind}"].update(out.depth_m, batch["depth"])
+            for metric in self._stage_metrics(stage, ("depth", "depthlog", "depthauthors")):
+                metric.update(out.depth_m, batch["depth"])
         has_pose = batch["has_pose"]
         if out.pose_physical is not None and has_pose.any():
-            for kind in ("pose", "poseauthors"):
-                if f"{stage}_{kind}" in self.metrics:
-                    self.metrics[f"{stage}_{kind}"].update(out.pose_physical[has_pose], batch["pose"][has_pose])
+            for metric in self._stage_metrics(stage, ("pose", "poseauthors")):
+                metric.update(out.pose_physical[has_pose], batch["pose"][has_pose])
 
     def _log_metrics(self, stage: str) -> None:
-        for name, metric in self.metrics.items():
+        for name, module in self.metrics.items():
+            metric = cast(Metric, module)
             if name.startswith(stage + "_") and metric.update_called:
                 # compute() already reduced over processes; every rank holds the same value, so the mean that
                 # sync_dist takes is that value (and Lightning does not warn about unsynced epoch-level logs)
@@ -319,7 +322,8 @@ class DAPMModule(L.LightningModule):
         # states of all ranks are gathered, so that each resumes its own dropout and augmentation draws
         if self._trainer is not None and self.trainer.world_size > 1:
             packed = pack_rng_states(rng_states())
-            checkpoint["dapm_rng_states_per_rank"] = {k: self.all_gather(v).cpu() for k, v in packed.items()}
+            checkpoint["dapm_rng_states_per_rank"] = {k: cast(Tensor, self.all_gather(v)).cpu()
+                                                      for k, v in packed.items()}
         else:
             checkpoint["dapm_rng_states"] = rng_states()
 
@@ -339,10 +343,10 @@ class DAPMModule(L.LightningModule):
         elif "dapm_rng_states" in checkpoint:
             set_rng_states(checkpoint["dapm_rng_states"])  # a resumed run draws what the uninterrupted one would
 
-    def validation_step(self, batch: dict[str, Any], batch_idx: int) -> DAPMOutput:
+    def validation_step(self, batch: dict[str, Any], batch_idx: int) -> DAPMOutput:  # type: ignore[override]
         return self._shared_step(batch, "val")[1]
 
-    def test_step(self, batch: dict[str, Any], batch_idx: int) -> DAPMOutput:
+    def test_step(self, batch: dict[str, Any], batch_idx: int) -> DAPMOutput:  # type: ignore[override]
         return self._shared_step(batch, "test")[1]
 
     def on_validation_epoch_end(self) -> None:

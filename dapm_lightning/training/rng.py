@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 import random
 from collections.abc import Mapping
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import torch
@@ -22,11 +22,11 @@ def rng_states() -> dict[str, Any]:
     Lightning's own ``_collect_rng_states`` keeps NumPy's state as an ``ndarray``, which a
     ``weights_only`` load refuses; these are the same states in types such a load accepts.
     """
-    numpy_state = np.random.get_state()
+    numpy_state = cast(tuple[Any, ...], np.random.get_state())
     states: dict[str, Any] = {"python": random.getstate(),
                               "numpy_keys": torch.from_numpy(numpy_state[1].astype(np.int64)),
                               "numpy_pos": int(numpy_state[2]), "torch": torch.get_rng_state()}
-    if torch.cuda.is_available() and torch.cuda.is_initialized():
+    if torch.cuda.is_available() and torch.cuda.is_initialized():  # type: ignore[no-untyped-call]
         states["cuda"] = torch.cuda.get_rng_state_all()
     return states
 

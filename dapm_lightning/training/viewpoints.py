@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import lightning as L
 import torch
@@ -99,9 +99,9 @@ class ViewpointBreakdown(L.Callback):
     def on_test_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         local = torch.cat(self.records) if self.records else torch.zeros(0, 9, device=pl_module.device)
         # every rank joins both collectives, with or without records; rows padded with NaN to a common count
-        most = int(pl_module.all_gather(torch.tensor(local.shape[0], device=local.device)).max())
+        most = int(cast(Tensor, pl_module.all_gather(torch.tensor(local.shape[0], device=local.device))).max())
         padded = torch.cat([local, local.new_full((most - local.shape[0], 9), math.nan)])
-        gathered = pl_module.all_gather(padded)
+        gathered = cast(Tensor, pl_module.all_gather(padded))
         records = gathered.flatten(0, 1) if gathered.ndim == 3 else gathered
         records = records[torch.isfinite(records[:, 0])]
         if records.shape[0] == 0:
