@@ -49,8 +49,55 @@ def pinhole_vs_paper() -> None:
     plt.close(fig)
 
 
+LAYERS = [("cli", "dapm-lightning: subcommands and tools, one line each"),
+          ("tools", "predict (one-line form), export, doctor, synth, quickstart"),
+          ("inference", "inputs, runtime, postprocess, prior, writers, telemetry/"),
+          ("training", "DAPMModule, DAPMLoss, callbacks, checkpoints, DAPMCLI"),
+          ("data", "samples, UAPD / Potsdam / synthetic, PredictBatch"),
+          ("models | metrics", "DAPMNet, PQB, IGD feature, PosePrior | torchmetrics"),
+          ("geometry", "pose, camera, IGD, depth codec, bins, point clouds")]
+FLOW = [("SOURCE: folder, glob, image, video", "inputs.resolve_source"),
+        ("PredictInput per image\n(network size, name, size, prior)", "ImageFilesDataset / VideoFramesDataset"),
+        ("PredictBatch\n(one size; PosePrior + mode)", "inputs.predict_loader"),
+        ("InferenceOutput\n(depth, sky, pose, spread)", "runtime: TorchRuntime | OnnxRuntime"),
+        ("Prediction per image\n(input size; K, pose, sources)", "postprocess.batch_predictions"),
+        ("files: depth, sky, camera, PLY;\nposes.csv, contact sheet", "writers.PredictionFiles")]
+
+
+def architecture() -> None:
+    fig, (left, right) = plt.subplots(1, 2, figsize=(13, 6.2), gridspec_kw={"width_ratios": [1, 1.1]})
+    for ax in (left, right):
+        ax.set_xlim(0, 1)
+        ax.axis("off")
+    left.set_ylim(0, len(LAYERS))
+    left.set_title("layers: a module imports its own and those below")
+    for row, (name, what) in enumerate(LAYERS):
+        y = len(LAYERS) - 1 - row
+        left.add_patch(plt.Rectangle((0.02, y + 0.1), 0.96, 0.8, facecolor=plt.cm.Blues(0.25 + 0.09 * row),
+                                     edgecolor="black"))
+        left.text(0.05, y + 0.58, name, fontsize=11, weight="bold", va="center")
+        left.text(0.05, y + 0.3, what, fontsize=8.5, va="center")
+    right.set_ylim(0, len(FLOW))
+    right.set_title("predict: the one path from a source to files")
+    for row, (data, step) in enumerate(FLOW):
+        y = len(FLOW) - 1 - row
+        right.add_patch(plt.Rectangle((0.02, y + 0.2), 0.5, 0.65, facecolor="#fff3d6", edgecolor="black"))
+        right.text(0.27, y + 0.52, data, fontsize=8.5, ha="center", va="center")
+        if row:
+            right.annotate("", xy=(0.27, y + 0.86), xytext=(0.27, y + 1.2),
+                           arrowprops={"arrowstyle": "->", "lw": 1.4})
+            right.text(0.3, y + 1.03, FLOW[row][1], fontsize=8, va="center", style="italic", color="#333")
+        else:
+            right.text(0.55, y + 0.52, "DAPMPredictor, predict SOURCE,\npredict --config (PredictDataModule)",
+                       fontsize=8, va="center", color="#333")
+    fig.tight_layout()
+    fig.savefig(OUT / "architecture.png", dpi=70)
+    plt.close(fig)
+
+
 if __name__ == "__main__":
     OUT.mkdir(parents=True, exist_ok=True)
     igd_grid()
     pinhole_vs_paper()
+    architecture()
     print(f"wrote figures to {OUT}; the synthetic samples figure: python -m dapm_lightning.tools.bench_synth figure")
