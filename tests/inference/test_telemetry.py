@@ -13,6 +13,7 @@ from PIL import ExifTags, Image
 from PIL.TiffImagePlugin import IFDRational
 
 from dapm_lightning.geometry.camera import camera_rays
+from dapm_lightning.geometry.constants import POSE_KEYS
 from dapm_lightning.inference.telemetry import (
     PoseTelemetry,
     TelemetryError,
@@ -21,6 +22,7 @@ from dapm_lightning.inference.telemetry import (
     horizontal_fov_from_focal_35mm,
     read_srt,
     read_telemetry_csv,
+    srt,
     telemetry_for_images,
     telemetry_from_image,
 )
@@ -435,4 +437,77 @@ def test_srt_structure_errors(tmp_path):
     path = tmp_path / "m300.srt"  # no field read here: harmless, all unknown
     path.write_text("1\n00:00:00,000 --> 00:00:01,000\n2022.06.21 16:06:17\nGPS(36.6146,-6.1120,0.0M) "
                     "BAROMETER:0.3M\n")
+    assert read_srt(path) == {0: PoseTelemetry()}
+
+
+# ----------------------------------------------------------------------------- SRT tokenizer and table
+
+
+@pytest.mark.parametrize(("text", "pairs"), [
+    ('<font size="28">FrameCnt: 1, DiffTime: 33ms\n2024-04-23 14:04:07.002\n[iso: 110] [fnum: 2.8] '
+     "[focal_len: 24.00] [rel_alt: 54.821 abs_alt: 535.407]</font>",
+     [("framecnt", "1,"), ("difftime", "33ms"), ("iso", "110"), ("fnum", "2.8"), ("focal_len", "24.00"),
+      ("rel_alt", "54.821"), ("abs_alt", "535.407")]),
+    ("[gb_yaw: -8.6 gb_pitch: -86.7 gb_roll: 0.0]", [("gb_yaw", "-8.6"), ("gb_pitch", "-86.7"), ("gb_roll", "0.0")]),
+    ("[fnum : 280] [focal_len : 240] [Altitude: 117.000000]",
+     [("fnum", "280"), ("focal_len", "240"), ("altitude", "117.000000")]),
+    ("GPS(149.0251,-20.2533,16) BAROMETER:1.9", [("barometer", "1.9"), ("GPS", "(149.0251,-20.2533,16)")]),
+    ("F/2.8, SS 30.15, ISO 260, EV -1.7, GPS (-121.7458, 48.0771, 17), D 221.21m, H 200.70m, H.S n/a",
+     [("SS", "30.15"), ("ISO", "260"), ("EV", "-1.7"), ("GPS", "(-121.7458, 48.0771, 17)"), ("D", "221.21m"),
+      ("H", "200.70m")]),
+    ("2022.06.21 16:06:17", []),
+])
+def test_srt_tokenizer_gives_field_name_and_value_text_pairs(text, pairs):
+    assert srt.srt_field_pairs(text) == pairs
+
+
+def test_srt_fields_keep_each_names_first_value_and_labels_apart_from_names():
+    assert srt.srt_fields("[rel_alt: 5.0] [REL_ALT: 6.0] H 7m [h: 8]") == {"rel_alt": "5.0", "h": "8", "H": "7m"}
+
+
+SRT_ROW_VALUES = {"height": ("12.5", 12.5), "pitch": ("-30.5", -30.5), "roll": ("2.5", 2.5),
+                  "fov": ("24.00", FOV_24MM_4_3)}
+
+
+def one_subtitle(path: Path, text: str) -> Path:
+    path.write_text(f"1\n00:00:00,000 --> 00:00:00,033\n{text}\n")
+    return path
+
+
+def test_srt_table_names_the_fields_read():
+    assert [(row.name, row.key) for row in srt.SRT_FIELDS] == [
+        ("rel_alt", "height"), ("altitude", "height"), ("gb_pitch", "pitch"), ("gb_roll", "roll"), ("focal_len", "fov")]
+
+
+@pytest.mark.parametrize("row", srt.SRT_FIELDS, ids=lambda row: row.name)
+def test_srt_each_table_row_gives_its_component_and_only_it(tmp_path, row):
+    text, value = SRT_ROW_VALUES[row.key]
+    frames, _ = record(read_srt, one_subtitle(tmp_path / "one.srt", f"[{row.name}: {text}]"), 4000, 3000)
+    expected = [value if key == row.key else NAN for key in POSE_KEYS]
+    assert_pose(frames[0], expected)
+    assert frames[0].source == "one.srt frame 0"
+
+
+def test_srt_a_component_comes_from_its_first_row_that_is_there(tmp_path):
+    frames, caught = record(read_srt, one_subtitle(tmp_path / "both.srt", "[altitude: 300.0] [rel_alt: 5.0]"))
+    assert_pose(frames[0], [5.0, NAN, NAN, NAN])
+    assert not caught  # rel_alt's row comes first: altitude is not read, no `altitude` note
+    frames, caught = record(read_srt, one_subtitle(tmp_path / "low.srt", "[rel_alt: -1.0] [altitude: 300.0]"))
+    assert_pose(frames[0], [NAN, NAN, NAN, NAN])  # rel_alt gave the height (unknown: on the ground)
+    assert len(caught) == 1 and "height <= 0" in str(caught[0].message) and "`altitude`" not in str(caught[0].message)
+
+
+def test_srt_table_drives_the_reading(tmp_path, monkeypatch):
+    """A new DJI variant is one row: here the caption label `H 45.60m`, and the rows without `rel_alt`."""
+    def metres(subtitle, name, key):
+        return float(subtitle.fields[name].removesuffix("m"))
+
+    path = one_subtitle(tmp_path / "caption.srt", "F/2.8, ISO 100, D 22.10m, H 45.60m [rel_alt: 40.0] [gb_roll: 1.0]")
+    assert_pose(read_srt(path)[0], [40.0, NAN, 1.0, NAN])
+    rows = [row for row in srt.SRT_FIELDS if row.name != "rel_alt"]
+    monkeypatch.setattr(srt, "SRT_FIELDS", (srt.SrtField("H", "height", metres), *rows))
+    frames, caught = record(read_srt, path)
+    assert_pose(frames[0], [45.6, NAN, 1.0, NAN])
+    assert not caught
+    monkeypatch.setattr(srt, "SRT_FIELDS", ())
     assert read_srt(path) == {0: PoseTelemetry()}

@@ -1,0 +1,125 @@
+"""The telemetry CSV the user writes: ``name,height_m,pitch_deg,roll_deg,fov_deg``, one row per image."""
+
+from __future__ import annotations
+
+import csv
+import math
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from dapm_lightning.data.uapd import IMAGE_SUFFIXES
+from dapm_lightning.geometry.constants import POSE_KEYS
+from dapm_lightning.inference.telemetry.pose import (
+    POSE_FIELDS,
+    PoseTelemetry,
+    StrPath,
+    TelemetryError,
+    TelemetryWarning,
+    limit_error,
+)
+
+CSV_COLUMNS: tuple[str, str, str, str, str] = ("name", "height_m", "pitch_deg", "roll_deg", "fov_deg")
+"""The telemetry CSV's header; only ``name`` is required, a missing value column means unknown."""
+
+CSV_NAME_SUFFIXES: tuple[str, ...] = (*IMAGE_SUFFIXES, ".dng")
+"""Extensions stripped from a CSV ``name``: the images the project reads and the raw DNGs a flight log may
+name (anything else after a dot is part of the name)."""
+
+_CSV_FIX = {
+    "height": "write the camera's height above the ground in metres (> 0)",
+    "pitch": "write the pitch in degrees (0 = horizontal, -90 = nadir)",
+    "roll": "write the roll in degrees (positive = horizon's right end up)",
+    "fov": "write the horizontal field of view in degrees (0 < fov < 180)",
+}
+
+
+def _csv_key(name: str) -> str:
+    """The image stem a CSV ``name`` refers to: directories dropped, a known image extension stripped."""
+    base = name.replace("\\", "/").rsplit("/", 1)[-1]
+    stem, dot, suffix = base.rpartition(".")
+    return stem if dot and stem and f".{suffix.lower()}" in CSV_NAME_SUFFIXES else base
+
+
+def _show(t: PoseTelemetry) -> str:
+    """The row's values as ``height_m=45.2, pitch_deg=, ...`` (empty = unknown), for error messages."""
+    return ", ".join(f"{k}={'' if math.isnan(v) else f'{v:g}'}" for k, v in zip(POSE_FIELDS, t.values().tolist()))
+
+
+def read_telemetry_csv(path: StrPath) -> dict[str, PoseTelemetry]:
+    """Per-image telemetry from a CSV with header ``name,height_m,pitch_deg,roll_deg,fov_deg``, keyed by stem.
+
+    ``name`` is the image's file name with or without its extension (``DJI_0001.JPG`` or ``DJI_0001``; a
+    directory part is ignored). A missing value column or an empty cell means unknown. Columns may come in any
+    order; other columns are ignored with a warning. Blank lines are skipped.
+
+    Raises:
+        TelemetryError: no ``name`` column (names the expected header); a value that is not a number or is
+            physically impossible (height <= 0 or not finite, |pitch| > 180, |roll| > 180, fov outside
+            (0, 180)), naming the file, line and column; an empty name; the same name twice with different
+            values (naming both lines).
+    """
+    path = Path(path)
+    header_hint = f"the first line must be the header `{','.join(CSV_COLUMNS)}` (value columns optional)"
+    with path.open(newline="", encoding="utf-8-sig") as stream:
+        reader = csv.reader(stream)
+        header = next(reader, None)
+        if header is None:
+            raise TelemetryError(f"{path}: the file is empty; {header_hint}")
+        columns = [c.strip().lower() for c in header]
+        if "name" not in columns:
+            hint = " (it looks ';'-separated: save it comma-separated)" if ";" in ",".join(header) else ""
+            raise TelemetryError(f"{path}: no `name` column in the header {','.join(header)!r}{hint}; {header_hint}")
+        for col in set(columns):
+            if col and columns.count(col) > 1:
+                raise TelemetryError(f"{path}: column `{col}` appears {columns.count(col)} times in the header; "
+                                     "keep one")
+        index = {c: i for i, c in enumerate(columns)}
+        unknown = [c for c in columns if c and c not in CSV_COLUMNS]
+        if unknown:
+            warnings.warn(f"{path}: column(s) {', '.join(unknown)} ignored (the telemetry columns are "
+                          f"{','.join(CSV_COLUMNS)})", TelemetryWarning, stacklevel=2)
+        out: dict[str, PoseTelemetry] = {}
+        first_line: dict[str, int] = {}
+        for row in reader:
+            line = reader.line_num
+            cells = [c.strip() for c in row]
+            if not any(cells):
+                continue
+
+            def cell(col: str, cells: list[str] = cells) -> str:
+                i = index.get(col)
+                return cells[i] if i is not None and i < len(cells) else ""
+
+            name = cell("name")
+            where = f"{path}, line {line}"
+            if not name:
+                raise TelemetryError(f"{where}: empty `name`; write the image's file name (with or without "
+                                     "its extension), or delete the row")
+            values: list[float] = []
+            for key, col in zip(POSE_KEYS, POSE_FIELDS):
+                text = cell(col)
+                if not text:
+                    values.append(math.nan)
+                    continue
+                try:
+                    value = float(text)
+                except ValueError:
+                    raise TelemetryError(f"{where}, column {col}: {text!r} is not a number; {_CSV_FIX[key]}, "
+                                         "or leave the cell empty for unknown") from None
+                if (why := limit_error(key, value)) is not None:
+                    raise TelemetryError(f"{where}, column {col}: {text} {why}; {_CSV_FIX[key]}, or leave the "
+                                         "cell empty for unknown")
+                values.append(value)
+            key = _csv_key(name)
+            telemetry = PoseTelemetry.from_values(values, f"{path.name} line {line}")
+            if key in out:
+                previous = out[key]
+                if not np.array_equal(previous.values(), telemetry.values(), equal_nan=True):
+                    raise TelemetryError(f"{where}: `{name}` is already on line {first_line[key]} with different "
+                                         f"values ({_show(previous)} there, {_show(telemetry)} here); keep one "
+                                         "row per image")
+                continue
+            out[key], first_line[key] = telemetry, line
+    return out

@@ -1,0 +1,150 @@
+"""What every telemetry reader produces: :class:`PoseTelemetry`, its limits, its errors and the FoV maths."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, fields
+from os import PathLike
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from dapm_lightning.geometry.constants import POSE_KEYS
+
+StrPath = str | PathLike[str]
+
+POSE_FIELDS: tuple[str, str, str, str] = ("height_m", "pitch_deg", "roll_deg", "fov_deg")
+""":class:`PoseTelemetry`'s value fields (and the CSV's value columns), in ``POSE_KEYS`` order."""
+
+FULL_FRAME_DIAGONAL_MM: float = math.hypot(36.0, 24.0)
+"""43.27 mm: the diagonal of a 36 x 24 mm frame, to which a 35-mm-equivalent focal length refers."""
+
+
+class TelemetryError(ValueError):
+    """Telemetry that is there but unusable: the message names the file, the row / frame / tag and the fix."""
+
+
+class TelemetryWarning(UserWarning):
+    """Telemetry ignored or left unknown (names in a CSV that match no image, a relative altitude <= 0, ...)."""
+
+
+def limit_error(key: str, value: float) -> str | None:
+    """Why ``value`` is impossible for pose component ``key`` (``None`` when it is possible)."""
+    if not math.isfinite(value):
+        return "is not finite"
+    if key == "height" and value <= 0:
+        return "must be > 0 m (metres above the ground under the camera)"
+    if key in ("pitch", "roll") and abs(value) > 180:
+        return "must be within [-180, 180] degrees"
+    if key == "fov" and not 0 < value < 180:
+        return "must be within (0, 180) degrees (horizontal field of view)"
+    return None
+
+
+@dataclass(frozen=True, eq=False)
+class PoseTelemetry:
+    """A pose prior from telemetry in the project's conventions (design.md §1); NaN = unknown.
+
+    Args:
+        height_m: metres above the ground under the camera. pitch_deg: 0 = horizontal, -90 = nadir.
+        roll_deg: positive = camera turned clockwise seen from behind (horizon's right end up).
+        fov_deg: horizontal field of view across the image width. source: where the known values came
+            from (``"flight.csv line 4"``, ``"DJI_0001.JPG XMP/EXIF"``, ``"DJI_0002.SRT frame 12"``).
+
+    Raises:
+        ValueError: a known value that is physically impossible (height <= 0, |pitch| or |roll| > 180,
+            fov outside (0, 180), or infinite).
+    """
+
+    height_m: float = math.nan
+    pitch_deg: float = math.nan
+    roll_deg: float = math.nan
+    fov_deg: float = math.nan
+    source: str = ""
+
+    def __post_init__(self) -> None:
+        for key, name in zip(POSE_KEYS, POSE_FIELDS):
+            value = float(getattr(self, name))
+            object.__setattr__(self, name, value)
+            if not math.isnan(value) and (why := limit_error(key, value)) is not None:
+                raise ValueError(f"PoseTelemetry{f' ({self.source})' if self.source else ''}: {name} = {value!r} "
+                                 f"{why}; use NaN for unknown")
+
+    @classmethod
+    def from_values(cls, values: Sequence[float], source: str) -> PoseTelemetry:
+        """A :class:`PoseTelemetry` from 4 values in ``POSE_KEYS`` order (height, pitch, roll, fov)."""
+        h, p, r, f = values
+        return cls(height_m=h, pitch_deg=p, roll_deg=r, fov_deg=f, source=source)
+
+    def values(self) -> npt.NDArray[np.float64]:
+        """``[4]`` float64 in ``POSE_KEYS`` order (height, pitch, roll, fov); NaN where unknown."""
+        return np.array([self.height_m, self.pitch_deg, self.roll_deg, self.fov_deg], dtype=np.float64)
+
+    def known(self) -> tuple[bool, bool, bool, bool]:
+        """Which components are known, in ``POSE_KEYS`` order."""
+        h, p, r, f = (not math.isnan(v) for v in (self.height_m, self.pitch_deg, self.roll_deg, self.fov_deg))
+        return h, p, r, f
+
+    def merged(self, fallback: PoseTelemetry) -> PoseTelemetry:
+        """This telemetry's known components, the others from ``fallback``; ``source`` says which came whence."""
+        own, other = self.known(), fallback.known()
+        mine = [k for k, o in zip(POSE_KEYS, own) if o]
+        theirs = [k for k, o, t in zip(POSE_KEYS, own, other) if not o and t]
+        if mine and theirs:
+            source = f"{self.source} ({', '.join(mine)}); {fallback.source} ({', '.join(theirs)})"
+        else:
+            source = self.source if mine else fallback.source if theirs else ""
+        values = [a if o else b for a, b, o in zip(self.values().tolist(), fallback.values().tolist(), own)]
+        return PoseTelemetry.from_values(values, source)
+
+    def _key(self) -> tuple[Any, ...]:
+        return (*(None if math.isnan(v) else v for v in self.values().tolist()), self.source)
+
+    def __eq__(self, other: object) -> bool:
+        """Equal when the same components are known with the same values (NaN equals NaN) and the same source."""
+        if not isinstance(other, PoseTelemetry):
+            return NotImplemented
+        return self._key() == other._key()
+
+    def __hash__(self) -> int:
+        return hash(self._key())
+
+    def __repr__(self) -> str:
+        parts = [f"{f.name}={getattr(self, f.name)!r}" for f in fields(self)
+                 if f.name == "source" or not math.isnan(getattr(self, f.name))]
+        return f"PoseTelemetry({', '.join(parts)})"
+
+
+# --------------------------------------------------------------------------------------------------- FoV
+
+
+def horizontal_fov_from_focal_35mm(f35_mm: float, width: int, height: int) -> float:
+    """Horizontal FoV (degrees) of a ``width`` x ``height`` image from its 35-mm-equivalent focal length.
+
+    Diagonal definition (CIPA / Exif practice): the image's diagonal is equated with a 36 x 24 mm frame's
+    43.27 mm, so the image width corresponds to ``43.27 * W / sqrt(W^2 + H^2)`` mm and
+    ``fov = 2 * atan(that / (2 * f35))``. For a 3:2 image that is exactly 36 mm; 24 mm on a 4000 x 3000
+    image gives 2 * atan(34.62 / 48) = 71.6 degrees.
+    """
+    f35, w, h = float(f35_mm), float(width), float(height)
+    if not (math.isfinite(f35) and f35 > 0):
+        raise ValueError(f"35-mm-equivalent focal length must be a positive number of mm, got {f35_mm!r}")
+    if not (math.isfinite(w) and math.isfinite(h) and w > 0 and h > 0):
+        raise ValueError(f"image size must be positive, got width={width!r} height={height!r}")
+    width_mm = FULL_FRAME_DIAGONAL_MM * w / math.hypot(w, h)
+    return math.degrees(2.0 * math.atan(width_mm / (2.0 * f35)))
+
+
+def horizontal_fov_from_focal(focal_mm: float, sensor_width_mm: float) -> float:
+    """Horizontal FoV (degrees) from the real focal length and the width of the sensor area the image covers.
+
+    ``fov = 2 * atan(sensor_width / (2 * focal))``; e.g. 8.8 mm on a 13.2 mm wide sensor gives 73.7 degrees.
+    """
+    f, s = float(focal_mm), float(sensor_width_mm)
+    if not (math.isfinite(f) and f > 0):
+        raise ValueError(f"focal length must be a positive number of mm, got {focal_mm!r}")
+    if not (math.isfinite(s) and s > 0):
+        raise ValueError(f"sensor width must be a positive number of mm, got {sensor_width_mm!r}")
+    return math.degrees(2.0 * math.atan(s / (2.0 * f)))
