@@ -10,9 +10,8 @@ from pathlib import Path
 import numpy as np
 
 from dapm_lightning.data.uapd import IMAGE_SUFFIXES
-from dapm_lightning.geometry.constants import POSE_KEYS
+from dapm_lightning.geometry.constants import POSE_FIELDS, POSE_KEYS
 from dapm_lightning.inference.telemetry.pose import (
-    POSE_FIELDS,
     PoseTelemetry,
     StrPath,
     TelemetryError,
@@ -20,7 +19,7 @@ from dapm_lightning.inference.telemetry.pose import (
     limit_error,
 )
 
-CSV_COLUMNS: tuple[str, str, str, str, str] = ("name", "height_m", "pitch_deg", "roll_deg", "fov_deg")
+CSV_COLUMNS: tuple[str, ...] = ("name", *POSE_FIELDS)
 """The telemetry CSV's header; only ``name`` is required, a missing value column means unknown."""
 
 CSV_NAME_SUFFIXES: tuple[str, ...] = (*IMAGE_SUFFIXES, ".dng")

@@ -11,12 +11,10 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from dapm_lightning.geometry.constants import POSE_KEYS
+from dapm_lightning.geometry.constants import POSE_FIELDS, POSE_KEYS
 
 StrPath = str | PathLike[str]
 
-POSE_FIELDS: tuple[str, str, str, str] = ("height_m", "pitch_deg", "roll_deg", "fov_deg")
-""":class:`PoseTelemetry`'s value fields (and the CSV's value columns), in ``POSE_KEYS`` order."""
 
 FULL_FRAME_DIAGONAL_MM: float = math.hypot(36.0, 24.0)
 """43.27 mm: the diagonal of a 36 x 24 mm frame, to which a 35-mm-equivalent focal length refers."""
