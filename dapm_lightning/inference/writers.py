@@ -25,13 +25,13 @@ import torch
 from lightning.pytorch.callbacks import BasePredictionWriter
 from lightning.pytorch.utilities import rank_zero_info
 
+from dapm_lightning.data.pictures import colorize_depth
 from dapm_lightning.geometry.camera import horizon_segment
 from dapm_lightning.geometry.constants import POSE_FIELDS, POSE_KEYS, pose_field
 from dapm_lightning.geometry.igd import IGDSpec
 from dapm_lightning.inference.postprocess import Prediction, batch_predictions
 from dapm_lightning.inference.runtime import apply_inference_options
 from dapm_lightning.models.dapm import DAPMOutput
-from dapm_lightning.training.visualize import colorize_depth
 
 Output = Literal["depth_npy", "depth_tiff", "depth16", "depth_color", "sky", "camera", "points", "npz"]
 """A per-image file kind."""
