@@ -53,4 +53,4 @@ if __name__ == "__main__":
     OUT.mkdir(parents=True, exist_ok=True)
     igd_grid()
     pinhole_vs_paper()
-    print(f"wrote figures to {OUT}; the synthetic samples figure: python -m dapm_lightning.tools.bench_synth figure")
+    print(f"wrote figures to {OUT}; the synthetic samples figure: python -m benchmarks.bench_synth figure")

@@ -281,6 +281,11 @@ class PredictionWriter(BasePredictionWriter):
         self.files = PredictionFiles(output_dir, outputs, points_stride, points_max_depth, contact_sheet)
         self.spec = IGDSpec()
 
+    @property
+    def output_dir(self) -> Path:
+        """Where the files go (:attr:`PredictionFiles.output_dir`)."""
+        return self.files.output_dir
+
     def on_predict_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         from dapm_lightning.inference.predictor import apply_inference_options
 
