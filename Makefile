@@ -25,14 +25,15 @@ test: $(STAMP)
 test-all: test  # the README's fast tier first, then the slow tier
 	$(BIN)/python -m pytest -q -m slow
 
+# benchmarks/ beside the package (not in the wheel), run from the repository root
 bench: $(STAMP)
-	$(BIN)/python -m dapm_lightning.tools.bench
-	$(BIN)/python -m dapm_lightning.tools.bench_synth speed
-	$(BIN)/python -m dapm_lightning.tools.bench_predict speed --rounds 3
+	$(BIN)/python -m benchmarks.bench
+	$(BIN)/python -m benchmarks.bench_synth speed
+	$(BIN)/python -m benchmarks.bench_predict speed --rounds 3
 
 # the GPU kit (docs/gpu.md): one command, <= 9 minutes on one GPU; BENCH_GPU_ARGS="--device cpu --tiny" checks it
 bench-gpu: $(STAMP)
-	$(BIN)/python -m dapm_lightning.tools.bench_gpu $(BENCH_GPU_ARGS)
+	$(BIN)/python -m benchmarks.bench_gpu $(BENCH_GPU_ARGS)
 
 # air-gapped GPU nodes (docs/gpu.md): wheels of everything but the node's PyTorch stack, then install from them;
 # WHEELS_TARGET="--python-version 3.10 --platform manylinux2014_x86_64" collects for another Python
@@ -47,7 +48,7 @@ install-offline:
 	$(PYTHON) -m pip install --no-index --find-links $(WHEELS) "dapm-lightning[export]"
 
 lint: $(STAMP)
-	$(BIN)/ruff check dapm_lightning tests
+	$(BIN)/ruff check dapm_lightning tests benchmarks
 	$(BIN)/mypy
 
 clean:

@@ -79,7 +79,7 @@ def architecture() -> None:
         left.text(0.05, y + 0.3, what, fontsize=8.5, va="center")
     right.set_ylim(0, len(FLOW))
     right.set_title("predict: the one path from a source to files")
-    for row, (data, step) in enumerate(FLOW):
+    for row, (data, _) in enumerate(FLOW):
         y = len(FLOW) - 1 - row
         right.add_patch(plt.Rectangle((0.02, y + 0.2), 0.5, 0.65, facecolor="#fff3d6", edgecolor="black"))
         right.text(0.27, y + 0.52, data, fontsize=8.5, ha="center", va="center")
@@ -100,4 +100,4 @@ if __name__ == "__main__":
     igd_grid()
     pinhole_vs_paper()
     architecture()
-    print(f"wrote figures to {OUT}; the synthetic samples figure: python -m dapm_lightning.tools.bench_synth figure")
+    print(f"wrote figures to {OUT}; the synthetic samples figure: python -m benchmarks.bench_synth figure")

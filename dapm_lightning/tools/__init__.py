@@ -1,1 +1,1 @@
-"""Stand-alone tools built on the training core: prediction, export, data-set doctor, benchmarks, quickstart, CARLA."""
+"""Stand-alone tools built on the training core: prediction, export, data-set doctor, quickstart, CARLA."""

@@ -18,7 +18,8 @@ from dapm_lightning.data.uapd import UAPDDataset
 from dapm_lightning.geometry.constants import POSE_KEYS
 from dapm_lightning.geometry.igd import ideal_ground_depth
 from dapm_lightning.metrics import DepthMetrics, PoseMetrics
-from dapm_lightning.training.checkpointing import best_or_last_checkpoint
+from dapm_lightning.tools.evaluate import evaluate
+from dapm_lightning.training.checkpointing import best_or_last_checkpoint, load_dapm_module
 from dapm_lightning.training.lightning_cli import run_lightning_cli
 
 DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "quickstart.yaml"
@@ -49,9 +50,6 @@ def with_telemetry(checkpoint: str, root: Path) -> dict[str, dict[str, float]]:
 
     Telemetry with noise (height 3 m, angles 1°, FoV 2°); returns the depth metrics and those of the pose used.
     """
-    from dapm_lightning.tools.bench_synth import evaluate
-    from dapm_lightning.training.checkpointing import load_dapm_module
-
     module = load_dapm_module(checkpoint).eval()
     rows = evaluate(module, root, torch.zeros(4, dtype=torch.float64), telemetry=True)["full/cond"]
     return {"depth": {k: v for k, v in rows.items() if k in ("d1", "d2", "d3", "abs_rel", "rmse", "sq_rel")},

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import time
 import zlib
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass
@@ -12,6 +13,7 @@ import lightning as L
 import numpy as np
 import torch
 from lightning.pytorch.utilities import rank_zero_warn
+from lightning.pytorch.utilities.types import OptimizerLRSchedulerConfig
 from torch import Tensor
 from torchmetrics import Metric
 
@@ -51,6 +53,11 @@ class OptimizerConfig:
         schedule_steps: planned training length in optimiser steps, for the warm-up/cosine schedule and
             the IGD teacher forcing; None: the trainer's (``max_steps``, or epochs x batches). Fix it when a
             job may be stopped by ``max_steps`` and continued, so no step depends on where the job stopped.
+        schedule_seconds: planned training length in seconds of wall time, for a run bounded by
+            ``trainer.max_time``: the warm-up/cosine schedule then follows the time elapsed since the end of
+            the first optimiser step (in thousandths of the budget; the final rate once it is spent) instead
+            of the steps. The clock is this process's: a resumed job starts it again. The IGD teacher forcing
+            still follows steps. None: the schedule follows steps.
     """
 
     lr: float = 1e-4
@@ -59,6 +66,11 @@ class OptimizerConfig:
     warmup_fraction: float = 0.3
     min_lr_ratio: float = 0.0
     schedule_steps: int | None = None
+    schedule_seconds: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.schedule_seconds is not None and not self.schedule_seconds > 0:
+            raise ValueError(f"model.optimizer.schedule_seconds must be > 0 (or null), got {self.schedule_seconds}")
 
 
 @dataclass(frozen=True)
@@ -368,13 +380,28 @@ class DAPMModule(L.LightningModule):
         planned = self.optimizer_config.schedule_steps or self.trainer.estimated_stepping_batches
         return max(1, int(planned))
 
-    def configure_optimizers(self) -> dict[str, Any]:
+    def configure_optimizers(self) -> OptimizerLRSchedulerConfig:
         config = self.optimizer_config
         optimizer = torch.optim.AdamW(self.parameters(), lr=config.lr, betas=config.betas,
                                       weight_decay=config.weight_decay)
-        total = self.planned_steps
-        scheduler = torch.optim.lr_scheduler.LambdaLR(
-            optimizer, lambda step: warmup_cosine(step, total, config.warmup_fraction, config.min_lr_ratio))
+        if config.schedule_seconds is not None:
+            budget, ticks = float(config.schedule_seconds), 1000
+            started: list[float] = []
+
+            def factor(step: int) -> float:  # by time: the share of the budget gone, in thousandths
+                if step == 0:  # the scheduler's set-up, before the first step: the clock starts after it
+                    return warmup_cosine(0, ticks, config.warmup_fraction, config.min_lr_ratio)
+                if not started:
+                    started.append(time.perf_counter())
+                elapsed = min(ticks, int(ticks * (time.perf_counter() - started[0]) / budget))
+                return warmup_cosine(elapsed, ticks, config.warmup_fraction, config.min_lr_ratio)
+        else:
+            total = self.planned_steps
+
+            def factor(step: int) -> float:
+                return warmup_cosine(step, total, config.warmup_fraction, config.min_lr_ratio)
+
+        scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, factor)
         return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": "step"}}
 
 

@@ -54,7 +54,7 @@ def test_cli_export_int8(checkpoint, tmp_path, capsys):
 
 @pytest.mark.slow
 def test_int8_benchmark_compares_the_three_side_by_side():
-    from dapm_lightning.tools.bench_predict import format_int8, int8_compare
+    from benchmarks.bench_predict import format_int8, int8_compare
 
     rows = int8_compare(backbone="resnet18", size=64, images=2, calibration_images=2, threads=1)
     assert [r["variant"] for r in rows] == ["eager", "onnx float32", "onnx int8"]

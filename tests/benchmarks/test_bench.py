@@ -6,7 +6,7 @@ import math
 import pytest
 import torch
 
-from dapm_lightning.tools.bench import measure, print_table, print_train_compare, train_compare
+from benchmarks.bench import measure, print_table, print_train_compare, train_compare
 
 
 def test_print_table_aligns_columns(capsys):

@@ -1,26 +1,26 @@
 """Inference benchmarks of the predict path: speed side by side, and memory over a long video.
 
-``python -m dapm_lightning.tools.bench_predict speed``: the network at 512x512, batch 1, as eager PyTorch,
+``python -m benchmarks.bench_predict speed``: the network at 512x512, batch 1, as eager PyTorch,
 channels-last, ``torch.compile`` and the exported ONNX model in onnxruntime, measured in alternating
 rounds in one process; each row is a ratio to eager with the largest depth (metres) and pose difference
 to eager on the same input.
 
-``python -m dapm_lightning.tools.bench_predict int8``: eager PyTorch, the float32 ONNX model and its int8
+``python -m benchmarks.bench_predict int8``: eager PyTorch, the float32 ONNX model and its int8
 quantisation (``export --int8``) side by side in one process, batch 1: median latency, and the toolbox d1 and
 pose medians on a fixed synthetic split, with each one's change against eager.
 
-``python -m dapm_lightning.tools.bench_predict memory``: ``dapm-lightning predict`` on a 2,000-frame video
-(tiny model, 64x64 frames, every output written), printing the process's resident memory every 200
-frames: it stays flat because nothing is kept once written.
+``python -m benchmarks.bench_predict memory``: ``dapm-lightning predict`` (the Lightning form) on a 2,000-frame
+video (tiny untrained model or ``--ckpt_path``, 64x64 frames, every output written), printing the process's
+resident memory every 200 frames: it stays flat because nothing is kept once written.
 """
 
 from __future__ import annotations
 
-import resource
 import statistics
 import sys
 import tempfile
 import time
+import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -31,38 +31,55 @@ import numpy as np
 import torch
 from torch import Tensor
 
+import dapm_lightning
+from benchmarks.bench import format_table
+from benchmarks.callbacks import MemoryProbe
 from dapm_lightning.geometry.constants import POSE_KEYS
 from dapm_lightning.models.config import DAPMConfig
 from dapm_lightning.models.dapm import DAPMNet
-from dapm_lightning.tools.bench import format_table
+from dapm_lightning.training.checkpointing import load_dapm_module
+from dapm_lightning.training.module import DAPMModule
+
+PREDICT_CONFIG = Path(dapm_lightning.__file__).resolve().parent / "configs" / "predict.yaml"
+"""The Lightning form of ``dapm-lightning predict`` (``--config configs/predict.yaml``)."""
+TINY_NETWORK = {"backbone": "resnet18", "decoder_channels": 16, "head_channels": 8, "igd_channels": 4,
+                "pose_hidden": 16, "depth_bins": (2, 4), "pose_bins": (4,)}
+"""``memory``'s model when no checkpoint is given: ResNet-18 with a few channels, untrained."""
 
 
-def current_rss_mb() -> float:
-    """Resident memory of this process now (MiB), from /proc; the peak where /proc is missing."""
-    status = Path("/proc/self/status")
-    if status.is_file():
-        for line in status.read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024
-    return peak_rss_mb()
-
-
-def peak_rss_mb() -> float:
-    """Peak resident memory of this process so far (MiB)."""
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    return peak / (1024 * 1024) if sys.platform == "darwin" else peak / 1024
-
-
-def _network(ckpt_path: str | None, backbone: str) -> DAPMNet:
+def _module(ckpt_path: str | None, backbone: str) -> DAPMModule:
+    """The checkpoint's module, or the ``DAPMConfig`` defaults at ``backbone`` with random weights (seed 0)."""
     if ckpt_path:
-        from dapm_lightning.training.module import DAPMModule
-
-        return DAPMModule.load_from_checkpoint(ckpt_path, map_location="cpu", weights_only=True).net.eval()
+        return load_dapm_module(ckpt_path).eval()
     torch.manual_seed(0)
-    net = DAPMNet(DAPMConfig(backbone=backbone)).eval()
-    if net.config.use_depth:  # random weights give all-sky depth; tilt them to ground so differences show
-        net.depth_pqb.blocks[0].body[-1].bias.data.fill_(-4.0)
-    return net
+    module = DAPMModule(net=DAPMConfig(backbone=backbone)).eval()
+    if module.net.config.use_depth:  # random weights give all-sky depth; tilt them to ground so differences show
+        module.net.depth_pqb.blocks[0].body[-1].bias.data.fill_(-4.0)
+    return module
+
+
+def write_checkpoint(module: DAPMModule, path: Path) -> Path:
+    """``module`` as a checkpoint file, written by a Lightning ``Trainer`` as ``fit`` writes one."""
+    trainer = L.Trainer(accelerator="cpu", devices=1, logger=False, enable_checkpointing=False,
+                        enable_progress_bar=False, enable_model_summary=False, default_root_dir=str(path.parent))
+    trainer.strategy.connect(module)
+    trainer.save_checkpoint(path, weights_only=True)  # the weights and settings: nothing to resume
+    return path
+
+
+def export_onnx(ckpt_path: str | Path, out: Path, size: tuple[int, int], int8: bool = False,
+                calibration_images: int = 32) -> Path:
+    """``dapm-lightning export``: the float32 ONNX model (dynamic batch and size), checked once against PyTorch.
+
+    With ``int8`` also its int8 quantisation, calibrated on ``calibration_images`` rendered images: ``out`` is
+    then the int8 file, and the float32 one is beside it without the ``_int8`` of its name.
+    """
+    from dapm_lightning.cli import main as dapm_lightning_cli
+
+    args = ["export", "--ckpt_path", str(ckpt_path), "--out", str(out), "--height", str(size[0]), "--width",
+            str(size[1]), "--checks", "1"]
+    dapm_lightning_cli(args + (["--int8", "true", "--calibration_images", str(calibration_images)] if int8 else []))
+    return out
 
 
 def _outputs(out: Any) -> tuple[Tensor, Tensor]:
@@ -85,7 +102,8 @@ def speed(ckpt_path: str | None = None, backbone: str = "resnet50", size: int = 
     """
     if threads:
         torch.set_num_threads(threads)
-    net = _network(ckpt_path, backbone)
+    module = _module(ckpt_path, backbone)
+    net = module.net
     image = torch.rand(1, 3, size, size, generator=torch.Generator().manual_seed(0))
     variants: dict[str, Callable[[], tuple[Tensor, Tensor]]] = {}
     setup: dict[str, float] = {}
@@ -106,12 +124,10 @@ def speed(ckpt_path: str | None = None, backbone: str = "resnet50", size: int = 
     if onnx:
         import onnxruntime
 
-        from dapm_lightning.inference.onnx import export_onnx
-
         start = time.perf_counter()
         with tempfile.TemporaryDirectory() as folder:
-            path = Path(folder) / "bench.onnx"
-            export_onnx(net, path, (size, size), checks=1, dynamic=True)
+            ckpt = ckpt_path or write_checkpoint(module, Path(folder) / "bench.ckpt")
+            path = export_onnx(ckpt, Path(folder) / "bench.onnx", (size, size))
             options = onnxruntime.SessionOptions()
             if threads:
                 options.intra_op_num_threads = threads
@@ -160,24 +176,26 @@ def int8_compare(ckpt_path: str | None = None, backbone: str = "resnet50", size:
 
     The variants alternate image by image (a noisy machine slows them alike); the median latency counts.
     Accuracy: toolbox d1 (metres) and the pose medians against the rendered truth; the int8 model is calibrated
-    on other rendered images (:func:`~dapm_lightning.inference.onnx.synthetic_calibration`).
+    on other rendered images (``dapm-lightning export --int8 true``).
     """
     import onnxruntime
 
     from dapm_lightning.data.synthetic import generate_uapd
     from dapm_lightning.data.uapd import UAPDDataset
-    from dapm_lightning.inference.onnx import export_onnx, quantize_int8, synthetic_calibration
     from dapm_lightning.metrics import DepthMetrics, PoseMetrics
 
     if threads:
         torch.set_num_threads(threads)
-    net, own_threads = _network(ckpt_path, backbone), torch.get_num_threads()
+    module, own_threads = _module(ckpt_path, backbone), torch.get_num_threads()
+    net = module.net
     with tempfile.TemporaryDirectory() as folder:
         root = generate_uapd(Path(folder) / "split", train=0, val=images, size=size, seed=1, workers=1)
         torch.set_num_threads(own_threads)  # rendering in this process leaves one thread
-        float_path, int8_path = Path(folder) / "float.onnx", Path(folder) / "int8.onnx"
-        export_onnx(net, float_path, (size, size), checks=1, dynamic=True)
-        quantize_int8(float_path, int8_path, synthetic_calibration((size, size), calibration_images))
+        ckpt = ckpt_path or write_checkpoint(module, Path(folder) / "bench.ckpt")
+        int8_path = export_onnx(ckpt, Path(folder) / "model_int8.onnx", (size, size), int8=True,
+                                calibration_images=calibration_images)
+        float_path = Path(folder) / "model.onnx"
+        torch.set_num_threads(own_threads)  # and so may the export's calibration images
         options = onnxruntime.SessionOptions()
         if threads:
             options.intra_op_num_threads = threads
@@ -244,43 +262,41 @@ def write_video(path: Path, frames: int, size: int = 64, seed: int = 0) -> Path:
     return path
 
 
-class MemoryProbe(L.Callback):
-    """Prints resident memory (now and peak) every ``every`` predicted images."""
-
-    def __init__(self, every: int = 200) -> None:
-        self.every, self.seen, self.samples = every, 0, []
-
-    def on_predict_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any,
-                             batch_idx: int, dataloader_idx: int = 0) -> None:
-        before = self.seen
-        self.seen += len(batch["name"])
-        if self.seen // self.every > before // self.every:
-            self.samples.append((self.seen, current_rss_mb(), peak_rss_mb()))
-            print(f"  {self.seen:>6} frames: RSS {self.samples[-1][1]:7.1f} MiB, peak {self.samples[-1][2]:7.1f} MiB",
-                  flush=True)
+def tiny_checkpoint(path: Path, seed: int = 0) -> Path:
+    """A checkpoint of an untrained :data:`TINY_NETWORK` DAPM."""
+    torch.manual_seed(seed)
+    return write_checkpoint(DAPMModule(net=DAPMConfig(**TINY_NETWORK)), path)  # type: ignore[arg-type]
 
 
-def memory(frames: int = 2000, every: int = 200, batch_size: int = 16, out: str | None = None) -> list[tuple]:
-    """``predict`` on a ``frames``-frame video with a tiny model, all outputs written; RSS every ``every`` frames."""
-    from dapm_lightning.inference.datamodule import PredictDataModule
+def memory(frames: int = 2000, every: int = 200, batch_size: int = 16, ckpt_path: str | None = None,
+           image_width: int = 64, num_workers: int = 1, out: str | None = None) -> list[tuple[int, float, float]]:
+    """``dapm-lightning predict`` on a ``frames``-frame video, all outputs written; RSS every ``every`` frames.
+
+    The Lightning form of the command (``--config configs/predict.yaml``: ``PredictionWriter``, nothing kept
+    in memory) on the CPU, with :class:`~benchmarks.callbacks.MemoryProbe` added. ``ckpt_path``: the model
+    (default: an untrained :data:`TINY_NETWORK`); frames are ``image_width`` pixels square; ``out``: where the
+    predictions go (default: a temporary folder). Returns the probe's ``(frames, RSS MiB, peak RSS MiB)`` rows.
+    """
     from dapm_lightning.inference.writers import PredictionWriter
-    from dapm_lightning.training.module import DAPMModule
+    from dapm_lightning.training.lightning_cli import run_lightning_cli
 
-    torch.manual_seed(0)
-    module = DAPMModule(net=DAPMConfig(backbone="resnet18", decoder_channels=16, head_channels=8, igd_channels=4,
-                                       pose_hidden=16, depth_bins=(2, 4), pose_bins=(4,)))
+    warnings.filterwarnings("ignore", message="LightningCLI's args parameter")  # the CLI called from Python
     with tempfile.TemporaryDirectory() as folder:
-        video = write_video(Path(folder) / "long.avi", frames)
-        probe = MemoryProbe(every)
-        writer = PredictionWriter(output_dir=out or str(Path(folder) / "pred"), points_stride=2)
-        trainer = L.Trainer(accelerator="cpu", devices=1, logger=False, callbacks=[writer, probe],
-                            enable_progress_bar=False, enable_model_summary=False)
-        start = time.perf_counter()
-        trainer.predict(module, datamodule=PredictDataModule(source=str(video), image_width=64,
-                                                             batch_size=batch_size, num_workers=1))
-        seconds = time.perf_counter() - start
+        video = write_video(Path(folder) / "long.avi", frames, size=image_width)
+        ckpt = ckpt_path or str(tiny_checkpoint(Path(folder) / "tiny.ckpt"))
+        cli = run_lightning_cli([
+            "predict", "--config", str(PREDICT_CONFIG), "--ckpt_path", ckpt, "--trainer.accelerator", "cpu",
+            "--trainer.enable_progress_bar", "false",
+            "--data.init_args.source", str(video), "--data.init_args.image_width", str(image_width),
+            "--data.init_args.batch_size", str(batch_size), "--data.init_args.num_workers", str(num_workers),
+            "--trainer.callbacks.output_dir", out or str(Path(folder) / "pred"),
+            "--trainer.callbacks+=benchmarks.callbacks.MemoryProbe", "--trainer.callbacks.every", str(every)])
+        probe = next(c for c in cli.trainer.callbacks if isinstance(c, MemoryProbe))
+        writer = next(c for c in cli.trainer.callbacks if isinstance(c, PredictionWriter))
         files = sum(1 for _ in Path(writer.output_dir).iterdir())
-    print(f"{probe.seen} frames in {seconds:.0f} s ({probe.seen / seconds:.1f} frames/s), {files} files written")
+    seconds = probe.seconds
+    print(f"{probe.seen} frames in {seconds:.0f} s ({probe.seen / max(seconds, 1e-9):.1f} frames/s), "
+          f"{files} files written")
     if len(probe.samples) > 2:
         growth = probe.samples[-1][1] - probe.samples[1][1]
         print(f"RSS change from frame {probe.samples[1][0]} to {probe.samples[-1][0]}: {growth:+.1f} MiB")
@@ -288,7 +304,7 @@ def memory(frames: int = 2000, every: int = 200, batch_size: int = 16, out: str 
 
 
 def main(argv: Sequence[str] | None = None) -> None:
-    """``python -m dapm_lightning.tools.bench_predict {speed,memory} [--option value ...]``."""
+    """``python -m benchmarks.bench_predict {speed,int8,memory} [--option value ...]``."""
     from jsonargparse import auto_cli
 
     args = list(sys.argv[1:] if argv is None else argv)
@@ -313,9 +329,10 @@ def main(argv: Sequence[str] | None = None) -> None:
 
         auto_cli(run_int8, args=args[1:], prog="bench_predict int8")
     elif args and args[0] == "memory":
-        def run_memory(frames: int = 2000, every: int = 200, batch_size: int = 16) -> None:
+        def run_memory(frames: int = 2000, every: int = 200, batch_size: int = 16, ckpt_path: str | None = None,
+                       image_width: int = 64, num_workers: int = 1, out: str | None = None) -> None:
             """Resident memory while predicting a long video (tiny model, every output written)."""
-            memory(frames, every, batch_size)
+            memory(frames, every, batch_size, ckpt_path, image_width, num_workers, out)
 
         auto_cli(run_memory, args=args[1:], prog="bench_predict memory")
     else:

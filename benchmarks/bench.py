@@ -1,5 +1,7 @@
 """``make bench``: model size, compute, latency and memory of DAPM configurations, printed as a table.
 
+``python -m benchmarks.bench`` from the repository root; ``--train-compare`` trains the networks side by side.
+
 Latency ratios are measured in one process, side by side (the machine is noisy; compare ratios).
 """
 
@@ -7,21 +9,25 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import resource
 import statistics
 import subprocess
 import sys
 import time
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 import torch
-from lightning.pytorch import Callback
 from torch.utils.flop_counter import FlopCounterMode
 
+import dapm_lightning
+from benchmarks.callbacks import StepTimer
 from dapm_lightning.geometry.constants import POSE_KEYS
 from dapm_lightning.models import EFFICIENT_NETWORK, PAPER_NETWORK, DAPMConfig, DAPMNet
+
+REPO = Path(__file__).resolve().parents[1]
+"""The repository root (``python -m benchmarks.bench`` runs from there)."""
 
 CONFIGS: dict[str, dict[str, Any]] = {
     "efficient": dict(EFFICIENT_NETWORK),
@@ -105,25 +111,6 @@ def data_pipeline(size: int, images: int, repeats: int) -> list[dict[str, Any]]:
                  "mb_per_sample": sample_bytes(dict(dataset[0])) / 2**20} for dtype, dataset in datasets.items()]
 
 
-class StepTimer(Callback):
-    """Seconds of every training step (forward, loss, backward and optimizer step; loading excluded), last loss."""
-
-    def __init__(self) -> None:
-        self.seconds: list[float] = []
-        self.loss, self._start = math.nan, 0.0
-
-    def on_train_batch_start(self, trainer: Any, pl_module: Any, batch: Any, batch_idx: int) -> None:
-        self._start = time.perf_counter()
-
-    def on_train_batch_end(self, trainer: Any, pl_module: Any, outputs: Any, batch: Any, batch_idx: int) -> None:
-        self.seconds.append(time.perf_counter() - self._start)
-        loss = outputs.get("loss") if isinstance(outputs, dict) else outputs
-        self.loss = float(loss) if isinstance(loss, torch.Tensor) else math.nan
-        if len(self.seconds) % 50 == 0:
-            print(f"step {len(self.seconds)}: {statistics.median(self.seconds):.2f} s/step, loss {self.loss:.3f}",
-                  file=sys.stderr, flush=True)
-
-
 def train_compare(configs: list[str], *, backbone: str, size: int, steps: int, batch: int, train_images: int,
                   val_images: int, seed: int = 0) -> list[dict[str, Any]]:
     """Train each network configuration as ``dapm-lightning fit`` trains it; speed and accuracy.
@@ -135,14 +122,13 @@ def train_compare(configs: list[str], *, backbone: str, size: int, steps: int, b
     authors' protocol, pose medians). ``s_per_step`` is the median step time (loading excluded).
     """
     import tempfile
-    from pathlib import Path
 
     from lightning.pytorch.callbacks import Checkpoint
 
     from dapm_lightning.data.synthetic import generate_uapd
     from dapm_lightning.training.lightning_cli import run_lightning_cli
 
-    quickstart = Path(__file__).resolve().parents[1] / "configs" / "quickstart.yaml"
+    quickstart = Path(dapm_lightning.__file__).resolve().parent / "configs" / "quickstart.yaml"
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         generate_uapd(Path(tmp) / "data", train=train_images, val=val_images, size=size, seed=seed)
@@ -250,9 +236,9 @@ def main(argv: list[str] | None = None) -> None:
     for device in devices:
         for config in CONFIGS:
             repeats = args.repeats if (config == "efficient" or device == "cuda") else 1
-            cmd = [sys.executable, "-m", "dapm_lightning.tools.bench", "--one", config, "--backbone", args.backbone,
+            cmd = [sys.executable, "-m", "benchmarks.bench", "--one", config, "--backbone", args.backbone,
                    "--size", str(args.size), "--repeats", str(repeats), "--device", device]
-            result = subprocess.run(cmd, check=True, capture_output=True, text=True)
+            result = subprocess.run(cmd, check=True, capture_output=True, text=True, cwd=REPO)
             rows.append(json.loads(result.stdout.strip().splitlines()[-1]))
     print(f"DAPM forward, {args.backbone}, {args.size}x{args.size}, batch 1, {torch.get_num_threads()} CPU threads")
     print_table(rows, [("config", "config", 16, ""), ("device", "device", 7, ""), ("params_m", "params M", 9, ".2f"),

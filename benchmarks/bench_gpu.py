@@ -1,56 +1,55 @@
 """``make bench-gpu``: the GPU kit. One command turns the first GPU into figures (docs/gpu.md).
 
-``python -m dapm_lightning.tools.bench_gpu [--out outputs/bench_gpu]`` renders its own synthetic data
-(512² and 256², every core), then measures, in one process:
+``python -m benchmarks.bench_gpu [--out outputs/bench_gpu]`` (from the repository root) renders its own synthetic
+data (512² and 256², every core), then measures, in one process:
 
 1. **loader**: loader-only samples/s at 512² (decode + augmentation, all workers, nothing on the device);
 2. **train**: the paper network and the efficient variant, ``--train-steps`` steps of batch 8 at 512², with
    ``32-true`` and ``bf16-mixed``, channels-last off and on: s/step, images/s, peak device memory and the
-   share of step time spent waiting on the loader (stall); every loss finite;
+   share of step time spent waiting on the loader (stall); every loss finite. Each run is ``DAPMModule`` in a
+   Lightning ``Trainer`` on ``UAPDDataModule``, measured by callbacks (:mod:`benchmarks.callbacks`);
 3. **bf16 vs fp32**: the loss curves of the same seed and batches, their largest relative gap;
 4. **inference** at 512², batch 1 and 16: eager fp32 and bf16, channels-last, ``torch.compile`` (CUDA graphs
    on a GPU: ``mode="reduce-overhead"``), onnxruntime (its CUDA provider where the wheel has one): FPS and
    the ratio to the paper's Table 7 (24.1 FPS);
 5. **learning**: the efficient variant trained for the rest of ``--budget-s`` at 256² on a fixed synthetic
-   split: val d1 and pose medians at the end.
+   split (``Trainer(max_time=...)``, the schedule over the time: ``OptimizerConfig.schedule_seconds``), then
+   ``trainer.validate``: val d1 and pose medians.
 
 It writes ``bench_gpu.json`` and ``bench_gpu.md`` to ``--out``. ``--device cpu --tiny`` runs the same path with
 ResNet-18 networks, 64² images and a few steps (about a minute on 2 cores): the kit is tested before a GPU
-exists (tests/tools/test_bench_gpu.py). Timings are only comparable within one run.
+exists (tests/benchmarks/test_bench_gpu.py). Timings are only comparable within one run.
 """
 
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
+import logging
 import math
 import os
 import platform
-import resource
 import statistics
 import sys
 import tempfile
 import time
+import warnings
 from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass
-from datetime import datetime, timezone
+from datetime import datetime, timedelta, timezone
 from pathlib import Path
 from typing import Any
 
+import lightning as L
 import torch
-from torch.utils.data import DataLoader
 
-from dapm_lightning.data.datamodules import collate_samples
-from dapm_lightning.data.sample import depth_masks
+from benchmarks.callbacks import ChannelsLast, LoaderStall, PeakMemory, StepTimer, sync
+from dapm_lightning.data.datamodules import UAPDDataModule
 from dapm_lightning.data.synthetic import generate_uapd, is_current
-from dapm_lightning.data.transforms import train_transform
-from dapm_lightning.data.uapd import UAPDDataset
 from dapm_lightning.geometry.constants import POSE_KEYS
-from dapm_lightning.metrics import DepthMetrics, PoseMetrics
 from dapm_lightning.models import EFFICIENT_NETWORK, PAPER_NETWORK, DAPMConfig, DAPMNet
-from dapm_lightning.training.loss import DAPMLoss, LossConfig
-from dapm_lightning.training.module import warmup_cosine
+from dapm_lightning.training.loss import LossConfig
+from dapm_lightning.training.module import DAPMModule, OptimizerConfig
 
 TABLE7_FPS = 24.1
 """The paper's Table 7: DAPM at 512², fp32, on their GPU."""
@@ -58,6 +57,13 @@ TABLE7_FPS = 24.1
 NETWORKS = {"paper": dict(PAPER_NETWORK), "efficient": dict(EFFICIENT_NETWORK)}
 NARROW = {"decoder_channels": 16, "head_channels": 8, "igd_channels": 4, "pose_hidden": 16, "pose_projection": 16}
 """``--tiny``: each network's structure, a few channels wide (the kit's test on a CPU)."""
+
+TRAIN_LOSS = LossConfig(depth_space="log_norm")
+"""The paper configs' loss (Eq. 17 in the authors' space), for every run of the kit."""
+TRAIN_OPTIMIZER = OptimizerConfig(lr=1e-4, weight_decay=0.01, warmup_fraction=0.0, min_lr_ratio=1.0)
+"""The timed runs: AdamW at a constant 1e-4 (no warm-up, no decay: every step alike)."""
+LEARN_LR = 1e-3
+"""The learning phase's peak rate (AdamW, weight decay 0.01; warm-up over 10 %, cosine to 2 % over the time)."""
 
 
 @dataclass(frozen=True)
@@ -68,6 +74,7 @@ class Scale:
     size: int = 512
     learn_size: int = 256
     train_images: int = 256
+    """Training images at ``size``² (and a batch of val images, which a ``Trainer``'s fit sets up unused)."""
     learn_train: int = 2000
     learn_val: int = 200
     batch: int = 8
@@ -86,38 +93,24 @@ class Scale:
                      compile_backend="eager", narrow=True)
 
 
-def sync(device: torch.device) -> None:
-    """Wait for the device (timings end here)."""
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
+def network_config(name: str, scale: Scale) -> DAPMConfig:
+    """One of :data:`NETWORKS` at the scale's backbone (narrow with ``--tiny``), without pretrained weights.
+
+    No ImageNet weights: the node may be offline.
+    """
+    settings = {**NETWORKS[name], **(NARROW if scale.narrow else {})}
+    return DAPMConfig(backbone=scale.backbone, pretrained=False, **settings)
 
 
-def peak_memory_mb(device: torch.device) -> float:
-    """Peak allocated device memory since the last reset (CUDA), or the process's peak RSS (CPU), MiB."""
-    if device.type == "cuda":
-        return torch.cuda.max_memory_allocated(device) / 2**20
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-
-
-def reset_peak_memory(device: torch.device) -> None:
-    """Start a new peak of :func:`peak_memory_mb` (CUDA)."""
-    if device.type == "cuda":
-        torch.cuda.empty_cache()
-        torch.cuda.reset_peak_memory_stats(device)
-
-
-def autocast(device: torch.device, precision: str) -> contextlib.AbstractContextManager[Any]:
-    """Lightning's ``bf16-mixed``: bf16 autocast; ``32-true``: nothing."""
-    if precision == "bf16-mixed":
-        return torch.autocast(device.type, dtype=torch.bfloat16)
-    return contextlib.nullcontext()
+def make_module(name: str, scale: Scale, optimizer: OptimizerConfig = TRAIN_OPTIMIZER, seed: int = 0) -> DAPMModule:
+    """``DAPMModule`` of one of :data:`NETWORKS` with the kit's loss, seeded, untrained."""
+    torch.manual_seed(seed)
+    return DAPMModule(net=network_config(name, scale), loss=TRAIN_LOSS, optimizer=optimizer)
 
 
 def make_net(name: str, scale: Scale, device: torch.device, channels_last: bool, seed: int = 0) -> DAPMNet:
-    """One of :data:`NETWORKS`, seeded, untrained (no pretrained weights: the node may be offline)."""
-    torch.manual_seed(seed)
-    settings = {**NETWORKS[name], **(NARROW if scale.narrow else {})}
-    net = DAPMNet(DAPMConfig(backbone=scale.backbone, pretrained=False, **settings)).to(device)
+    """The network of :func:`make_module` (the same weights for the same seed), for inference."""
+    net = make_module(name, scale, seed=seed).net.to(device)
     return net.to(memory_format=torch.channels_last) if channels_last else net  # type: ignore[call-overload]
 
 
@@ -131,33 +124,36 @@ def render(root: Path, size: int, train: int, val: int, workers: int) -> Path:
     return root
 
 
-def loader(root: Path, split: str, batch: int, workers: int, device: torch.device, *, train: bool = True,
-           seed: int = 0) -> DataLoader[dict[str, Any]]:
-    """The training loader as the data modules build it: uint8 images, seeded augmentation and order."""
-    dataset = UAPDDataset(root, split, train_transform() if train else None, image_dtype="uint8",
-                          augment_seed=seed if train else None)
-    return DataLoader(dataset, batch_size=batch, shuffle=train, drop_last=train, num_workers=workers,
-                      collate_fn=collate_samples, pin_memory=device.type == "cuda",
-                      persistent_workers=workers > 0, generator=torch.Generator().manual_seed(seed))
+def datamodule(root: Path, batch: int, workers: int, device: torch.device, seed: int = 0) -> UAPDDataModule:
+    """The data as ``dapm-lightning fit`` loads it: uint8 images, the default augmentation, seeded order and draws."""
+    return UAPDDataModule(root=str(root), batch_size=batch, num_workers=workers, pin_memory=device.type == "cuda",
+                          persistent_workers=workers > 0, seed=seed)
 
 
-def endless(data: DataLoader[dict[str, Any]]) -> Iterator[dict[str, Any]]:
+def make_trainer(device: torch.device, precision: str, callbacks: list[L.Callback], root: Path | None = None,
+                 **limits: Any) -> L.Trainer:
+    """A one-device ``Trainer`` on ``device`` without logger, checkpoints, progress bar or validation during fit.
+
+    ``limits``: ``max_steps``, ``max_time`` and the like.
+    """
+    cuda = device.type == "cuda"
+    return L.Trainer(accelerator="gpu" if cuda else "cpu", devices=[device.index] if cuda and device.index else 1,
+                     precision=precision, callbacks=callbacks, logger=False, enable_checkpointing=False,
+                     enable_progress_bar=False, enable_model_summary=False, num_sanity_val_steps=0,
+                     limit_val_batches=0, max_epochs=-1, default_root_dir=str(root) if root else None, **limits)
+
+
+def endless(data: Any) -> Iterator[dict[str, Any]]:
     """The loader's batches, epoch after epoch."""
     while True:
         yield from data
 
 
-def to_device(batch: dict[str, Any], device: torch.device, channels_last: bool = False) -> dict[str, Any]:
-    """The batch on the device, the uint8 image as float in [0, 1] (as ``DAPMModule`` does it)."""
-    moved = {k: v.to(device, non_blocking=True) if isinstance(v, torch.Tensor) else v for k, v in batch.items()}
-    image = moved["image"].float().div_(255.0)
-    moved["image"] = image.contiguous(memory_format=torch.channels_last) if channels_last else image
-    return moved
-
-
 def loader_speed(root: Path, batch: int, workers: int, batches: int, device: torch.device) -> dict[str, Any]:
     """Samples/s of the training loader alone (all workers; nothing on the device), after one warm-up batch."""
-    batches_seen = endless(loader(root, "train", batch, workers, device))
+    data = datamodule(root, batch, workers, device)
+    data.setup("fit")
+    batches_seen = endless(data.train_dataloader())
     next(batches_seen)
     start = time.perf_counter()
     for _ in range(batches):
@@ -166,51 +162,27 @@ def loader_speed(root: Path, batch: int, workers: int, batches: int, device: tor
     return {"workers": workers, "batch": batch, "batches": batches, "samples_per_s": batches * batch / seconds}
 
 
-def train_step_fn(net: DAPMNet, criterion: DAPMLoss, optimizer: torch.optim.Optimizer, device: torch.device,
-                  precision: str) -> Callable[[dict[str, Any]], dict[str, float]]:
-    """One optimiser step on a batch (autocast as Lightning's precision plugin does); the loss terms."""
-    def step(batch: dict[str, Any]) -> dict[str, float]:
-        sky, valid = depth_masks(batch["depth"])
-        with autocast(device, precision):
-            out = net(batch["image"])
-            terms = criterion(out, {**batch, "sky": sky, "valid": valid})
-        optimizer.zero_grad(set_to_none=True)
-        terms["total"].backward()
-        optimizer.step()
-        return {k: float(v.detach()) for k, v in terms.items()}  # .item(): also waits for the device
+def train_run(name: str, precision: str, channels_last: bool, root: Path, scale: Scale, steps: int,
+              device: torch.device, workers: int, seed: int = 0) -> dict[str, Any]:
+    """``steps`` timed optimiser steps of ``DAPMModule`` in a ``Trainer`` (after ``scale.warmup_steps`` untimed).
 
-    return step
-
-
-def train_run(name: str, precision: str, channels_last: bool, data: DataLoader[dict[str, Any]], scale: Scale,
-              steps: int, device: torch.device) -> dict[str, Any]:
-    """``steps`` optimiser steps (after ``scale.warmup_steps`` untimed ones); wait and compute timed apart."""
-    net = make_net(name, scale, device, channels_last).train()
-    criterion = DAPMLoss(LossConfig(depth_space="log_norm"), net.config.igd)  # the paper configs' loss
-    optimizer = torch.optim.AdamW(net.parameters(), lr=1e-4, weight_decay=0.01)
-    step = train_step_fn(net, criterion, optimizer, device, precision)
-    batches = endless(data)
-    losses: list[float] = []
-    finite = True
-    for _ in range(scale.warmup_steps):
-        losses.append(step(to_device(next(batches), device, channels_last))["total"])
-    sync(device)
-    reset_peak_memory(device)
-    wait = compute = 0.0
-    for _ in range(steps):
-        start = time.perf_counter()
-        batch = next(batches)
-        fetched = time.perf_counter()
-        terms = step(to_device(batch, device, channels_last))
-        sync(device)
-        wait, compute = wait + fetched - start, compute + time.perf_counter() - fetched
-        losses.append(terms["total"])
-        finite = finite and all(math.isfinite(v) for v in terms.values())
+    The same seed gives the same weights, batches and augmentation, so runs differing only in precision or
+    memory format see the same data. Step time (until the device is done), the wait before each step (loader
+    stall) and peak memory come from callbacks; ``losses``: every step's loss, the untimed ones first.
+    """
+    module = make_module(name, scale, seed=seed)
+    timer, stall, memory = StepTimer(report_every=0), LoaderStall(), PeakMemory(from_step=scale.warmup_steps)
+    callbacks: list[L.Callback] = [stall, timer, memory] + ([ChannelsLast()] if channels_last else [])
+    with tempfile.TemporaryDirectory() as work:
+        trainer = make_trainer(device, precision, callbacks, Path(work), max_steps=scale.warmup_steps + steps)
+        trainer.fit(module, datamodule=datamodule(root, scale.batch, workers, device, seed))
+    compute, wait = sum(timer.seconds[scale.warmup_steps:]), sum(stall.waits[scale.warmup_steps:])
     seconds = wait + compute
+    finite = module.nonfinite_steps == 0 and all(math.isfinite(v) for v in timer.losses)
     return {"network": name, "precision": precision, "channels_last": channels_last, "steps": steps,
             "batch": scale.batch, "s_per_step": seconds / steps, "images_per_s": steps * scale.batch / seconds,
-            "stall_share": wait / seconds, "peak_memory_mb": peak_memory_mb(device), "finite": finite,
-            "losses": losses}
+            "stall_share": wait / seconds, "peak_memory_mb": memory.peak_mb, "finite": finite,
+            "losses": timer.losses}
 
 
 def curve_gap(reference: list[float], other: list[float], window: int = 10) -> dict[str, float]:
@@ -255,7 +227,7 @@ def inference_variants(name: str, scale: Scale, batch: int, device: torch.device
         compiled = torch.compile(net_cl, dynamic=False, mode=mode, backend=scale.compile_backend)
         variants["compile bf16 channels-last"] = lambda: _bf16(device, lambda: compiled(image_cl).depth_m.clone())
     if onnx:
-        session_run = _onnx_runner(net, image, device, work / f"{name}.onnx")
+        session_run = _onnx_runner(name, scale, image, device, work)
         if session_run is not None:
             variants[f"onnxruntime {session_run[1]}"] = session_run[0]
     return variants
@@ -286,21 +258,25 @@ def _bf16(device: torch.device, fn: Callable[[], torch.Tensor]) -> torch.Tensor:
         return fn()
 
 
-def _onnx_runner(net: DAPMNet, image: torch.Tensor, device: torch.device, path: Path
+def _onnx_runner(name: str, scale: Scale, image: torch.Tensor, device: torch.device, work: Path
                  ) -> tuple[Callable[[], Any], str] | None:
-    """Run onnxruntime on the device's provider (CUDA where the wheel has it; the CPU on a CPU); None otherwise."""
+    """Run onnxruntime on the device's provider (CUDA where the wheel has it; the CPU on a CPU); None otherwise.
+
+    The model is :func:`make_module`'s (the eager variants' weights), exported by ``dapm-lightning export``.
+    """
     try:
         import onnxruntime
     except ImportError:
         return None
-    from dapm_lightning.inference.onnx import export_onnx
+    from benchmarks.bench_predict import export_onnx, write_checkpoint
 
     provider = "CUDAExecutionProvider" if device.type == "cuda" else "CPUExecutionProvider"
     if provider not in onnxruntime.get_available_providers():
         return None
+    path = work / f"{name}.onnx"
     if not path.is_file():
-        export_onnx(net.cpu(), path, (image.shape[-2], image.shape[-1]), checks=1, dynamic=True)
-        net.to(device)
+        checkpoint = write_checkpoint(make_module(name, scale), work / f"{name}.ckpt")
+        export_onnx(checkpoint, path, (image.shape[-2], image.shape[-1]))
     session = onnxruntime.InferenceSession(str(path), providers=[provider])
     feed = {"image": image.cpu().numpy()}
     depth_index = [o.name for o in session.get_outputs()].index("depth_m")
@@ -309,32 +285,28 @@ def _onnx_runner(net: DAPMNet, image: torch.Tensor, device: torch.device, path: 
 
 def learn(root: Path, scale: Scale, seconds: float, device: torch.device, workers: int,
           precision: str = "32-true") -> dict[str, Any]:
-    """The efficient variant trained for ``seconds`` (cosine schedule over the time), then validated."""
-    net = make_net("efficient", scale, device, False).train()
-    criterion = DAPMLoss(LossConfig(depth_space="log_norm"), net.config.igd)
-    optimizer = torch.optim.AdamW(net.parameters(), lr=1e-3, weight_decay=0.01)
-    step = train_step_fn(net, criterion, optimizer, device, precision)
-    batches = endless(loader(root, "train", scale.batch, workers, device))
-    start, steps, loss = time.perf_counter(), 0, math.nan
-    while (elapsed := time.perf_counter() - start) < seconds or steps == 0:
-        for group in optimizer.param_groups:  # warm-up and cosine over the time budget (10 % / to 2 %)
-            group["lr"] = 1e-3 * warmup_cosine(int(1000 * elapsed / seconds), 1000, 0.1, 0.02)
-        loss = step(to_device(next(batches), device))["total"]
-        steps += 1
-    train_seconds = time.perf_counter() - start
-    net.eval()
-    depth, pose = DepthMetrics(), PoseMetrics()
-    with torch.inference_mode():
-        for batch in loader(root, "val", scale.batch, workers, device, train=False):
-            batch = to_device(batch, device)
-            out = net(batch["image"])
-            depth.update(out.depth_m, batch["depth"])
-            pose.update(out.pose_physical, batch["pose"])
-    d, p = depth.compute(), pose.compute()
+    """The efficient variant trained for ``seconds`` (warm-up and cosine over the time), then validated.
+
+    ``DAPMModule`` in a ``Trainer(max_time=seconds)`` with ``OptimizerConfig.schedule_seconds``, then
+    ``trainer.validate`` on the val split: the module's own metrics (depth in metres, pose medians).
+    """
+    optimizer = OptimizerConfig(lr=LEARN_LR, weight_decay=0.01, warmup_fraction=0.1, min_lr_ratio=0.02,
+                                schedule_seconds=seconds)
+    module = make_module("efficient", scale, optimizer)
+    timer = StepTimer(report_every=200)
+    data = datamodule(root, scale.batch, workers, device)
+    with tempfile.TemporaryDirectory() as work:
+        trainer = make_trainer(device, precision, [timer], Path(work), max_steps=-1,
+                               max_time=timedelta(seconds=seconds))
+        trainer.fit(module, datamodule=data)
+        trainer.limit_val_batches = 1.0
+        metrics = trainer.validate(module, datamodule=data, verbose=False)[0]
+    steps, train_seconds = len(timer.seconds), timer.span_seconds
     return {"network": "efficient", "precision": precision, "size": scale.learn_size, "steps": steps,
-            "train_s": train_seconds, "images_per_s": steps * scale.batch / train_seconds, "final_loss": loss,
-            "val_images": scale.learn_val, "d1": float(d["d1"]), "abs_rel": float(d["abs_rel"]),
-            **{f"{k}_median": float(p[f"{k}_median"]) for k in POSE_KEYS}}
+            "train_s": train_seconds, "images_per_s": steps * scale.batch / train_seconds, "final_loss": timer.loss,
+            "val_images": scale.learn_val, "d1": float(metrics["val_depth_d1"]),
+            "abs_rel": float(metrics["val_depth_abs_rel"]),
+            **{f"{k}_median": float(metrics[f"val_pose_{k}_median"]) for k in POSE_KEYS}}
 
 
 def device_name(device: torch.device) -> str:
@@ -359,7 +331,7 @@ def run_kit(out: Path, device: torch.device, scale: Scale, *, train_steps: int, 
 
     mark = time.perf_counter()
     cores = os.cpu_count() or 1
-    big = render(data_root / str(scale.size), scale.size, scale.train_images, 0, cores)
+    big = render(data_root / str(scale.size), scale.size, scale.train_images, scale.batch, cores)  # val: fit asks
     small = render(data_root / f"learn{scale.learn_size}", scale.learn_size, scale.learn_train, scale.learn_val,
                    cores)
     mark = phase("render", mark)
@@ -368,13 +340,11 @@ def run_kit(out: Path, device: torch.device, scale: Scale, *, train_steps: int, 
     train_rows = []
     for name in NETWORKS:
         for precision in ("32-true", "bf16-mixed"):
-            for channels_last in (False, True):
-                data = loader(big, "train", scale.batch, workers, device)  # each run: the same batches in order
-                row = train_run(name, precision, channels_last, data, scale, train_steps, device)
+            for channels_last in (False, True):  # each run: the same seed, so the same batches in order
+                row = train_run(name, precision, channels_last, big, scale, train_steps, device, workers)
                 print(f"  {name:<10}{precision:<11}channels-last {channels_last!s:<6}{row['s_per_step']:.3f} s/step, "
                       f"stall {row['stall_share']:.1%}", file=sys.stderr, flush=True)
                 train_rows.append(row)
-                del data
     mark = phase("train", mark)
     gaps = []
     for name in NETWORKS:
@@ -456,6 +426,9 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     if args.device is None:
         parser.error("no GPU on this machine: pass --device cpu --tiny to check the kit")
+    logging.getLogger("lightning.pytorch.utilities.rank_zero").setLevel(logging.WARNING)  # one Trainer a run
+    warnings.filterwarnings("ignore", message=".*does not have many workers")
+    warnings.filterwarnings("ignore", message=".*treespec, LeafSpec.*")
     device = torch.device(args.device)
     if args.threads or args.tiny:
         torch.set_num_threads(args.threads or 1)

@@ -1,10 +1,10 @@
 """Benchmarks of the synthetic generator: rendering speed, and transfer to a scene family never trained on.
 
-``python -m dapm_lightning.tools.bench_synth speed``: images/s of ``generate_uapd`` (PNG files
+``python -m benchmarks.bench_synth speed``: images/s of ``generate_uapd`` (PNG files
 written) at 64, 128 (and 512 with ``--sizes 64 128 512``) with 1 and 2 worker processes, beside
 the previous generator's figures.
 
-``python -m dapm_lightning.tools.bench_synth transfer --held-out downtown``: renders a training set
+``python -m benchmarks.bench_synth transfer --held-out downtown``: renders a training set
 from every other family, trains the quickstart-size model on it (ResNet-18, 64x64, CPU), and tests
 it on each family separately, beside the mean-pose and mean-pose-IGD baselines; the held-out
 family is the transfer figure (target: every pose median at least 2x better than the mean pose,
@@ -24,13 +24,15 @@ from typing import Any
 
 import torch
 
+import dapm_lightning
 from dapm_lightning.data.synthetic import FAMILIES, generate_uapd, is_current
 from dapm_lightning.geometry.constants import MAX_DEPTH_M, SKY_GREY
 from dapm_lightning.geometry.depth_codec import depth_to_grey
+from dapm_lightning.tools.evaluate import evaluate
 
 PREVIOUS_GENERATOR = {64: 46.5, 128: 16.9}
 """images/s of the single-town generator this one replaced (``generate_uapd(size=S, workers=2)``, 2 cores)."""
-QUICKSTART_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "quickstart.yaml"
+QUICKSTART_CONFIG = Path(dapm_lightning.__file__).resolve().parent / "configs" / "quickstart.yaml"
 
 
 def images_per_second(size: int, count: int, workers: int, rounds: int = 2) -> float:
@@ -82,116 +84,6 @@ def _quickstart_config(train_root: Path, out: Path, epochs: int | None, batch_si
     return path
 
 
-def median_scaled(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    """``pred`` times ``median(target) / median(pred)`` per image over the valid pixels (scale-free depth)."""
-    from dapm_lightning.geometry.constants import MAX_DEPTH_M, MIN_DEPTH_M
-
-    scaled = pred.clone()
-    for i in range(pred.shape[0]):
-        valid = (target[i] > MIN_DEPTH_M) & (target[i] < MAX_DEPTH_M)
-        if valid.any():
-            scaled[i] = pred[i] * target[i][valid].median() / pred[i][valid].clamp(min=MIN_DEPTH_M).median()
-    return scaled
-
-
-TELEMETRY_SUBSETS = {"full": (True, True, True, True), "height": (True, False, False, False),
-                     "gravity": (False, True, True, False), "fov": (False, False, False, True)}
-"""Which pose components the telemetry rows know: all, the height, pitch and roll, the FoV."""
-TELEMETRY_NOISE = (3.0, 1.0, 1.0, 2.0)
-"""Telemetry noise of the benchmark, also the σ the model is told: height 3 m, angles 1°, FoV 2°."""
-TELEMETRY_ROWS = tuple(f"{subset}/{mode}" for subset in TELEMETRY_SUBSETS for mode in ("cond", "scale"))
-
-
-def telemetry_prior(pose: torch.Tensor, subset: str, generator: torch.Generator) -> Any:
-    """Noisy telemetry of the true poses ``[B, 4]``: the subset's components known, the rest NaN."""
-    from dapm_lightning.models.prior import PosePrior
-
-    sigma = torch.tensor(TELEMETRY_NOISE, dtype=torch.float64)
-    noisy = pose + torch.randn(pose.shape, generator=generator, dtype=torch.float64) * sigma
-    known = torch.tensor(TELEMETRY_SUBSETS[subset]).expand_as(pose)
-    return PosePrior(torch.where(known, noisy, torch.full_like(noisy, float("nan"))).float(), sigma.float())
-
-
-@torch.no_grad()
-def evaluate(module: torch.nn.Module | None, root: Path, mean_pose: torch.Tensor,
-             batch: int = 32, telemetry: bool = True) -> dict[str, dict[str, float]]:
-    """Metrics on ``root/val`` per row (depth and pose keys).
-
-    Rows: ``model``; ``scale_fixed``: the model's depth rescaled per image to the true median (how much
-    of the depth error is metric scale); ``mean_pose``: the mean training pose and its IGD (no
-    learning); ``true_pose``: the IGD of each image's true pose (what a perfect pose alone gives);
-    with ``telemetry``, ``SUBSET/cond`` and ``SUBSET/scale``: the model given noisy telemetry of the
-    subset (:data:`TELEMETRY_SUBSETS`, :data:`TELEMETRY_NOISE`) into its IGD feature (conditioning), or
-    after it (the depth fitted to the ground of the known pose), see :mod:`dapm_lightning.inference.prior`.
-    """
-    from dapm_lightning.data.uapd import UAPDDataset
-    from dapm_lightning.geometry.igd import ideal_ground_depth
-    from dapm_lightning.inference.prior import apply_pose_prior
-    from dapm_lightning.metrics import DepthMetrics, PoseMetrics
-
-    data = UAPDDataset(root, "val")
-    names = ["model", "scale_fixed", "mean_pose", "true_pose"]
-    names += list(TELEMETRY_ROWS) if module is not None and telemetry else []
-    metrics = {name: (DepthMetrics(), PoseMetrics()) for name in names}
-    poses: dict[str, list[torch.Tensor]] = {"true": [], "model": [], "mean_pose": []}
-    generator = torch.Generator().manual_seed(0)
-    for start in range(0, len(data), batch):
-        samples = [data[i] for i in range(start, min(start + batch, len(data)))]
-        image = torch.stack([s["image"] for s in samples])
-        depth = torch.stack([s["depth"] for s in samples])
-        pose = torch.stack([s["pose"] for s in samples]).double()
-        base = mean_pose[None].expand(len(samples), 4)
-        igd = ideal_ground_depth(base, tuple(depth.shape[-2:]), depth_kind="range")
-        metrics["mean_pose"][0].update(igd.float(), depth)
-        metrics["mean_pose"][1].update(base, pose)
-        poses["true"].append(pose)
-        poses["mean_pose"].append(base)
-        true_igd = ideal_ground_depth(pose, tuple(depth.shape[-2:]), depth_kind="range")
-        metrics["true_pose"][0].update(true_igd.float(), depth)
-        metrics["true_pose"][1].update(pose, pose)
-        if module is not None:
-            out = module(image)
-            metrics["model"][0].update(out.depth_m.float(), depth)
-            metrics["model"][1].update(out.pose_physical.double(), pose)
-            metrics["scale_fixed"][0].update(median_scaled(out.depth_m.float(), depth), depth)
-            metrics["scale_fixed"][1].update(out.pose_physical.double(), pose)
-            poses["model"].append(out.pose_physical.double())
-            spec = module.net_config.igd
-            for subset in TELEMETRY_SUBSETS if telemetry else ():
-                prior = telemetry_prior(pose, subset, generator)  # the same telemetry for both ways of using it
-                for mode, way in (("cond", "condition"), ("scale", "scale")):
-                    outputs = (module(image, prior) if mode == "cond" else out).inference_outputs(spread=True)
-                    outputs, _, _ = apply_pose_prior(outputs, prior, way, spec)  # type: ignore[arg-type]
-                    row = f"{subset}/{mode}"
-                    metrics[row][0].update(outputs["depth_m"].float(), depth)
-                    metrics[row][1].update(outputs["pose"].double(), pose)
-                    poses.setdefault(row, []).append(outputs["pose"].double())
-    result = {}
-    for name, (depth_m, pose_m) in metrics.items():
-        if name in ("model", "scale_fixed") and module is None:
-            continue
-        result[name] = {**{k: float(v) for k, v in depth_m.compute().items()},
-                        **{k: float(v) for k, v in pose_m.compute().items()}}
-        if poses.get(name):
-            result[name].update(scale_errors(torch.cat(poses[name]), torch.cat(poses["true"])))
-    return result
-
-
-def scale_errors(pred: torch.Tensor, true: torch.Tensor) -> dict[str, float]:
-    """Median relative errors of the height and of the ground footprint ``height * tan(fov / 2)``.
-
-    The footprint is what the image shows directly (at nadir, how many metres the picture spans); the
-    height follows from it only with the FoV. ``exp(median |log(pred / true)|) - 1``: 0.25 = off by 25 %.
-    """
-    def relative(a: torch.Tensor, b: torch.Tensor) -> float:
-        return float((a / b).log().abs().median().exp() - 1)
-
-    def footprint(pose: torch.Tensor) -> torch.Tensor:
-        return pose[:, 0] * torch.tan(torch.deg2rad(pose[:, 3]) / 2)
-
-    return {"height_rel": relative(pred[:, 0], true[:, 0]), "footprint_rel": relative(footprint(pred), footprint(true))}
-
-
 COLUMNS = [("d1", "d1"), ("abs_rel", "AbsRel"), ("height_median", "h m"), ("pitch_median", "pitch"),
            ("roll_median", "roll"), ("fov_median", "fov"), ("height_rel", "h rel"), ("footprint_rel", "foot rel")]
 
@@ -222,9 +114,8 @@ def extra_fit_args(args: argparse.Namespace) -> list[str]:
 def transfer(args: argparse.Namespace) -> dict[str, Any]:
     """Render, train on the kept families, test on every family; print the table, write transfer.json."""
     from dapm_lightning.data.uapd import UAPDDataset
-    from dapm_lightning.training.checkpointing import best_or_last_checkpoint
+    from dapm_lightning.training.checkpointing import best_or_last_checkpoint, load_dapm_module
     from dapm_lightning.training.lightning_cli import run_lightning_cli
-    from dapm_lightning.training.module import DAPMModule
 
     warnings.filterwarnings("ignore", message="LightningCLI's args parameter")
     warnings.filterwarnings("ignore", message=".*treespec, LeafSpec.*")
@@ -247,13 +138,13 @@ def transfer(args: argparse.Namespace) -> dict[str, Any]:
     mean_pose = torch.from_numpy(UAPDDataset(train_root, "train").poses.mean(axis=0)).double()
     module = None
     if args.checkpoint:
-        module = DAPMModule.load_from_checkpoint(str(args.checkpoint), map_location="cpu", weights_only=True).eval()
+        module = load_dapm_module(args.checkpoint).eval()
     elif not args.skip_training:
         print(f"[2/3] training the quickstart model on {', '.join(trained)} ({render_minutes:.1f} min so far)")
         config = _quickstart_config(train_root, out, args.epochs, args.batch_size)
         fit = run_lightning_cli(["fit", "--config", str(config), *extra_fit_args(args)])
         best = best_or_last_checkpoint(fit.trainer)
-        module = DAPMModule.load_from_checkpoint(best, map_location="cpu", weights_only=True).eval()
+        module = load_dapm_module(best).eval()
     train_minutes = (time.time() - start) / 60 - render_minutes
     print("[3/3] testing on every family")
     results = {family: evaluate(module, root, mean_pose) for family, root in test_roots.items()}

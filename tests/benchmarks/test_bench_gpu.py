@@ -4,11 +4,14 @@ import json
 import math
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 import torch
 
-from dapm_lightning.tools.bench_gpu import NETWORKS, Scale, curve_gap, main, make_net, train_run
+from benchmarks.bench_gpu import NETWORKS, Scale, curve_gap, main, make_net, render, train_run
+
+REPO = Path(__file__).resolve().parents[2]
 
 
 def test_curve_gap_by_hand():
@@ -24,26 +27,36 @@ def test_without_a_gpu_the_kit_says_how_to_check_it(monkeypatch, capsys):
     assert "--device cpu --tiny" in capsys.readouterr().err
 
 
-def test_a_training_run_times_wait_and_compute_and_keeps_the_loss_curve(tmp_path):
-    from dapm_lightning.tools.bench_gpu import loader, render
+def test_a_training_run_times_wait_and_compute_and_keeps_the_loss_curve(tmp_path, monkeypatch):
+    from dapm_lightning.training.module import DAPMModule
 
+    steps: list[int] = []
+    real_step = DAPMModule.training_step
+
+    def counted(self, batch, batch_idx):
+        steps.append(batch_idx)
+        return real_step(self, batch, batch_idx)
+
+    monkeypatch.setattr(DAPMModule, "training_step", counted)
     scale = Scale.tiny()
-    root = render(tmp_path / "data", 64, 4, 0, 1)
-    rows = [train_run("efficient", "32-true", False, loader(root, "train", 2, 0, torch.device("cpu")), scale, 2,
-                      torch.device("cpu")) for _ in range(2)]
-    assert rows[0]["losses"] == rows[1]["losses"]  # a fresh loader of the seed: the same batches, the same curve
+    root = render(tmp_path / "data", 64, 4, 2, 1)
+    rows = [train_run("efficient", "32-true", False, root, scale, 2, torch.device("cpu"), workers=0)
+            for _ in range(2)]
+    assert len(steps) == 2 * (scale.warmup_steps + 2)  # every step is the module's own, in a Trainer
+    assert rows[0]["losses"] == rows[1]["losses"]  # the same seed: the same weights and batches, the same curve
     row = rows[0]
     assert row["finite"] and len(row["losses"]) == scale.warmup_steps + 2
     assert 0.0 <= row["stall_share"] < 1.0 and row["images_per_s"] == pytest.approx(2 / row["s_per_step"])
+    assert row["peak_memory_mb"] > 0
     tiny_paper = make_net("paper", scale, torch.device("cpu"), False)
     assert tiny_paper.config.head_stride == NETWORKS["paper"]["head_stride"]  # the paper's structure, narrow
 
 
 @pytest.mark.slow
 def test_the_kit_runs_end_to_end_on_the_cpu(tmp_path):
-    """``python -m dapm_lightning.tools.bench_gpu --device cpu --tiny``: every phase, the JSON and the markdown."""
-    result = subprocess.run([sys.executable, "-m", "dapm_lightning.tools.bench_gpu", "--device", "cpu", "--tiny",
-                             "--out", str(tmp_path)], capture_output=True, text=True, timeout=600)
+    """``python -m benchmarks.bench_gpu --device cpu --tiny``: every phase, the JSON and the markdown."""
+    result = subprocess.run([sys.executable, "-m", "benchmarks.bench_gpu", "--device", "cpu", "--tiny",
+                             "--out", str(tmp_path)], capture_output=True, text=True, timeout=600, cwd=REPO)
     assert result.returncode == 0, result.stderr[-3000:]
     report = json.loads((tmp_path / "bench_gpu.json").read_text())
     assert set(report["phase_seconds"]) == {"render", "loader", "train", "inference", "learning"}

@@ -1,0 +1,125 @@
+"""A model against the baselines on a UAPD-format split, with and without telemetry.
+
+Used by the quickstart (``with_telemetry``) and the leave-one-family-out benchmark (``benchmarks/bench_synth.py
+transfer``).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from dapm_lightning.data.uapd import UAPDDataset
+from dapm_lightning.geometry.constants import MAX_DEPTH_M, MIN_DEPTH_M
+from dapm_lightning.geometry.igd import ideal_ground_depth
+from dapm_lightning.inference.prior import apply_pose_prior
+from dapm_lightning.metrics import DepthMetrics, PoseMetrics
+from dapm_lightning.models.prior import PosePrior, PriorMode
+
+TELEMETRY_SUBSETS = {"full": (True, True, True, True), "height": (True, False, False, False),
+                     "gravity": (False, True, True, False), "fov": (False, False, False, True)}
+"""Which pose components the telemetry rows know: all, the height, pitch and roll, the FoV."""
+TELEMETRY_NOISE = (3.0, 1.0, 1.0, 2.0)
+"""Telemetry noise of the evaluation, also the σ the model is told: height 3 m, angles 1°, FoV 2°."""
+TELEMETRY_ROWS = tuple(f"{subset}/{mode}" for subset in TELEMETRY_SUBSETS for mode in ("cond", "scale"))
+
+
+def median_scaled(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """``pred`` times ``median(target) / median(pred)`` per image over the valid pixels (scale-free depth)."""
+    scaled = pred.clone()
+    for i in range(pred.shape[0]):
+        valid = (target[i] > MIN_DEPTH_M) & (target[i] < MAX_DEPTH_M)
+        if valid.any():
+            scaled[i] = pred[i] * target[i][valid].median() / pred[i][valid].clamp(min=MIN_DEPTH_M).median()
+    return scaled
+
+
+def telemetry_prior(pose: torch.Tensor, subset: str, generator: torch.Generator) -> PosePrior:
+    """Noisy telemetry of the true poses ``[B, 4]``: the subset's components known, the rest NaN."""
+    sigma = torch.tensor(TELEMETRY_NOISE, dtype=torch.float64)
+    noisy = pose + torch.randn(pose.shape, generator=generator, dtype=torch.float64) * sigma
+    known = torch.tensor(TELEMETRY_SUBSETS[subset]).expand_as(pose)
+    return PosePrior(torch.where(known, noisy, torch.full_like(noisy, float("nan"))).float(), sigma.float())
+
+
+def scale_errors(pred: torch.Tensor, true: torch.Tensor) -> dict[str, float]:
+    """Median relative errors of the height and of the ground footprint ``height * tan(fov / 2)``.
+
+    The footprint is what the image shows directly (at nadir, how many metres the picture spans); the
+    height follows from it only with the FoV. ``exp(median |log(pred / true)|) - 1``: 0.25 = off by 25 %.
+    """
+    def relative(a: torch.Tensor, b: torch.Tensor) -> float:
+        return float((a / b).log().abs().median().exp() - 1)
+
+    def footprint(pose: torch.Tensor) -> torch.Tensor:
+        return pose[:, 0] * torch.tan(torch.deg2rad(pose[:, 3]) / 2)
+
+    return {"height_rel": relative(pred[:, 0], true[:, 0]), "footprint_rel": relative(footprint(pred), footprint(true))}
+
+
+@torch.no_grad()
+def evaluate(module: Any, root: Path, mean_pose: torch.Tensor, batch: int = 32,
+             telemetry: bool = True) -> dict[str, dict[str, float]]:
+    """Metrics on ``root/val`` per row (depth and pose keys).
+
+    ``module``: a :class:`~dapm_lightning.training.module.DAPMModule` in eval mode, or None (baselines only).
+    Rows: ``model``; ``scale_fixed``: the model's depth rescaled per image to the true median (how much
+    of the depth error is metric scale); ``mean_pose``: the mean training pose and its IGD (no
+    learning); ``true_pose``: the IGD of each image's true pose (what a perfect pose alone gives);
+    with ``telemetry``, ``SUBSET/cond`` and ``SUBSET/scale``: the model given noisy telemetry of the
+    subset (:data:`TELEMETRY_SUBSETS`, :data:`TELEMETRY_NOISE`) into its IGD feature (conditioning), or
+    after it (the depth fitted to the ground of the known pose), see :mod:`dapm_lightning.inference.prior`.
+    """
+    data = UAPDDataset(root, "val")
+    names = ["model", "scale_fixed", "mean_pose", "true_pose"]
+    names += list(TELEMETRY_ROWS) if module is not None and telemetry else []
+    metrics = {name: (DepthMetrics(), PoseMetrics()) for name in names}
+    poses: dict[str, list[torch.Tensor]] = {"true": [], "model": [], "mean_pose": []}
+    generator = torch.Generator().manual_seed(0)
+    for start in range(0, len(data), batch):
+        samples = [data[i] for i in range(start, min(start + batch, len(data)))]
+        image = torch.stack([s["image"] for s in samples])
+        depth = torch.stack([s["depth"] for s in samples])
+        pose = torch.stack([s["pose"] for s in samples]).double()
+        base = mean_pose[None].expand(len(samples), 4)
+        igd = ideal_ground_depth(base, tuple(depth.shape[-2:]), depth_kind="range")
+        metrics["mean_pose"][0].update(igd.float(), depth)
+        metrics["mean_pose"][1].update(base, pose)
+        poses["true"].append(pose)
+        poses["mean_pose"].append(base)
+        true_igd = ideal_ground_depth(pose, tuple(depth.shape[-2:]), depth_kind="range")
+        metrics["true_pose"][0].update(true_igd.float(), depth)
+        metrics["true_pose"][1].update(pose, pose)
+        if module is not None:
+            out = module(image)
+            metrics["model"][0].update(out.depth_m.float(), depth)
+            metrics["model"][1].update(out.pose_physical.double(), pose)
+            metrics["scale_fixed"][0].update(median_scaled(out.depth_m.float(), depth), depth)
+            metrics["scale_fixed"][1].update(out.pose_physical.double(), pose)
+            poses["model"].append(out.pose_physical.double())
+            spec = module.net_config.igd
+            for subset in TELEMETRY_SUBSETS if telemetry else ():
+                prior = telemetry_prior(pose, subset, generator)  # the same telemetry for both ways of using it
+                ways: tuple[tuple[str, PriorMode], ...] = (("cond", "condition"), ("scale", "scale"))
+                for mode, way in ways:
+                    given = (module(image, prior) if mode == "cond" else out).inference_outputs(spread=True)
+                    used = apply_pose_prior(given, prior, way, spec).output
+                    row = f"{subset}/{mode}"
+                    metrics[row][0].update(used.depth_m.float(), depth)
+                    metrics[row][1].update(used.pose.double(), pose)
+                    poses.setdefault(row, []).append(used.pose.double())
+    result = {}
+    for name, (depth_m, pose_m) in metrics.items():
+        if name in ("model", "scale_fixed") and module is None:
+            continue
+        result[name] = {**{k: float(v) for k, v in depth_m.compute().items()},
+                        **{k: float(v) for k, v in pose_m.compute().items()}}
+        if poses.get(name):
+            result[name].update(scale_errors(torch.cat(poses[name]), torch.cat(poses["true"])))
+    return result
+
+
+__all__ = ["TELEMETRY_NOISE", "TELEMETRY_ROWS", "TELEMETRY_SUBSETS", "evaluate", "median_scaled", "scale_errors",
+           "telemetry_prior"]

@@ -1,0 +1,32 @@
+"""The evaluation the quickstart and the transfer benchmark share (dapm_lightning/tools/evaluate.py)."""
+
+import pytest
+import torch
+
+from dapm_lightning.tools.evaluate import median_scaled, scale_errors
+
+
+def test_median_scaled_removes_each_images_scale_only():
+    target = torch.rand(2, 1, 8, 8) * 50 + 5
+    target[0, 0, 0, :3] = float("inf")  # sky: ignored by the median
+    pred = target.clone()
+    pred[0] *= 3.0
+    pred[1] *= 0.5
+    pred[1, 0, 0, 0] = 1.0  # one wrong pixel stays wrong
+    scaled = median_scaled(pred, target)
+    valid = torch.isfinite(target)
+    assert torch.allclose(scaled[0][valid[0]], target[0][valid[0]], rtol=1e-5)
+    assert torch.allclose(scaled[1].flatten()[1:], target[1].flatten()[1:], rtol=0.05)
+    assert not torch.isclose(scaled[1, 0, 0, 0], target[1, 0, 0, 0], rtol=0.05)
+
+
+def test_scale_errors_separate_the_footprint_from_the_height():
+    true = torch.tensor([[40.0, -60.0, 0.0, 60.0], [80.0, -30.0, 5.0, 90.0]], dtype=torch.float64)
+    doubled = true.clone()
+    doubled[:, 0] *= 2
+    assert scale_errors(doubled, true) == pytest.approx({"height_rel": 1.0, "footprint_rel": 1.0})
+    same_footprint = true.clone()  # half the height, a wider FoV: the same ground in the picture
+    same_footprint[:, 0] /= 2
+    same_footprint[:, 3] = torch.rad2deg(2 * torch.atan(2 * torch.tan(torch.deg2rad(true[:, 3]) / 2)))
+    errors = scale_errors(same_footprint, true)
+    assert errors["height_rel"] == pytest.approx(1.0) and errors["footprint_rel"] == pytest.approx(0.0, abs=1e-9)
