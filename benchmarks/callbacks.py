@@ -173,7 +173,7 @@ class MemoryProbe(Callback):
     def on_predict_batch_end(self, trainer: Any, pl_module: Any, outputs: Any, batch: Any, batch_idx: int,
                              dataloader_idx: int = 0) -> None:
         before = self.seen
-        self.seen += len(batch["name"])
+        self.seen += len(batch)  # a PredictBatch
         self.seconds = time.perf_counter() - (self._first or time.perf_counter())
         if self.seen // self.every > before // self.every:
             self.samples.append((self.seen, current_rss_mb(), peak_rss_mb()))
