@@ -11,7 +11,7 @@ elsewhere, and derives the intrinsics and the camera-to-world transform of the p
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -59,6 +59,37 @@ def resize_depth(depth_m: Tensor, size: Sequence[int], max_depth: float = MAX_DE
     return decode_log_depth(torch.where(weight > 1e-3, mixed, plain), max_depth)[0]
 
 
+@dataclass(frozen=True, eq=False)  # eq from Mapping: equal to a dict of the same values
+class CameraPose(Mapping[str, float]):
+    """A pose in physical units: ``height`` m, ``pitch``, ``roll``, ``fov`` deg (docs/conventions.md).
+
+    Read as attributes (``pose.pitch``) or as a mapping in :data:`POSE_KEYS` order (``pose["pitch"]``,
+    ``dict(pose)``, ``pose.items()``).
+    """
+
+    height: float
+    pitch: float
+    roll: float
+    fov: float
+
+    @classmethod
+    def from_tensor(cls, pose: Tensor) -> CameraPose:
+        """From a ``[4]`` tensor in :data:`POSE_KEYS` order."""
+        height, pitch, roll, fov = (float(v) for v in pose.detach().double().cpu())
+        return cls(height, pitch, roll, fov)
+
+    def __getitem__(self, key: str) -> float:
+        if key not in POSE_KEYS:
+            raise KeyError(key)
+        return float(getattr(self, key))
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(POSE_KEYS)
+
+    def __len__(self) -> int:
+        return len(POSE_KEYS)
+
+
 @dataclass
 class PointCloud:
     """Points ``xyz`` ``[N, 3]`` float32 metres in the world frame, optional colours ``rgb`` ``[N, 3]`` uint8."""
@@ -78,7 +109,7 @@ class Prediction:
     Attributes:
         depth_m: ``[H, W]`` float32 metres: exactly ``max_depth`` on sky, below it elsewhere; None for DAPM(P).
         sky: ``[H, W]`` bool: ``sky_prob > 0.5`` (models without a sky stage: depth at the limit).
-        pose: ``{height, pitch, roll, fov}`` (m, deg) used for K, the transform and the points; None for DAPM(D).
+        pose: the :class:`CameraPose` (m, deg) used for K, the transform and the points; None for DAPM(D).
         sky_prob: ``[H, W]`` float32 probability of "beyond max depth", None without a sky stage.
         K: ``[3, 3]`` intrinsics for the input's size from the FoV (pixel ``(i, j)`` centre at
             ``(j + 0.5, i + 0.5)``), None without a pose.
@@ -96,7 +127,7 @@ class Prediction:
 
     depth_m: np.ndarray | None
     sky: np.ndarray | None
-    pose: dict[str, float] | None
+    pose: CameraPose | None
     sky_prob: np.ndarray | None = None
     K: np.ndarray | None = None
     camera_to_world: np.ndarray | None = None
@@ -104,7 +135,7 @@ class Prediction:
     max_depth: float = MAX_DEPTH_M
     name: str = ""
     size: tuple[int, int] = (0, 0)
-    pose_network: dict[str, float] | None = None
+    pose_network: CameraPose | None = None
     pose_source: dict[str, str] | None = None
     scale_from: str = "none"
     rgb: np.ndarray | None = None
@@ -152,8 +183,8 @@ class Prediction:
                                "Z up (docs/conventions.md)"}
 
 
-def _pose_dict(pose: Tensor | None) -> dict[str, float] | None:
-    return None if pose is None else {k: float(v) for k, v in zip(POSE_KEYS, pose.detach().double().cpu())}
+def _camera_pose(pose: Tensor | None) -> CameraPose | None:
+    return None if pose is None else CameraPose.from_tensor(pose)
 
 
 def make_prediction(name: str, size: Sequence[int], depth_m: Tensor | None, sky_prob: Tensor | None,
@@ -181,14 +212,14 @@ def make_prediction(name: str, size: Sequence[int], depth_m: Tensor | None, sky_
         resized = resize_depth(depth_m.detach().float().cpu(), size, spec.max_depth, sky_net)
         depth_t = sky_at_limit(resized, sky_t, spec.max_depth)
         depth, sky = depth_t[0].numpy(), sky_t[0].numpy()
-    pose_dict = _pose_dict(pose)
+    pose_used = _camera_pose(pose)
     k = c2w = None
     if pose is not None:
         pose64 = pose.detach().double().cpu()[None]
         k = intrinsics_matrix(pose64[:, 3], size)[0].numpy()
         c2w = camera_to_world(pose64)[0].numpy()
-    return Prediction(depth, sky, pose_dict, prob, k, c2w, spec.depth_kind, spec.max_depth, name, size,
-                      _pose_dict(pose_network) or pose_dict, dict(pose_source) if pose_source else None)
+    return Prediction(depth, sky, pose_used, prob, k, c2w, spec.depth_kind, spec.max_depth, name, size,
+                      _camera_pose(pose_network) or pose_used, dict(pose_source) if pose_source else None)
 
 
 def predictions_from_outputs(output: InferenceOutput, names: Sequence[str], sizes: Sequence[Sequence[int]],
