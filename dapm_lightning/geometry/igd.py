@@ -99,6 +99,9 @@ def _uapd_ranges() -> dict[str, tuple[float, float]]:
 class IGDSpec:
     """How a pose becomes an ideal ground depth: one specification shared by the network and the loss.
 
+    It also holds what every depth and pose of the model is measured against (the depth limit, what depth
+    measures, the pose normalisation), so metrics and prediction read those from the model's ``net.igd``.
+
     Args:
         model: ``"pinhole"`` (exact) or ``"paper"`` (the paper's approximation), see :func:`ideal_ground_depth`.
         depth_kind: ``"range"`` or ``"planar"``; must be what the data set's depth maps hold.
