@@ -72,7 +72,7 @@ def _quantize(float_out: Path, out: Path, size: tuple[int, int], images: int) ->
     import numpy as np
     import onnxruntime
 
-    from dapm_lightning.inference.onnx import quantize_int8, synthetic_calibration
+    from dapm_lightning.inference.quantize import quantize_int8, synthetic_calibration
 
     start = time.perf_counter()
     quantize_int8(float_out, out, synthetic_calibration(size, images))

@@ -6,8 +6,9 @@ import pytest
 import torch
 
 from dapm_lightning.cli import main
-from dapm_lightning.inference.onnx import export_onnx, quantize_int8, synthetic_calibration
+from dapm_lightning.inference.onnx import export_onnx
 from dapm_lightning.inference.predictor import DAPMPredictor
+from dapm_lightning.inference.quantize import quantize_int8, synthetic_calibration
 from dapm_lightning.models import DAPMConfig
 from dapm_lightning.training.module import DAPMModule
 from tests.inference.test_onnx import TINY
