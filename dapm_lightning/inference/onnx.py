@@ -1,13 +1,21 @@
-"""ONNX: the network as an ONNX model (image in; depth, sky probability and/or pose out), checked on the spot.
+"""ONNX: the network as a self-contained ONNX model, checked against PyTorch on the spot.
 
-Outputs are named as :data:`~dapm_lightning.models.dapm.INFERENCE_OUTPUTS` (those the model has). Batch, height
-and width are dynamic by default (height and width multiples of 32). The ops that differ while exporting are
-defined where the network uses them (:func:`dapm_lightning.models.blocks.adaptive_avg_pool2d`). PyTorch's
-exporter writes the weights of a large model beside the graph, in ``NAME.onnx.data``: keep the two files together.
+Inputs: ``image [B, 3, H, W]`` float RGB in [0, 1] at any height and width (the network size the predict path
+chooses, the same as PyTorch's); a model with a pose branch also takes ``prior [B, 4]`` (height m, pitch, roll,
+fov deg; NaN where unknown) and ``prior_sigma [B, 4]``, fused with the network's pose before its IGD feature
+exactly as in PyTorch. Outputs are named as :data:`~dapm_lightning.models.dapm.INFERENCE_OUTPUTS` (those the model
+has). The file's metadata (:func:`export_metadata`) holds what prediction needs besides the graph: the network's
+settings (depth kind, depth limit, IGD model, pose ranges), the training size, the pose order and units, the sky
+threshold, the project version and the source checkpoint's hash. The ops that differ while exporting are defined
+where the network uses them (:func:`dapm_lightning.models.blocks.adaptive_avg_pool2d`). PyTorch's exporter writes the
+weights of a large model beside the graph, in ``NAME.onnx.data``: keep the two files together.
 """
 
 from __future__ import annotations
 
+import hashlib
+import json
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -15,47 +23,124 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from dapm_lightning.inference.inputs import SIZE_MULTIPLE
+from dapm_lightning import __version__
+from dapm_lightning.geometry.constants import POSE_KEYS, POSE_UNITS, SKY_PROBABILITY_THRESHOLD
+from dapm_lightning.inference.inputs import SIZE_MULTIPLE, network_size
+from dapm_lightning.models.config import DAPMConfig
+from dapm_lightning.models.prior import PosePrior
+
+PRIOR_INPUTS = ("prior", "prior_sigma")
+"""The exported inputs of a model with a pose branch, after ``image``."""
+METADATA_NET = "dapm.net"
+"""The metadata key that marks a dapm-lightning export: the network's settings as JSON."""
 
 
 class ExportWrapper(nn.Module):
-    """``image [B, 3, H, W]`` float RGB in [0, 1] -> the model's outputs among ``depth_m``, ``sky_prob``, ``pose``.
+    """``image`` (and, with a pose branch, ``prior``, ``prior_sigma``) -> the model's outputs, as a tuple.
 
-    ``depth_m [B, 1, H, W]`` metres (sky set to the depth limit), ``sky_prob [B, 1, H, W]``, ``pose [B, 4]``
-    (height m, pitch, roll, fov deg); :attr:`names` lists those this model has. ``half``: the network runs in
-    float16 (call after ``net.half()``); input and outputs stay float32.
+    :attr:`names` lists the outputs this model has, among ``depth_m``, ``sky_prob``, ``pose`` (the pose used),
+    ``pose_network`` (the network's own) and ``pose_spread`` (its bins spread); :attr:`input_names` its inputs.
+    ``half``: the network runs in float16 (call after ``net.half()``); inputs and outputs stay float32.
     """
 
     def __init__(self, net: nn.Module, half: bool = False) -> None:
         super().__init__()
         self.net, self.half_precision = net, half
+        config = getattr(net, "config", None)
+        self.takes_prior = bool(getattr(config, "use_pose", False))
+        self.input_names = ("image", *PRIOR_INPUTS) if self.takes_prior else ("image",)
         dtype = next(net.parameters()).dtype
         with torch.no_grad():
-            out = net(torch.rand(1, 3, SIZE_MULTIPLE * 2, SIZE_MULTIPLE * 2, dtype=dtype))
-        self.names = tuple(out.inference_outputs().named())
+            out = self.forward_outputs(*example_inputs(1, (SIZE_MULTIPLE * 2, SIZE_MULTIPLE * 2), self.takes_prior,
+                                                       dtype=dtype))
+        self.names = tuple(out)
         self.eval()
 
-    def forward(self, image: Tensor) -> tuple[Tensor, ...]:
-        outputs = self.net(image.half() if self.half_precision else image).inference_outputs().named()
-        return tuple(outputs[name].float() for name in self.names)
+    def forward_outputs(self, image: Tensor, prior: Tensor | None = None,
+                        prior_sigma: Tensor | None = None) -> dict[str, Tensor]:
+        """The outputs by name."""
+        pose_prior = None
+        if self.takes_prior and prior is not None and prior_sigma is not None:
+            pose_prior = PosePrior(prior.float(), prior_sigma.float())
+        out = self.net(image.half() if self.half_precision else image, prior=pose_prior)
+        return {name: value.float() for name, value in out.inference_outputs(spread=True).named().items()}
+
+    def forward(self, image: Tensor, prior: Tensor | None = None,
+                prior_sigma: Tensor | None = None) -> tuple[Tensor, ...]:
+        outputs = self.forward_outputs(image, prior, prior_sigma)
+        return tuple(outputs[name] for name in self.names)
+
+
+def example_inputs(batch: int, size: tuple[int, int], takes_prior: bool, *, seed: int = 0,
+                   dtype: torch.dtype = torch.float32) -> tuple[Tensor, ...]:
+    """Random inputs: images, and priors with every component known in some images and unknown in others."""
+    generator = torch.Generator().manual_seed(seed)
+    image = torch.rand(batch, 3, *size, generator=generator).to(dtype)
+    if not takes_prior:
+        return (image,)
+    prior = torch.tensor([40.0, -45.0, 0.0, 70.0]) + 5 * torch.randn(batch, 4, generator=generator)
+    prior = torch.where(torch.rand(batch, 4, generator=generator) < 0.5, prior, torch.full_like(prior, float("nan")))
+    sigma = torch.rand(batch, 4, generator=generator) * torch.tensor([3.0, 1.0, 1.0, 2.0])
+    sigma = torch.where(torch.rand(batch, 4, generator=generator) < 0.5, sigma, torch.zeros_like(sigma))
+    return image, prior, sigma
 
 
 def check_sizes(size: tuple[int, int], dynamic: bool) -> list[tuple[int, int, int]]:
-    """``(batch, H, W)`` of the inputs compared with PyTorch: the export size, and another one if dynamic."""
+    """``(batch, H, W)`` of the inputs compared with PyTorch: the export size, and another aspect if dynamic."""
     sizes = [(1, *size)]
     if dynamic:
-        sizes.append((2, max(SIZE_MULTIPLE, size[0] - SIZE_MULTIPLE), size[1] + SIZE_MULTIPLE))
+        sizes.append((2, max(SIZE_MULTIPLE, size[0] - 13), size[1] + 21))
     return sizes
 
 
+def export_metadata(net: nn.Module, train_image_size: tuple[int, int] | None = None,
+                    source: str | Path | None = None) -> dict[str, str]:
+    """What an exported file says about itself: everything prediction needs besides the graph.
+
+    Args:
+        net: the :class:`~dapm_lightning.models.dapm.DAPMNet` (its :class:`DAPMConfig`).
+        train_image_size: ``(H, W)`` it was trained at (the network size of prediction keeps its pixel count).
+        source: the checkpoint it came from (its SHA-256 is recorded).
+    """
+    config: DAPMConfig = getattr(net, "config")  # noqa: B009 (an nn.Module attribute)
+    igd = config.igd
+    values = {METADATA_NET: json.dumps(config.to_dict(), sort_keys=True),
+              "dapm.version": __version__,
+              "dapm.train_image_size": json.dumps(list(train_image_size) if train_image_size else None),
+              "dapm.pose_order": ",".join(POSE_KEYS),
+              "dapm.pose_units": ",".join(POSE_UNITS[k] for k in POSE_KEYS),
+              "dapm.depth_kind": igd.depth_kind, "dapm.max_depth_m": repr(igd.max_depth),
+              "dapm.igd_model": igd.model, "dapm.sky_threshold": repr(SKY_PROBABILITY_THRESHOLD),
+              "dapm.inputs": "image [B, 3, H, W] float RGB in [0, 1], any H and W"
+                             + ("; prior [B, 4] (height m, pitch, roll, fov deg; NaN unknown); prior_sigma [B, 4]"
+                                if config.use_pose else "")}
+    if source is not None:
+        values["dapm.source_sha256"] = hashlib.sha256(Path(source).read_bytes()).hexdigest()
+    return values
+
+
+def write_metadata(path: str | Path, metadata: Mapping[str, str]) -> None:
+    """Set ``metadata`` as the ONNX file's metadata properties (the weights file beside it is left as it is)."""
+    import onnx
+
+    model = onnx.load(str(path), load_external_data=False)
+    kept = {p.key: p.value for p in model.metadata_props if p.key not in metadata}
+    del model.metadata_props[:]
+    for key, value in {**kept, **metadata}.items():
+        model.metadata_props.add(key=key, value=value)
+    onnx.save(model, str(path))
+
+
 def export_onnx(net: nn.Module, path: str | Path, size: tuple[int, int], *, checks: int = 3, seed: int = 0,
-                dynamic: bool = True, fp16: bool = False) -> list[dict[str, Any]]:
-    """Export ``net`` (a :class:`DAPMNet`) and compare onnxruntime with PyTorch (float32) on random images.
+                dynamic: bool = True, fp16: bool = False,
+                metadata: Mapping[str, str] | None = None) -> list[dict[str, Any]]:
+    """Export ``net`` (a :class:`DAPMNet`) and compare onnxruntime with PyTorch (float32) on random inputs.
 
     Args:
         net: the network (left unchanged). path: the ``.onnx`` file. size: ``(H, W)`` of the example input.
-        checks: random inputs per checked size. dynamic: dynamic batch, height and width (multiples of 32).
+        checks: random inputs per checked size. dynamic: dynamic batch, height and width (any size).
         fp16: half-precision weights and arithmetic.
+        metadata: written into the file (:func:`export_metadata`; default: from ``net`` alone).
 
     Returns:
         one row per random input: ``shape`` and the max absolute difference of each output (``depth_m`` in
@@ -65,42 +150,44 @@ def export_onnx(net: nn.Module, path: str | Path, size: tuple[int, int], *, chec
 
     import onnxruntime
 
-    if dynamic and (size[0] % SIZE_MULTIPLE or size[1] % SIZE_MULTIPLE):
-        raise ValueError(f"height and width must be multiples of {SIZE_MULTIPLE} for a dynamic export, got {size}")
     reference = ExportWrapper(net.eval())
     model = ExportWrapper(copy.deepcopy(net).eval().half(), half=True) if fp16 else reference
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    # a dynamic dimension traced at 1 x 32 would be specialised to 1 by torch.export: trace at 64 or more
-    traced = tuple(max(side, 2 * SIZE_MULTIPLE) for side in size) if dynamic else size
-    example = torch.rand(2 if dynamic else 1, 3, *traced)
+    # torch.export specialises what the example makes look constant: a batch of 1 to 1, and sides that divide by
+    # the strides to expressions true only for such sides; a batch of 2 and odd sides keep the graph general
+    traced = (size[0] | 1, size[1] | 1) if dynamic else size
+    example = example_inputs(2 if dynamic else 1, traced, model.takes_prior, seed=seed)
     dynamic_shapes = None
     if dynamic:
         batch = torch.export.Dim("batch", min=1, max=4096)
-        height = torch.export.Dim("height_32", min=1, max=1024)
-        width = torch.export.Dim("width_32", min=1, max=1024)
-        dynamic_shapes = {"image": {0: batch, 2: SIZE_MULTIPLE * height, 3: SIZE_MULTIPLE * width}}
+        height = torch.export.Dim("height", min=SIZE_MULTIPLE, max=8192)
+        width = torch.export.Dim("width", min=SIZE_MULTIPLE, max=8192)
+        dynamic_shapes = {"image": {0: batch, 2: height, 3: width}}
+        dynamic_shapes.update({name: {0: batch} for name in model.input_names[1:]})
     with torch.no_grad():  # the network's export-time ops: models.blocks.adaptive_avg_pool2d
-        torch.onnx.export(model, (example,), str(path), input_names=["image"], output_names=list(model.names),
-                          dynamo=True, dynamic_shapes=dynamic_shapes, verbose=False)
+        torch.onnx.export(model, example, str(path), input_names=list(model.input_names),
+                          output_names=list(model.names), dynamo=True, dynamic_shapes=dynamic_shapes, verbose=False)
+    write_metadata(path, metadata if metadata is not None else export_metadata(net))
     session = onnxruntime.InferenceSession(str(path), providers=["CPUExecutionProvider"])
-    generator = torch.Generator().manual_seed(seed)
     rows = []
-    for shape in check_sizes(size, dynamic):
-        for _ in range(checks):
-            image = torch.rand(shape[0], 3, *shape[1:], generator=generator)
+    for index, shape in enumerate(check_sizes(size, dynamic)):
+        for check in range(checks):
+            inputs = example_inputs(shape[0], shape[1:], model.takes_prior, seed=seed + 1 + 100 * index + check)
             with torch.no_grad():
-                expected = reference(image)
-            got = session.run(None, {"image": image.numpy()})
+                expected = reference(*inputs)
+            got = session.run(None, {name: value.numpy() for name, value in zip(model.input_names, inputs)})
             rows.append({"shape": shape, **{name: float(np.abs(g - e.numpy()).max())
                                             for name, g, e in zip(model.names, got, expected)}})
     return rows
 
 
-def onnx_session(module: nn.Module, path: Path) -> Any:
-    """An onnxruntime session of ``path``, exported from ``module`` (dynamic sizes, checked) when missing."""
-    import onnxruntime
-
+def ensure_exported(module: nn.Module, path: Path) -> Path:
+    """``path``, exported from ``module`` (dynamic sizes, checked, with its metadata) when it does not exist."""
     if not path.is_file():
-        export_onnx(getattr(module, "net", module).eval(), path, (64, 64), checks=1, dynamic=True)
-    return onnxruntime.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+        net = getattr(module, "net", module).eval()
+        trained = getattr(module, "train_image_size", None)
+        size = network_size(int(trained[0]), int(trained[1]), (int(trained[0]), int(trained[1]))) if trained \
+            else (64, 64)
+        export_onnx(net, path, size, checks=1, dynamic=True, metadata=export_metadata(net, trained))
+    return path

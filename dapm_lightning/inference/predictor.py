@@ -26,6 +26,7 @@ from dapm_lightning.inference.inputs import (
     to_rgb8,
     upscale_note,
 )
+from dapm_lightning.inference.onnx import ensure_exported
 from dapm_lightning.inference.postprocess import Prediction, batch_predictions
 from dapm_lightning.inference.prior import as_prior
 from dapm_lightning.inference.runtime import OnnxRuntime, Precision, Runtime, TorchRuntime
@@ -37,15 +38,17 @@ class DAPMPredictor:
     """Python API: load a checkpoint once, then call it on images, batches, tensors, folders or videos.
 
     Args:
-        module: a :class:`~dapm_lightning.training.module.DAPMModule` (or anything returning a ``DAPMOutput``).
+        module: a :class:`~dapm_lightning.training.module.DAPMModule` (or anything returning a ``DAPMOutput``); None
+            with ``onnx_path``: the exported model alone.
         image_width: network input width (height from each image's aspect); None: the checkpoint's training
             size (the same pixel count in each image's aspect).
         device: ``"cpu"``, ``"cuda"``, ``"cuda:1"``, or ``"auto"`` (a GPU when there is one).
         precision: ``"32"``, ``"bf16"`` or ``"16"`` (autocast; half precision is for GPUs).
         batch_size: images per forward pass when given several.
         channels_last: channels-last memory (NHWC convolutions). compile: ``torch.compile`` the network.
-        onnx_path: run the network in onnxruntime from this ONNX file instead of PyTorch; exported from
-            ``module`` first when the file does not exist. float32 only (pose priors: ``scale`` mode only).
+        onnx_path: run the network in onnxruntime from this exported model (``dapm-lightning export``: float32,
+            fp16 or int8) instead of PyTorch; exported from ``module`` first when given and the file does not
+            exist. Its metadata gives the network's settings and training size; telemetry works as in PyTorch.
         telemetry_mode: how pose priors (telemetry) are used: ``condition`` (into the network's IGD feature),
             ``scale`` (the depth fitted to the known pose's ground afterwards; any checkpoint) or ``both``.
         telemetry_sigma: σ of the telemetry (height m, pitch, roll, fov deg) where a prior gives none; 0: the
@@ -61,36 +64,46 @@ class DAPMPredictor:
         >>> predictor.predict_source("flight/", telemetry="flight.csv")  # CSV, else XMP/EXIF  # doctest: +SKIP
     """
 
-    def __init__(self, module: torch.nn.Module, image_width: int | None = None, device: str = "cpu",
+    def __init__(self, module: torch.nn.Module | None, image_width: int | None = None, device: str = "cpu",
                  precision: Precision = "32", batch_size: int = DEFAULT_BATCH_SIZE, channels_last: bool = False,
                  compile: bool = False, onnx_path: str | Path | None = None, telemetry_mode: PriorMode = "condition",
                  telemetry_sigma: Sequence[float] = EXACT_SIGMA) -> None:
         runtime: Runtime
+        config: Any
+        trained: tuple[int, int] | None = None
         if onnx_path is not None:
             if str(precision) != "32":
-                raise ValueError("onnx_path runs the float32 ONNX model: use precision '32' (or --fp16 at export)")
-            from dapm_lightning.inference.onnx import onnx_session  # onnxruntime: an optional dependency
-
-            runtime = OnnxRuntime(onnx_path, onnx_session(module, Path(onnx_path)))
-            module.eval()
+                raise ValueError("an ONNX model runs in the precision it was exported in: use precision '32'")
+            if module is not None:
+                ensure_exported(module.eval(), Path(onnx_path))
+            onnx_runtime = OnnxRuntime(onnx_path)
+            runtime, trained = onnx_runtime, onnx_runtime.train_image_size
+            config = onnx_runtime.config
+        elif module is None:
+            raise ValueError("give a module (a DAPMModule), or onnx_path: an exported model")
         else:
             runtime = TorchRuntime(module, device, precision, channels_last, compile)
+            config = getattr(module, "net_config", None) or getattr(module, "config", None)
         self.runtime, self.module = runtime, module
-        self.target: NetworkSize = image_width if image_width is not None else checkpoint_network_size(module)
+        if image_width is not None:
+            self.target: NetworkSize = image_width
+        else:
+            self.target = trained if trained is not None else checkpoint_network_size(module)
         self.batch_size = max(1, batch_size)
         settings = PriorSettings(telemetry_mode, tuple(telemetry_sigma))  # type: ignore[arg-type]
         # a runtime that takes no prior (ONNX) applies the known pose afterwards
         self.prior_settings = settings if runtime.takes_prior else PriorSettings("scale", settings.sigma)
-        config = getattr(module, "net_config", None) or getattr(module, "config", None)
         self.spec: IGDSpec = config.igd if config is not None else IGDSpec()
 
     @classmethod
     def from_checkpoint(cls, path: str | Path, image_width: int | None = None, device: str = "cpu",
                         **options: Any) -> DAPMPredictor:
-        """Load a DAPMModule checkpoint (tensors only: ``weights_only=True``); ``options`` as in the class.
+        """Load a DAPMModule checkpoint (tensors only: ``weights_only=True``) or an exported ``.onnx`` model.
 
-        A file that is not a dapm-lightning checkpoint is refused with a message naming it.
+        ``options`` as in the class. A file that is neither is refused with a message naming it.
         """
+        if Path(path).suffix.lower() == ".onnx":
+            return cls(None, image_width, device, onnx_path=path, **options)
         return cls(load_dapm_module(path, map_location="cpu"), image_width, device, **options)
 
     def predict_batch(self, batch: PredictBatch) -> list[Prediction]:

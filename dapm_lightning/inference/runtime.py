@@ -9,6 +9,7 @@ onnxruntime. A new runtime (TensorRT, OpenVINO, ...) is one more class with ``ta
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Any, Final, Literal, Protocol, get_args
 
@@ -16,7 +17,8 @@ import torch
 from torch import Tensor, nn
 
 from dapm_lightning.geometry.image import unit_image
-from dapm_lightning.inference.inputs import SIZE_MULTIPLE, network_size, resize_images
+from dapm_lightning.inference.onnx import METADATA_NET, PRIOR_INPUTS
+from dapm_lightning.models.config import DAPMConfig
 from dapm_lightning.models.dapm import InferenceOutput
 from dapm_lightning.models.prior import PosePrior
 
@@ -91,23 +93,45 @@ class TorchRuntime:
 
 
 class OnnxRuntime:
-    """An exported ONNX model (``dapm-lightning export``) in onnxruntime on the CPU, float32.
+    """A model exported by ``dapm-lightning export`` (float32, fp16 or int8), in onnxruntime on the CPU.
 
-    The model takes no prior (telemetry is applied after it, ``scale`` mode). Its input sides are multiples of
-    32: images are resized to the nearest such size, and the outputs resized back by the post-processing.
+    It runs at the network size it is given, as PyTorch does, and takes the prior into the graph (fused before the
+    IGD feature as in PyTorch). Its metadata gives the network's settings (:attr:`config`) and training size, so the
+    file is all prediction needs. A file that is not such an export is refused with one line saying what it lacks.
     """
 
-    takes_prior = False
-
-    def __init__(self, path: str | Path, session: Any = None) -> None:
+    def __init__(self, path: str | Path) -> None:
         import onnxruntime
 
         self.path = Path(path)
-        self.session = session or onnxruntime.InferenceSession(str(self.path), providers=["CPUExecutionProvider"])
-        self.names = [output.name for output in self.session.get_outputs()]
+        if not self.path.is_file():
+            raise FileNotFoundError(f"{self.path}: no such ONNX file")
+        try:
+            self.session = onnxruntime.InferenceSession(str(self.path), providers=["CPUExecutionProvider"])
+        except Exception as error:  # onnxruntime raises its own exception types
+            raise ValueError(f"{self.path}: onnxruntime cannot load it ({str(error).splitlines()[0]}).\nFix: export "
+                             "it again (dapm-lightning export); keep NAME.onnx.data beside NAME.onnx") from error
+        metadata = self.session.get_modelmeta().custom_metadata_map
+        if METADATA_NET not in metadata:
+            raise ValueError(f"{self.path}: not a dapm-lightning export: its metadata lacks {METADATA_NET} (the "
+                             "network's settings: depth limit, depth kind, pose ranges) and its training size.\n"
+                             "Fix: export the checkpoint with `dapm-lightning export --ckpt_path CKPT`")
+        self.config = DAPMConfig.from_dict(json.loads(metadata[METADATA_NET]))
+        trained = json.loads(metadata.get("dapm.train_image_size", "null"))
+        self.train_image_size: tuple[int, int] | None = (int(trained[0]), int(trained[1])) if trained else None
+        self.input_names = [value.name for value in self.session.get_inputs()]
+        self.names = [value.name for value in self.session.get_outputs()]
+        self.takes_prior = PRIOR_INPUTS[0] in self.input_names
 
     def __call__(self, images: Tensor, prior: PosePrior | None = None) -> InferenceOutput:
-        feed = unit_image(images.cpu()).float()
-        feed = resize_images(feed, network_size(feed.shape[-2], feed.shape[-1], None, SIZE_MULTIPLE))
-        values = self.session.run(None, {"image": feed.numpy()})
-        return InferenceOutput(**{name: torch.from_numpy(value) for name, value in zip(self.names, values)})
+        feed = {"image": unit_image(images.cpu()).float().numpy()}
+        if self.takes_prior:
+            batch = images.shape[0]
+            value = prior.value if prior is not None else torch.full((batch, 4), float("nan"))
+            sigma = prior.sigma if prior is not None else torch.zeros(batch, 4)
+            feed[PRIOR_INPUTS[0]] = value.detach().cpu().float().numpy()
+            feed[PRIOR_INPUTS[1]] = sigma.detach().cpu().float().expand(batch, 4).contiguous().numpy()
+        outputs = {name: torch.from_numpy(value) for name, value in zip(self.names, self.session.run(None, feed))}
+        if prior is None:  # given no prior, the pose used is the network's own (as PyTorch reports it)
+            outputs.pop("pose_network", None)
+        return InferenceOutput(**outputs)

@@ -63,9 +63,9 @@ class PosePrediction(NamedTuple):
     used: Tensor | None = None
 
 
-INFERENCE_OUTPUTS = ("depth_m", "sky_prob", "pose", "pose_network")
+INFERENCE_OUTPUTS = ("depth_m", "sky_prob", "pose", "pose_network", "pose_spread")
 """What inference returns per image, by name: the predict step, the Python API and the ONNX model's outputs
-(``pose_network`` only with a pose prior)."""
+(``pose_network`` only with a pose prior, ``pose_spread`` when asked for)."""
 
 
 @dataclass(frozen=True)
@@ -226,7 +226,8 @@ class DAPMNet(nn.Module):
         pose = None
         if self.pose_decoder is not None:
             pose = self._pose(features, None if depth_coarse is None else depth_coarse.detach())
-            if prior is not None and prior.known.any():
+            # exporting: always fused (a graph has no data-dependent branch; unknown components stay the network's)
+            if prior is not None and (torch.compiler.is_exporting() or prior.known.any()):
                 spread = bins_spread(pose.bin_logits[-1]).detach() if pose.bin_logits else None
                 used_norm = fuse_pose(pose.pose_norm, prior.to(image.device), self.config.igd, spread)
                 pose = pose._replace(used_norm=used_norm, used=self.config.igd.denormalize(used_norm))

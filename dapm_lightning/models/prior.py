@@ -76,7 +76,7 @@ class PosePrior:
             raise ValueError(f"a pose prior's value must be [B, 4], got {tuple(self.value.shape)}")
         sigma = torch.as_tensor(self.sigma, dtype=self.value.dtype, device=self.value.device)
         sigma = torch.nan_to_num(sigma, nan=0.0).expand_as(self.value)
-        if (sigma < 0).any():
+        if not torch.compiler.is_exporting() and (sigma < 0).any():
             raise ValueError("a pose prior's sigma must be >= 0")
         object.__setattr__(self, "sigma", sigma)
 
@@ -114,7 +114,7 @@ def fuse_pose(pose_norm: Tensor, prior: PosePrior, spec: IGDSpec, network_spread
     of the two (``network_spread``: ``[B, 4]`` normalised standard deviation of the network's estimate).
     """
     known = prior.known.to(pose_norm.device)
-    if not known.any():
+    if not torch.compiler.is_exporting() and not known.any():
         return pose_norm
     own = pose_norm.float()  # float32 whatever the autocast: an exact prior comes back exact
     _, ranges = pose_bounds(spec.pose_ranges, own)

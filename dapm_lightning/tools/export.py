@@ -1,8 +1,10 @@
 """dapm-lightning export: an ONNX model (image in; depth, sky probability and/or pose out), checked on the spot.
 
-Any DAPM checkpoint exports: the full model (depth_m, sky_prob, pose), DAPM(D) (depth_m, sky_prob) and
-DAPM(P) (pose). Batch, height and width are dynamic by default (height and width multiples of 32, as
-the predict path feeds them); --fp16 true stores the weights and runs the network in half precision with
+Any DAPM checkpoint exports: the full model (depth_m, sky_prob, pose, with the telemetry inputs prior and
+prior_sigma), DAPM(D) (depth_m, sky_prob) and DAPM(P) (pose). Batch, height and width are dynamic by default
+(any size: the predict path feeds the same network size as PyTorch). The file carries the network's settings
+and training size as metadata, so `dapm-lightning predict SOURCE --ckpt_path MODEL.onnx` needs nothing else.
+--fp16 true stores the weights and runs the network in half precision with
 float32 input and outputs; --int8 true quantises it for CPUs and edge boards (onnxruntime static QDQ
 quantisation, calibrated on images the synthetic generator renders; same input and outputs). After writing,
 onnxruntime and PyTorch run the same random inputs at two sizes and the largest difference of each output is
@@ -16,8 +18,8 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from dapm_lightning.inference.inputs import SIZE_MULTIPLE, checkpoint_network_size, network_size
-from dapm_lightning.inference.onnx import export_onnx
+from dapm_lightning.inference.inputs import checkpoint_network_size, network_size
+from dapm_lightning.inference.onnx import export_metadata, export_onnx, write_metadata
 
 
 def export(ckpt_path: Path, out: Path | None = None, height: int | None = None, width: int | None = None,
@@ -28,10 +30,9 @@ def export(ckpt_path: Path, out: Path | None = None, height: int | None = None, 
     Args:
         ckpt_path: the checkpoint (any DAPM: full, DAPM(D), DAPM(P)); loaded with weights_only=True.
         out: the ONNX file (default: the checkpoint's path with .onnx, or _fp16.onnx).
-        height: example input height (and the checked size); a multiple of 32 when dynamic. Default: the
-            checkpoint's training size.
-        width: example input width; a multiple of 32 when dynamic. Default: the checkpoint's training size.
-        dynamic: dynamic batch, height and width; false: fixed [1, 3, height, width].
+        height: example input height (and the checked size). Default: the checkpoint's training size.
+        width: example input width. Default: the checkpoint's training size.
+        dynamic: dynamic batch, height and width (any size); false: fixed [1, 3, height, width].
         fp16: half-precision weights and arithmetic (float32 input and outputs); for GPUs and Jetsons.
         checks: random inputs compared with PyTorch at each checked size.
         int8: static int8 quantisation (QDQ, per-channel weights) of the float32 model; written as
@@ -42,9 +43,9 @@ def export(ckpt_path: Path, out: Path | None = None, height: int | None = None, 
 
     ckpt_path = Path(ckpt_path)
     module = load_dapm_module(ckpt_path, map_location="cpu")
+    trained = checkpoint_network_size(module)
     if height is None or width is None:
-        trained = checkpoint_network_size(module)
-        height, width = network_size(height or trained[0], width or trained[1], None, SIZE_MULTIPLE)
+        height, width = network_size(height or trained[0], width or trained[1], None)
     if int8 and fp16:
         raise ValueError("--int8 quantises the float32 model: leave --fp16 out")
     suffix = "_fp16" if fp16 else "_int8" if int8 else ""
@@ -53,11 +54,15 @@ def export(ckpt_path: Path, out: Path | None = None, height: int | None = None, 
     if float_out == out:
         float_out = out.with_name(out.stem + "_float32.onnx") if int8 else out
     start = time.perf_counter()
-    rows = export_onnx(module.net.eval(), float_out, (height, width), checks=checks, dynamic=dynamic, fp16=fp16)
+    metadata = {**export_metadata(module.net, module.train_image_size, ckpt_path),
+                "dapm.precision": "float16" if fp16 else "float32"}
+    rows = export_onnx(module.net.eval(), float_out, (height, width), checks=checks, dynamic=dynamic, fp16=fp16,
+                       metadata=metadata)
     if int8:
         _quantize(float_out, out, (height, width), calibration_images)
+        write_metadata(out, {**metadata, "dapm.precision": "int8"})  # the int8 file runs on its own too
     names = [k for k in rows[0] if k != "shape"]
-    shape = "[batch, 3, height, width] (multiples of 32)" if dynamic else f"[1, 3, {height}, {width}]"
+    shape = "[batch, 3, height, width]" if dynamic else f"[1, 3, {height}, {width}]"
     data = out.with_name(out.name + ".data")
     weights = f" (weights in {data.name}: keep it beside the .onnx file)" if data.is_file() else ""
     print(f"wrote {out}{weights} in {time.perf_counter() - start:.0f} s: input 'image' {shape} float RGB in [0, 1]; "

@@ -45,7 +45,9 @@ def build_parser() -> argparse.ArgumentParser:
                      epilog="Every Lightning setting (devices, precision, DDP): "
                             "dapm-lightning predict --config configs/predict.yaml --help")
     parser.add_argument("source", help="folder of images, quoted glob pattern, image or video file")
-    parser.add_argument("--ckpt_path", "--ckpt", required=True, help="a dapm-lightning checkpoint (.ckpt)")
+    parser.add_argument("--ckpt_path", "--ckpt", required=True,
+                        help="a dapm-lightning checkpoint (.ckpt), or a model exported from one (.onnx: float32, fp16 "
+                             "or int8; runs in onnxruntime on the CPU)")
     parser.add_argument("--out", default="predictions", help="output folder (default: %(default)s)")
     parser.add_argument("--device", default="auto", help="cpu, cuda, cuda:N or auto (default: %(default)s)")
     parser.add_argument("--outputs", nargs="+", default=list(DEFAULT_OUTPUTS), metavar="KIND",

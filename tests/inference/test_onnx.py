@@ -30,15 +30,18 @@ def test_size_symbolic_pooling_equals_pytorch():
 def test_dynamic_onnx_matches_pytorch_at_other_sizes(tmp_path):
     net = tiny_net()
     rows = export_onnx(net, tmp_path / "m.onnx", (64, 96), checks=1)
-    assert [r["shape"] for r in rows] == [(1, 64, 96), (2, 32, 128)]  # batch, height and width all changed
+    assert [r["shape"] for r in rows] == [(1, 64, 96), (2, 51, 117)]  # batch, height and width all changed
     for row in rows:
         assert row["depth_m"] < 1e-2 and row["sky_prob"] < 1e-4 and row["pose"] < 1e-3
     session = onnxruntime.InferenceSession(str(tmp_path / "m.onnx"))
-    assert [o.name for o in session.get_outputs()] == ["depth_m", "sky_prob", "pose"]
+    assert [o.name for o in session.get_outputs()] == ["depth_m", "sky_prob", "pose", "pose_network", "pose_spread"]
+    assert [i.name for i in session.get_inputs()] == ["image", "prior", "prior_sigma"]
     batch, _, height, width = session.get_inputs()[0].shape
     assert all(isinstance(d, str) for d in (batch, height, width))  # symbolic: dynamic
-    depth = session.run(["depth_m"], {"image": torch.rand(3, 3, 96, 160).numpy()})[0]
-    assert depth.shape == (3, 1, 96, 160) and (depth < 1000).any()
+    unknown = torch.full((3, 4), float("nan")).numpy()
+    depth = session.run(["depth_m"], {"image": torch.rand(3, 3, 90, 161).numpy(), "prior": unknown,
+                                      "prior_sigma": torch.zeros(3, 4).numpy()})[0]
+    assert depth.shape == (3, 1, 90, 161) and (depth < 1000).any()  # any size, not only multiples of 32
 
 
 @pytest.mark.slow
@@ -48,7 +51,9 @@ def test_every_variant_exports(kind, tmp_path):
                  "pose_only": {"use_depth": False, "use_igd_feature": False}}.get(kind, {})
     rows = export_onnx(tiny_net(**overrides), tmp_path / "m.onnx", (64, 64), checks=1, fp16=kind == "fp16",
                        dynamic=kind != "fixed")
-    names = {"depth_only": ["depth_m", "sky_prob"], "pose_only": ["pose"]}.get(kind, ["depth_m", "sky_prob", "pose"])
+    with_prior = ["pose", "pose_network", "pose_spread"]
+    names = {"depth_only": ["depth_m", "sky_prob"], "pose_only": with_prior}.get(kind, ["depth_m", "sky_prob",
+                                                                                        *with_prior])
     assert [k for k in rows[0] if k != "shape"] == names
     depth_tol, pose_tol = (2.0, 0.2) if kind == "fp16" else (1e-2, 1e-3)  # metres at ~45 m / degrees
     for row in rows:

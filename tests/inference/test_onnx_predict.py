@@ -1,0 +1,102 @@
+"""An exported model runs on its own: predict from the .onnx file, the same network size and numbers as PyTorch."""
+
+import json
+
+import numpy as np
+import onnx
+import pytest
+import torch
+
+from dapm_lightning.cli import main
+from dapm_lightning.inference.predictor import DAPMPredictor
+from dapm_lightning.models import DAPMConfig
+from dapm_lightning.training.module import DAPMModule
+from tests.inference.test_onnx import TINY
+
+SIZES = [(128, 128), (180, 320), (240, 120), (750, 1000), (8, 10)]
+"""(H, W) of the test images: square, wide, tall, large, tiny."""
+
+
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory):
+    """A tiny module (mostly ground, trained at 48 x 80) and its export."""
+    torch.manual_seed(0)
+    module = DAPMModule(net=DAPMConfig(**TINY)).eval()
+    module.net.depth_pqb.blocks[0].body[-1].bias.data.fill_(-4.0)
+    module.train_image_size = (48, 80)
+    path = tmp_path_factory.mktemp("onnx") / "model.onnx"
+    DAPMPredictor(module, onnx_path=path)  # exports: the file does not exist yet
+    return module, path
+
+
+def relative_depth_gap(got, expected):
+    return float(np.median(np.abs(got - expected) / expected))
+
+
+def pose_gap(got, expected):
+    return max(abs(got[k] - expected[k]) for k in expected)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("telemetry", [False, True])
+def test_onnx_equals_eager_at_every_size_with_and_without_telemetry(exported, telemetry):
+    module, path = exported
+    eager = DAPMPredictor(module)
+    alone = DAPMPredictor.from_checkpoint(path)  # the .onnx file only: settings and size from its metadata
+    assert alone.module is None and alone.target == eager.target == (48, 80) and alone.spec == eager.spec
+    rng = np.random.default_rng(1)
+    prior = {"height_m": 35.0, "pitch_deg": -50.0} if telemetry else None
+    for size in SIZES:
+        rgb = rng.integers(0, 255, (*size, 3), np.uint8)
+        want, got = eager(rgb, prior=prior), alone(rgb, prior=prior)
+        assert got.depth_m.shape == size
+        assert relative_depth_gap(got.depth_m, want.depth_m) < 1e-3, size
+        assert pose_gap(got.pose, want.pose) < 0.05 and pose_gap(got.pose_network, want.pose_network) < 0.05
+        assert got.pose_source == want.pose_source
+        if telemetry:  # conditioning: the known components are the telemetry's, and the depth saw them
+            assert got.pose["height"] == pytest.approx(35.0, abs=1e-3)
+            assert pose_gap(got.pose_network, got.pose) > 0.1
+
+
+@pytest.mark.slow
+def test_the_file_says_what_it_is_and_a_foreign_file_is_refused(exported, tmp_path, capsys):
+    _, path = exported
+    metadata = {p.key: p.value for p in onnx.load(str(path), load_external_data=False).metadata_props}
+    net = json.loads(metadata["dapm.net"])
+    assert net["igd"]["max_depth"] == 1000.0 and json.loads(metadata["dapm.train_image_size"]) == [48, 80]
+    assert metadata["dapm.pose_order"] == "height,pitch,roll,fov" and metadata["dapm.pose_units"] == "m,deg,deg,deg"
+    assert metadata["dapm.depth_kind"] == "range" and metadata["dapm.sky_threshold"] == "0.5"
+    foreign = tmp_path / "foreign.onnx"
+    model = onnx.load(str(path))
+    del model.metadata_props[:]
+    onnx.save(model, str(foreign))
+    with pytest.raises(SystemExit) as info:
+        main(["predict", str(tmp_path), "--ckpt_path", str(foreign), "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err
+    assert info.value.code == 1 and "foreign.onnx: not a dapm-lightning export" in err and "Traceback" not in err
+
+
+@pytest.mark.slow
+def test_cli_exports_then_predicts_from_the_onnx_file_alone(checkpoint, tmp_path, capsys):
+    import cv2
+
+    model = tmp_path / "model.onnx"
+    main(["export", "--ckpt_path", str(checkpoint), "--out", str(model), "--checks", "1"])
+    images = tmp_path / "images"
+    images.mkdir()
+    rng = np.random.default_rng(2)
+    for name, size in (("wide", (30, 70)), ("tall", (64, 36))):
+        cv2.imwrite(str(images / f"{name}.png"), rng.integers(0, 255, (*size, 3), np.uint8))
+    table = tmp_path / "flight.csv"
+    table.write_text("name,height_m,pitch_deg,roll_deg,fov_deg\nwide,40,-30,,\n")
+    for ckpt, out in ((checkpoint, tmp_path / "eager"), (model, tmp_path / "onnx")):
+        main(["predict", str(images), "--ckpt_path", str(ckpt), "--out", str(out), "--device", "cpu",
+              "--telemetry", str(table), "--outputs", "depth_npy", "camera"])
+    capsys.readouterr()
+    for name in ("wide", "tall"):
+        eager, onnx_depth = (np.load(tmp_path / kind / f"{name}_depth.npy") for kind in ("eager", "onnx"))
+        assert eager.shape == onnx_depth.shape and relative_depth_gap(onnx_depth, eager) < 1e-3
+        cameras = [json.loads((tmp_path / kind / f"{name}_camera.json").read_text()) for kind in ("eager", "onnx")]
+        for key, entry in cameras[0]["pose"].items():
+            assert entry["source"] == cameras[1]["pose"][key]["source"]
+            assert abs(entry["value"] - cameras[1]["pose"][key]["value"]) < 0.05
