@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 from typing import Any, Literal
 
@@ -11,6 +12,7 @@ import torch
 from torch.utils.data import DataLoader, Dataset
 from torch.utils.data._utils.collate import default_collate
 
+from dapm_lightning.data.errors import SkippedFile
 from dapm_lightning.data.potsdam import PotsdamCrops, PotsdamDataset
 from dapm_lightning.data.sample import Sample
 from dapm_lightning.data.samplers import EpochShuffleSampler
@@ -20,12 +22,19 @@ from dapm_lightning.data.uapd import UAPDDataset
 from dapm_lightning.geometry.constants import MAX_DEPTH_M
 
 
-def collate_samples(samples: list[Sample]) -> dict[str, Any]:
-    """Stack the tensors of a list of samples; ``name`` and ``meta`` stay lists."""
+def collate_samples(items: list[Sample | SkippedFile]) -> dict[str, Any]:
+    """Stack the tensors of a list of samples; ``name`` and ``meta`` stay lists.
+
+    Samples left out because their file failed (:class:`~dapm_lightning.data.errors.SkippedFile`, with
+    ``on_bad_file="skip"``) are dropped; ``skipped`` lists their problems (empty when none was), and
+    :meth:`DAPMDataModule.on_before_batch_transfer` takes it out of the batch and warns once per file.
+    """
+    samples = [s for s in items if not isinstance(s, SkippedFile)]
     batch: dict[str, Any] = {k: default_collate([s[k] for s in samples])  # type: ignore[literal-required]
                              for k in samples[0] if k not in ("name", "meta")}
     batch["name"] = [s["name"] for s in samples]
     batch["meta"] = [s.get("meta", {}) for s in samples]
+    batch["skipped"] = [s.problem for s in items if isinstance(s, SkippedFile)]
     return batch
 
 
@@ -59,6 +68,8 @@ class DAPMDataModule(L.LightningDataModule):
         self.seed = seed
         self._resume_position: dict[str, int] | None = None
         self.datasets: dict[str, Dataset[Sample]] = {}
+        self.skipped_while_loading: list[str] = []
+        """Files that failed after the scan and were left out (``on_bad_file: skip``), in this process, once each."""
 
     def make_dataset(self, split: str, train: bool) -> Dataset[Sample]:
         """The data set of one split (``train`` says whether to augment)."""
@@ -115,6 +126,15 @@ class DAPMDataModule(L.LightningDataModule):
     def load_state_dict(self, state_dict: dict[str, Any]) -> None:
         self._resume_position = dict(state_dict) if state_dict else None
 
+    def on_before_batch_transfer(self, batch: Any, dataloader_idx: int) -> Any:
+        """Warn once per file about samples left out of a batch because their file failed (``on_bad_file: skip``)."""
+        if isinstance(batch, dict):
+            for problem in batch.pop("skipped", []):
+                if problem not in self.skipped_while_loading:
+                    self.skipped_while_loading.append(problem)
+                    warnings.warn(problem, UserWarning, stacklevel=2)
+        return batch
+
     def val_dataloader(self) -> DataLoader[dict[str, Any]]:
         return self._loader("val")
 
@@ -131,7 +151,9 @@ class UAPDDataModule(DAPMDataModule):
     Args:
         root: data set root.
         test_split: folder used by ``test`` and ``predict`` (UAPD publishes train and val only).
-        on_bad_file: ``"raise"`` lists every broken file at start-up; ``"skip"`` leaves them out.
+        on_bad_file: ``"raise"`` lists every broken file at start-up; ``"skip"`` leaves them out, and leaves out of
+            its batch a sample whose file fails later (missing, or damaged after the scan), with a warning naming
+            the file once.
         depth_kind: what the depth PNGs hold ("range" for synthetic data; check real data with the
             doctor); the model's ``depth_kind`` must match.
         max_depth: metres that grey 255 means, the log encoding's limit (UAPD: 1000); the model's
@@ -187,15 +209,16 @@ class PotsdamDataModule(DAPMDataModule):
     ``1_DSM_normalisation/`` (``product: ndsm``, the default) or ``1_DSM/`` (``product: dsm``); the older
     ``rgb/`` + ``height/`` layout also works. Tiles are cut into ``crop_size`` crops on first use and
     split 8:2 with a fixed seed. ``ndsm_scale``: how the 8-bit nDSM becomes metres
-    (:class:`~dapm_lightning.data.potsdam.PotsdamCrops`).
+    (:class:`~dapm_lightning.data.potsdam.PotsdamCrops`). ``on_bad_file``: ``"raise"`` lists every broken crop at
+    start-up; ``"skip"`` leaves them out (and, later, any crop whose file fails).
     """
 
     def __init__(self, root: str = "data/potsdam", crop_size: int = 512, val_fraction: float = 0.2,
                  split_seed: int = 0, product: Literal["ndsm", "dsm"] = "ndsm", ndsm_scale: float | None = None,
-                 **kwargs: Any) -> None:
+                 on_bad_file: Literal["raise", "skip"] = "raise", **kwargs: Any) -> None:
         super().__init__(**kwargs)
         self.root, self.crop_size, self.val_fraction, self.split_seed = Path(root), crop_size, val_fraction, split_seed
-        self.product, self.ndsm_scale = product, ndsm_scale
+        self.product, self.ndsm_scale, self.on_bad_file = product, ndsm_scale, on_bad_file
 
     def prepare_data(self) -> None:
         PotsdamCrops(self.root, crop_size=self.crop_size, product=self.product, ndsm_scale=self.ndsm_scale).prepare()
@@ -204,7 +227,8 @@ class PotsdamDataModule(DAPMDataModule):
         return PotsdamDataset(self.root, "train" if split == "train" else "val",
                               self.split_transform(train), crop_size=self.crop_size,
                               val_fraction=self.val_fraction, seed=self.split_seed, image_dtype=self.image_dtype,
-                              augment_seed=self.seed, product=self.product, ndsm_scale=self.ndsm_scale)
+                              augment_seed=self.seed, product=self.product, ndsm_scale=self.ndsm_scale,
+                              on_bad_file=self.on_bad_file)
 
 
 __all__ = ["DAPMDataModule", "PotsdamDataModule", "SyntheticDataModule", "UAPDDataModule", "collate_samples"]

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import re
+import warnings
 from pathlib import Path
 from typing import Literal
 
@@ -11,7 +12,8 @@ import cv2
 import numpy as np
 import torch
 
-from dapm_lightning.data.errors import DatasetError
+from dapm_lightning.data.errors import BadFileError, DatasetError, SkipsBadFiles, unreadable
+from dapm_lightning.data.pngcheck import read_npy_header, read_png_info, scan_files
 from dapm_lightning.data.sample import Sample, SampleKey, Transform, make_sample, seed_augmentation, split_key
 from dapm_lightning.geometry.constants import MAX_DEPTH_M, MIN_DEPTH_M
 from dapm_lightning.geometry.depth_codec import decode_log_depth
@@ -111,17 +113,24 @@ class PotsdamCrops:
             return self.out
         (self.out / "rgb").mkdir(parents=True, exist_ok=True)
         (self.out / "height").mkdir(parents=True, exist_ok=True)
-        names = []
+        names: list[str] = []
+        problems: list[str] = []
         for rgb_path, height_path in self.pairs():
             rgb = cv2.imread(str(rgb_path), cv2.IMREAD_COLOR)
             height = self.read_height(height_path)
-            if rgb is None or height is None:
-                raise DatasetError(self.root, [f"{rgb_path if rgb is None else height_path}: cannot be decoded"])
+            if rgb is None or height is None:  # every tile is decoded: each one that fails is listed
+                problems += [str(unreadable(path, "cannot be decoded")) for path, image in
+                             ((rgb_path, rgb), (height_path, height)) if image is None]
+                continue
             if height.ndim != 2:
-                raise DatasetError(self.root, [f"{height_path}: height must be single-channel, got {height.shape}"])
+                problems.append(f"{height_path}: height must be single-channel, got {height.shape}")
+                continue
             if height.shape != rgb.shape[:2]:
-                raise DatasetError(self.root, [f"{height_path}: size {height.shape[::-1]} differs from "
-                                               f"{rgb_path.name} {rgb.shape[1::-1]}"])
+                problems.append(f"{height_path}: size {height.shape[::-1]} differs from {rgb_path.name} "
+                                f"{rgb.shape[1::-1]}")
+                continue
+            if problems:  # the crops will not be used: only the remaining tiles' checks matter
+                continue
             s = self.crop_size
             for top in range(0, rgb.shape[0] - s + 1, s):
                 for left in range(0, rgb.shape[1] - s + 1, s):
@@ -130,13 +139,21 @@ class PotsdamCrops:
                     np.save(self.out / "height" / f"{name}.npy",
                             height[top:top + s, left:left + s].astype(np.float32))
                     names.append(name)
+        if problems:
+            raise DatasetError(self.root, problems)
         index.write_text(json.dumps({"crop_size": self.crop_size, "layout": self.kind, "ndsm_scale": self.ndsm_scale,
                                      "names": names}) + "\n")
         return self.out
 
 
-class PotsdamDataset(torch.utils.data.Dataset[Sample]):
+class PotsdamDataset(SkipsBadFiles, torch.utils.data.Dataset[Sample]):
     """Potsdam crops as :class:`Sample` s: depth = height above ground in metres, no pose (NaN).
+
+    The crops of the split are checked when the data set is built: each crop's PNG (structure and every chunk's
+    CRC, 8-bit colour, the crop size) and its height ``.npy`` (header and length); every problem is listed in one
+    :class:`DatasetError`, or, with ``on_bad_file="skip"``, the crop is left out and listed in :attr:`skipped`.
+    A file that fails when its sample is loaded raises :class:`~dapm_lightning.data.errors.BadFileError` naming
+    it (``missing`` when it is gone); with ``on_bad_file="skip"`` a loader leaves the sample out instead.
 
     Args:
         root: the unpacked ISPRS download (``2_Ortho_RGB/`` and ``1_DSM_normalisation/`` and/or ``1_DSM/``),
@@ -145,22 +162,56 @@ class PotsdamDataset(torch.utils.data.Dataset[Sample]):
         seed: split seed.
         product: ``"ndsm"`` or ``"dsm"`` (ISPRS layout only), see :class:`PotsdamCrops`.
         ndsm_scale: how the 8-bit nDSM becomes metres, see :class:`PotsdamCrops`.
+        on_bad_file: ``"raise"`` (default) or ``"skip"``.
     """
 
     def __init__(self, root: str | Path, split: Literal["train", "val"], transform: Transform | None = None, *,
                  crop_size: int = 512, val_fraction: float = 0.2, seed: int = 0,
                  image_dtype: Literal["float32", "uint8"] = "float32", augment_seed: int | None = None,
-                 product: Product = "ndsm", ndsm_scale: float | None = None) -> None:
+                 product: Product = "ndsm", ndsm_scale: float | None = None,
+                 on_bad_file: Literal["raise", "skip"] = "raise") -> None:
+        if on_bad_file not in ("raise", "skip"):
+            raise ValueError(f"on_bad_file must be 'raise' or 'skip', got {on_bad_file!r}")
         crops = PotsdamCrops(root, crop_size=crop_size, product=product, ndsm_scale=ndsm_scale).prepare()
         names: list[str] = json.loads((crops / "crops.json").read_text())["names"]
         order = torch.randperm(len(names), generator=torch.Generator().manual_seed(seed)).tolist()
         n_val = max(1, round(len(names) * val_fraction)) if len(names) > 1 else 0
         chosen = order[:n_val] if split == "val" else order[n_val:]
-        self.crops, self.names = crops, [names[i] for i in sorted(chosen)]
+        self.crops, self.root, self.crop_size = crops, Path(root), crop_size
         self.transform, self.image_dtype = transform, image_dtype
-        self.augment_seed = augment_seed
-        if not self.names:
+        self.augment_seed, self.on_bad_file = augment_seed, on_bad_file
+        if not chosen:
             raise DatasetError(root, [f"{crops}: no crops for split {split!r}"])
+        chosen_names = [names[i] for i in sorted(chosen)]
+        results = scan_files(self._check_crop, chosen_names)
+        self.skipped = [problem for problem in results if problem]
+        self.names = [name for name, problem in zip(chosen_names, results) if not problem]
+        if self.skipped and on_bad_file != "skip":
+            raise DatasetError(crops, self.skipped)
+        if self.skipped:
+            warnings.warn(f"{crops}: skipping {len(self.skipped)} bad crop(s):\n  " + "\n  ".join(self.skipped[:50]),
+                          stacklevel=2)
+        if not self.names:
+            raise DatasetError(crops, self.skipped)
+
+    def _paths(self, name: str) -> tuple[Path, Path]:
+        return self.crops / "rgb" / f"{name}.png", self.crops / "height" / f"{name}.npy"
+
+    def _check_crop(self, name: str) -> str | None:
+        """What is wrong with a crop's two files, or None."""
+        rgb_path, height_path = self._paths(name)
+        size = (self.crop_size, self.crop_size)
+        try:
+            info = read_png_info(rgb_path)
+            if info.bit_depth != 8 or info.color_type not in (2, 6) or (info.height, info.width) != size:
+                return (f"{rgb_path}: crop must be an 8-bit RGB PNG of {size[1]}x{size[0]}, got {info.bit_depth}-bit "
+                        f"{info.color} of {info.width}x{info.height}")
+            shape, dtype = read_npy_header(height_path)
+            if shape != size or dtype.kind != "f":
+                return f"{height_path}: height crop must be a float array of shape {size}, got {dtype} {shape}"
+        except ValueError as error:
+            return str(error)
+        return None
 
     def __len__(self) -> int:
         return len(self.names)
@@ -168,18 +219,24 @@ class PotsdamDataset(torch.utils.data.Dataset[Sample]):
     def __getitem__(self, key: SampleKey) -> Sample:
         epoch, index = split_key(key)
         name = self.names[index]
-        bgr = cv2.imread(str(self.crops / "rgb" / f"{name}.png"), cv2.IMREAD_COLOR)
+        rgb_path, height_path = self._paths(name)
+        bgr = cv2.imread(str(rgb_path), cv2.IMREAD_COLOR)
         if bgr is None:
-            raise ValueError(f"{self.crops / 'rgb' / name}.png: cannot be decoded")
+            raise unreadable(rgb_path, "cannot be decoded")
         rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
-        height = np.load(self.crops / "height" / f"{name}.npy")
+        try:
+            height = np.load(height_path)
+        except FileNotFoundError as error:
+            raise unreadable(height_path) from error
+        except (OSError, ValueError) as error:
+            raise BadFileError(height_path, f"cannot be read as a .npy array ({error})") from error
         pose = np.full(4, np.nan, np.float32)
         if self.transform is not None:
             seed_augmentation(self.transform, self.augment_seed, epoch, index)
             result = self.transform(image=rgb, mask=height, pose=pose)
             rgb, height, pose = result["image"], result["mask"], result["pose"]
         if not np.isfinite(height).all():
-            raise ValueError(f"{self.crops / 'height' / name}.npy: {int((~np.isfinite(height)).sum())} "
-                             "non-finite height value(s) (NaN or Inf) in this crop")
+            raise BadFileError(height_path, f"{int((~np.isfinite(height)).sum())} non-finite height value(s) (NaN or "
+                                            "Inf) in this crop")
         depth_m = np.minimum(height, MAX_DEPTH_M - MIN_DEPTH_M)
         return make_sample(rgb, depth_m, None, name, {}, image_dtype=self.image_dtype)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import re
 import warnings
 from collections.abc import Mapping, Sequence
@@ -12,8 +13,8 @@ import cv2
 import numpy as np
 import torch
 
-from dapm_lightning.data.errors import DatasetError
-from dapm_lightning.data.pngcheck import read_png_info
+from dapm_lightning.data.errors import BadFileError, DatasetError, SkipsBadFiles, unreadable
+from dapm_lightning.data.pngcheck import read_png_info, scan_files
 from dapm_lightning.data.sample import Sample, SampleKey, Transform, make_sample, seed_augmentation, split_key
 from dapm_lightning.geometry.constants import MAX_DEPTH_M, POSE_KEYS
 from dapm_lightning.geometry.depth_codec import grey_to_depth
@@ -24,6 +25,7 @@ KEY_ALIASES = {"z": "height", "height": "height", "pitch": "pitch", "roll": "rol
 """File-name keys that carry the pose, mapped to the pose component they name."""
 _NUMBER = re.compile(r"^[+-]?(\d+(\.\d*)?|\.\d+)$")
 _KEY = re.compile(r"^[A-Za-z]+$")
+_FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 """Called as ``transform(image=rgb, mask=grey, pose=pose)``; returns the same keys (albumentations style)."""
 
@@ -41,7 +43,8 @@ def parse_uapd_filename(name: str | PurePath) -> dict[str, Any]:
         remaining tokens, in order, as a list under ``"tokens"`` (``["Town03", "000123"]``).
 
     Raises:
-        ValueError: naming the file, for a missing pose key, a pose key without a number, or a key
+        ValueError: naming the file, for a missing pose key, a pose key without a number, a number that is not
+            finite (a pose value beyond float32's range included: it would train on an infinite pose), or a key
             given twice with different values.
     """
     path = PurePath(name)
@@ -58,6 +61,11 @@ def parse_uapd_filename(name: str | PurePath) -> dict[str, Any]:
             raise ValueError(f"{name}: pose key {token!r} is followed by {following!r}, not a number")
         if key is not None and following is not None and _NUMBER.match(following):
             value = float(following)
+            if key in POSE_KEYS and not abs(value) <= _FLOAT32_MAX:
+                raise ValueError(f"{name}: pose key {token!r} value {following} overflows float32, the pose's type "
+                                 "(|value| must be at most 3.4e38)")
+            if not math.isfinite(value):
+                raise ValueError(f"{name}: key {token!r} value {following} is not a finite number")
             if key in parsed and parsed[key] != value:
                 raise ValueError(f"{name}: key {key!r} given twice with different values "
                                  f"({parsed[key]} and {value})")
@@ -104,13 +112,18 @@ def pose_from_parsed(parsed: dict[str, Any]) -> np.ndarray:
 
 
 def read_rgb(path: Path, *, expected_hw: tuple[int, int] | None = None) -> np.ndarray:
-    """Read an image as ``[H, W, 3]`` uint8 RGB; a clear error naming the file if it cannot be decoded."""
+    """Read an image as ``[H, W, 3]`` uint8 RGB.
+
+    Raises:
+        BadFileError: naming the file: missing (deleted or moved after the scan), unreadable, cannot be decoded
+            (damaged), or not of ``expected_hw``.
+    """
     image = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if image is None:
-        raise ValueError(f"{path}: cannot be decoded as an image")
+        raise unreadable(path)
     if expected_hw is not None and image.shape[:2] != expected_hw:
-        raise ValueError(f"{path}: size {image.shape[1]}x{image.shape[0]} differs from its depth "
-                         f"{expected_hw[1]}x{expected_hw[0]}")
+        raise BadFileError(path, f"size {image.shape[1]}x{image.shape[0]} differs from its depth "
+                                 f"{expected_hw[1]}x{expected_hw[0]}")
     return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
 
 
@@ -132,30 +145,78 @@ def read_depth_grey(path: Path) -> np.ndarray:
 
     Grey, or RGB / RGBA (and grey+alpha) whose colour channels are equal, 8-bit (:data:`DEPTH_CONTAINERS`); the
     alpha channel is ignored. Unequal colour channels are refused with how to convert CARLA's raw depth.
+
+    Raises:
+        BadFileError: naming the file: missing (deleted or moved after the scan), unreadable, cannot be decoded
+            (damaged), or not such a depth map.
     """
     image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if image is None:
-        raise ValueError(f"{path}: cannot be decoded as an image")
+        raise unreadable(path)
     if image.dtype != np.uint8 or image.ndim not in (2, 3) or (image.ndim == 3 and image.shape[2] not in (3, 4)):
-        raise ValueError(f"{path}: depth must be 8-bit grey, RGB or RGBA with equal colour channels, got shape "
-                         f"{image.shape} {image.dtype}")
+        raise BadFileError(path, f"depth must be 8-bit grey, RGB or RGBA with equal colour channels, got shape "
+                                 f"{image.shape} {image.dtype}")
     if image.ndim == 2:
         return image
     colour = image[..., :3]
     grey = np.ascontiguousarray(colour[..., 0])
     if not (np.array_equal(grey, colour[..., 1]) and np.array_equal(grey, colour[..., 2])):
         spread = int((colour.max(axis=2).astype(np.int16) - colour.min(axis=2)).max())
-        raise ValueError(f"{path}: depth PNG with {image.shape[2]} channels whose colours differ (by up to {spread} "
-                         f"levels). {CARLA_RAW_DEPTH_HINT}")
+        raise BadFileError(path, f"depth PNG with {image.shape[2]} channels whose colours differ (by up to "
+                                 f"{spread} levels). {CARLA_RAW_DEPTH_HINT}")
     return grey
 
 
-class UAPDDataset(torch.utils.data.Dataset[Sample]):
+def check_pair(name: str, rgb_path: Path, depth_path: Path) -> tuple[dict[str, Any], str]:
+    """Check one pair the way the start-up scan does, without decoding it.
+
+    The name's pose (:func:`parse_uapd_filename`), both PNGs' structure and every chunk's CRC
+    (:func:`~dapm_lightning.data.pngcheck.read_png_info`), the depth's container, the RGB's type, equal sizes.
+
+    Returns:
+        ``(parsed name, depth container)``.
+
+    Raises:
+        DatasetError: every problem of the pair, each naming its file (the name's under the RGB file).
+    """
+    problems, infos = [], []
+    try:
+        parsed = parse_uapd_filename(name)
+    except ValueError as error:
+        problems.append(f"{rgb_path}: {error}")
+    for path in (rgb_path, depth_path):
+        try:
+            infos.append(read_png_info(path))
+        except ValueError as error:
+            problems.append(str(error))
+    if not problems:
+        rgb_info, depth_info = infos
+        if depth_info.bit_depth != 8 or depth_info.color_type not in DEPTH_CONTAINERS:
+            problems.append(f"{depth_path}: depth must be 8-bit grey, RGB or RGBA with equal colour channels, got "
+                            f"{depth_info.bit_depth}-bit {depth_info.color}")
+        elif rgb_info.color_type not in (2, 6) or rgb_info.bit_depth != 8:
+            problems.append(f"{rgb_path}: rgb must be 8-bit RGB or RGBA, got {rgb_info.bit_depth}-bit "
+                            f"{rgb_info.color}")
+        elif (rgb_info.width, rgb_info.height) != (depth_info.width, depth_info.height):
+            problems.append(f"{rgb_path}: size {rgb_info.width}x{rgb_info.height} differs from its depth "
+                            f"{depth_info.width}x{depth_info.height}")
+    if problems:
+        raise DatasetError(rgb_path, problems)
+    return parsed, DEPTH_CONTAINERS[infos[1].color_type]
+
+
+class UAPDDataset(SkipsBadFiles, torch.utils.data.Dataset[Sample]):
     """UAPD-format pairs ``ROOT/SPLIT/rgb/NAME.png`` + ``ROOT/SPLIT/depth/NAME.png``, pose in NAME.
 
-    The folder is scanned once when the data set is built: every unpaired, unparsable, truncated,
-    wrongly typed or mismatched file is listed in one :class:`DatasetError` (or, with
-    ``on_bad_file="skip"``, left out and listed in :attr:`skipped`).
+    The folder is scanned once when the data set is built: every unpaired, unparsable (a pose value that is not a
+    finite float32 included), truncated, damaged (a PNG chunk whose CRC does not match), wrongly typed or
+    mismatched file, and every other image file (``.jpg``, ...) in ``rgb/`` or ``depth/``, is listed in one
+    :class:`DatasetError` (or, with ``on_bad_file="skip"``, left out and listed in :attr:`skipped`).
+
+    A file that fails when its sample is loaded later (deleted or changed after the scan, or damaged where the
+    scan cannot see it) raises :class:`~dapm_lightning.data.errors.BadFileError` naming it (``missing`` when it
+    is gone); with ``on_bad_file="skip"`` a loader leaves that sample out of its batch instead
+    (:class:`~dapm_lightning.data.errors.SkipsBadFiles`).
 
     Args:
         root: data set root holding ``train/`` and ``val/``.
@@ -166,6 +227,7 @@ class UAPDDataset(torch.utils.data.Dataset[Sample]):
         image_dtype: ``"float32"`` (RGB in [0, 1]) or ``"uint8"`` (4x fewer bytes per sample;
             the Lightning module normalises on the device).
         on_bad_file: ``"raise"`` (default) or ``"skip"``.
+        augment_seed: seeds each sample's augmentation by (seed, epoch, index).
 
     :attr:`depth_containers` says per file (as :attr:`names`) which PNG container its depth uses
     (:data:`DEPTH_CONTAINERS`: ``grey``, ``RGB``, ``grey+alpha``, ``RGBA``).
@@ -187,7 +249,10 @@ class UAPDDataset(torch.utils.data.Dataset[Sample]):
         self.max_depth = max_depth
         if image_dtype not in ("float32", "uint8"):
             raise ValueError(f"image_dtype must be 'float32' or 'uint8', got {image_dtype!r}")
+        if on_bad_file not in ("raise", "skip"):
+            raise ValueError(f"on_bad_file must be 'raise' or 'skip', got {on_bad_file!r}")
         self.image_dtype = image_dtype
+        self.on_bad_file = on_bad_file
         self.names, self.poses, self.meta, self.skipped, self.depth_containers = self._scan(on_bad_file)
         self.augment_seed = augment_seed
 
@@ -198,37 +263,33 @@ class UAPDDataset(torch.utils.data.Dataset[Sample]):
             if not folder.is_dir():
                 raise DatasetError(self.root, [f"{folder}: missing folder (expected ROOT/{self.split}/"
                                                f"{{{self.rgb_dir},{self.depth_dir}}}/NAME.png)"])
-        rgb = {p.name: p for p in rgb_dir.iterdir() if p.suffix.lower() == ".png"}
-        depth = {p.name: p for p in depth_dir.iterdir() if p.suffix.lower() == ".png"}
-        problems: list[str] = []
-        bad: set[str] = set()
+        files = {folder: sorted(folder.iterdir()) for folder in (rgb_dir, depth_dir)}
+        rgb = {p.name: p for p in files[rgb_dir] if p.suffix.lower() == ".png"}
+        depth = {p.name: p for p in files[depth_dir] if p.suffix.lower() == ".png"}
+        problems = [f"{p}: not a PNG image: UAPD reads NAME.png pairs only, so this file is not read (convert it "
+                    "to PNG, or move it out of the folder)" for folder in (rgb_dir, depth_dir)
+                    for p in files[folder] if p.suffix.lower() in IMAGE_SUFFIXES and p.suffix.lower() != ".png"]
         for name in sorted(rgb.keys() - depth.keys()):
             problems.append(f"{rgb[name]}: no depth twin {depth_dir / name}")
-            bad.add(name)
         for name in sorted(depth.keys() - rgb.keys()):
             problems.append(f"{depth[name]}: no rgb twin {rgb_dir / name}")
-            bad.add(name)
-        names, poses, meta, containers = [], [], [], []
-        for name in sorted(rgb.keys() & depth.keys()):
+
+        def check(name: str) -> tuple[dict[str, Any], str] | list[str]:
             try:
-                parsed = parse_uapd_filename(name)
-                rgb_info, depth_info = read_png_info(rgb[name]), read_png_info(depth[name])
-                if depth_info.bit_depth != 8 or depth_info.color_type not in DEPTH_CONTAINERS:
-                    raise ValueError(f"{depth[name]}: depth must be 8-bit grey, RGB or RGBA with equal colour "
-                                     f"channels, got {depth_info.bit_depth}-bit {depth_info.color}")
-                if rgb_info.color_type not in (2, 6) or rgb_info.bit_depth != 8:
-                    raise ValueError(f"{rgb[name]}: rgb must be 8-bit RGB or RGBA, got "
-                                     f"{rgb_info.bit_depth}-bit {rgb_info.color}")
-                if (rgb_info.width, rgb_info.height) != (depth_info.width, depth_info.height):
-                    raise ValueError(f"{rgb[name]}: size {rgb_info.width}x{rgb_info.height} differs "
-                                     f"from its depth {depth_info.width}x{depth_info.height}")
-            except ValueError as error:
-                message = str(error)
-                problems.append(message if message.startswith(str(self.root)) else f"{rgb[name]}: {message}")
-                bad.add(name)
+                return check_pair(name, rgb[name], depth[name])
+            except DatasetError as error:
+                return error.problems
+
+        pairs = sorted(rgb.keys() & depth.keys())
+        results = scan_files(check, pairs)
+        names, poses, meta, containers = [], [], [], []
+        for name, result in zip(pairs, results):
+            if isinstance(result, list):
+                problems += result
                 continue
+            parsed, container = result
             names.append(name)
-            containers.append(DEPTH_CONTAINERS[depth_info.color_type])
+            containers.append(container)
             poses.append(pose_from_parsed(parsed))
             meta.append({k: v for k, v in parsed.items() if k not in POSE_KEYS})
         if problems and on_bad_file != "skip":
@@ -245,7 +306,11 @@ class UAPDDataset(torch.utils.data.Dataset[Sample]):
         return len(self.names)
 
     def load(self, index: int) -> tuple[np.ndarray, np.ndarray]:
-        """Decoded ``(rgb [H, W, 3] uint8, depth grey [H, W] uint8)`` of one pair, without the transform."""
+        """Decoded ``(rgb [H, W, 3] uint8, depth grey [H, W] uint8)`` of one pair, without the transform.
+
+        Raises:
+            BadFileError: naming the file that is missing (deleted or moved after the scan) or cannot be decoded.
+        """
         name = self.names[index]
         split_dir = self.root / self.split
         grey = read_depth_grey(split_dir / self.depth_dir / name)

@@ -1,14 +1,15 @@
 """dapm-lightning doctor ROOT: check a UAPD-format data set and report per split.
 
-Counts, pose distribution against the UAPD ranges, depth range and sky fraction, unreadable or
-unpaired files, and the agreement of each file's depth with the Ideal Ground Depth of its own
-pose: pixels that see flat ground match the IGD to the grey level, and nothing is ever seen deeper
-than the ground. A sample is flagged when a plausible annotation mistake (roll or pitch sign,
-pitch and roll swapped, another FoV) explains clearly more of its depth as flat ground without
-being contradicted more by depth beyond its ground. Exit status 0 when no problem is found, 1 when
-a file is broken or a sample is flagged, 2 when ROOT is not a data set (or on a usage error). The
-report is printed, and written as JSON only where asked (--json FILE; nothing is written into the
-data set). Settings can come from a YAML file (--config FILE; --print_config shows one).
+Counts, pose distribution against the UAPD ranges, depth range and sky fraction, every unreadable
+(each RGB and depth file is decoded) or unpaired file, and the agreement of each file's depth with
+the Ideal Ground Depth of its own pose: pixels that see flat ground match the IGD to the grey level,
+and nothing is ever seen deeper than the ground. A sample is flagged when a plausible annotation
+mistake (roll or pitch sign, pitch and roll swapped, another FoV) explains clearly more of its depth
+as flat ground without being contradicted more by depth beyond its ground. Exit status 0 when no
+problem is found, 1 when a file is broken or a sample is flagged, 2 when ROOT is not a data set (or
+on a usage error). The report is printed, and written as JSON only where asked (--json FILE; nothing
+is written into the data set). Settings can come from a YAML file (--config FILE; --print_config
+shows one).
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ import numpy as np
 import torch
 
 from dapm_lightning.data.errors import DatasetError
-from dapm_lightning.data.uapd import UAPDDataset, read_depth_grey
+from dapm_lightning.data.uapd import UAPDDataset, read_depth_grey, read_rgb
 from dapm_lightning.geometry.constants import MAX_DEPTH_M, POSE_KEYS, POSE_RANGES, SKY_GREY
 from dapm_lightning.geometry.depth_codec import depth_to_grey, grey_to_depth
 from dapm_lightning.geometry.igd import DepthKind, ideal_ground_depth
@@ -224,11 +225,16 @@ def diagnose_split(root: Path, split: str, depth_kind: DepthKind) -> dict[str, A
     depth_min, depth_max = math.inf, 0.0
     with one_torch_thread():
         for index, name in enumerate(dataset.names):
-            path = root / split / dataset.depth_dir / name
-            try:
-                grey = read_depth_grey(path)
+            grey = None
+            try:  # both files are decoded: every one that fails is listed (the scan checks structure and CRCs only)
+                grey = read_depth_grey(root / split / dataset.depth_dir / name)
             except ValueError as error:
                 errors.append(str(error))
+            try:
+                read_rgb(root / split / dataset.rgb_dir / name, expected_hw=None if grey is None else grey.shape[:2])
+            except ValueError as error:
+                errors.append(str(error))
+            if grey is None:
                 continue
             sky = grey == SKY_GREY
             sky_fractions.append(float(sky.mean()))

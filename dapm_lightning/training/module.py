@@ -281,12 +281,21 @@ class DAPMModule(L.LightningModule):
         sky, valid = depth_masks(batch["depth"], self.net_config.igd.max_depth)
         terms = self.criterion(out, {**batch, "sky": sky, "valid": valid})
         batch_size = image.shape[0]
-        on_step = stage == "train"
         named = {f"{stage}_loss_{k}": v.detach() for k, v in terms.items() if k != "total"}
         # sync_dist: epoch-level values are the mean over all processes (one value every rank agrees on)
-        self.log_dict(named, batch_size=batch_size, on_step=on_step, on_epoch=True, sync_dist=True)
-        self.log(f"{stage}_loss", terms["total"].detach(), batch_size=batch_size, prog_bar=True,
-                 on_step=on_step, on_epoch=True, sync_dist=True)
+        if stage != "train":
+            self.log_dict(named, batch_size=batch_size, on_step=False, on_epoch=True, sync_dist=True)
+            self.log(f"{stage}_loss", terms["total"].detach(), batch_size=batch_size, prog_bar=True,
+                     on_step=False, on_epoch=True, sync_dist=True)
+        else:  # each step's values as they are (NaN included); the epoch's mean over the steps whose loss is finite
+            # (a non-finite step, skipped by default, weighs 0): <key>_step and <key>_epoch, as Lightning names a value
+            # logged on both
+            finite = bool(torch.isfinite(terms["total"]))
+            for key, value in {**named, "train_loss": terms["total"].detach()}.items():
+                self.log(f"{key}_step", value, batch_size=batch_size, prog_bar=key == "train_loss", on_step=True,
+                         on_epoch=False, sync_dist=True)
+                self.log(f"{key}_epoch", value if finite else torch.zeros_like(value), prog_bar=key == "train_loss",
+                         batch_size=batch_size if finite else 0, on_step=False, on_epoch=True, sync_dist=True)
         if stage != "train":
             self._update_metrics(out, batch, stage)
         return terms["total"], out

@@ -14,6 +14,7 @@ from dapm_lightning.data.uapd import read_depth_grey
 from dapm_lightning.geometry import POSE_RANGES
 from dapm_lightning.tools.doctor import check_sample, doctor_main
 from tests.conftest import QUICKSTART
+from tests.data.test_bad_files import damage
 
 DEMO = yaml.safe_load(QUICKSTART.read_text())["data"]["init_args"]
 """The quickstart's (``make demo``'s) data settings: the doctor is checked on data rendered the same way."""
@@ -189,3 +190,23 @@ def test_the_report_names_each_depth_files_container(synthetic, tmp_path, capsys
     assert report["depth_containers"] == {"RGBA": 1, "grey": 3}
     assert sum(kind == "grey" for kind in report["depth_container"].values()) == 3
     assert "depth PNGs: 1 RGBA, 3 grey" in capsys.readouterr().out
+
+
+def test_every_unreadable_file_is_listed_rgb_and_depth_alike(synthetic, tmp_path, capsys):
+    """A damaged chunk fails the scan; damage under a valid CRC (a broken writer) fails the decoding the doctor
+    does for every RGB and depth file. Each is named, and the exit status is 1."""
+    root = shutil.copytree(synthetic, tmp_path / "copy")
+    names = sorted(p.name for p in (root / "train" / "rgb").iterdir())
+    bad = [root / "train" / "rgb" / names[0], root / "train" / "rgb" / names[1], root / "train" / "depth" / names[2]]
+    damage(bad[0])                  # the CRC of its IDAT no longer matches: the scan finds it
+    damage(bad[1], fix_crc=True)    # only decoding finds these two
+    damage(bad[2], fix_crc=True)
+    assert doctor_main([str(root), "--json", str(tmp_path / "r.json")]) == 1
+    out = capsys.readouterr().out
+    train = json.loads((tmp_path / "r.json").read_text())[0]
+    assert train["count"] == 15 and len(train["errors"]) == 3
+    assert train["errors"][0].startswith(f"{bad[0]}: damaged PNG (the CRC of its 'IDAT' chunk")
+    assert sorted(train["errors"][1:]) == sorted(f"{path}: cannot be decoded as an image" for path in bad[1:])
+    for error in train["errors"]:
+        assert f"ERROR   {error}" in out
+    assert "3 problem(s)" in out and "no problems found" not in out

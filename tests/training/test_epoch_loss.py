@@ -1,0 +1,57 @@
+"""The epoch's training losses are the mean over the steps that trained: a step skipped as non-finite weighs 0."""
+
+import math
+
+import lightning as L
+import pytest
+import torch
+
+from dapm_lightning.training.lightning_cli import run_lightning_cli
+from tests.conftest import QUICKSTART
+
+TINY = ["--model.net.backbone", "mobilenetv3_small_050", "--model.net.decoder_channels", "16",
+        "--model.net.head_channels", "8", "--model.net.pose_hidden", "32", "--data.init_args.batch_size", "2",
+        "--data.init_args.num_workers", "0", "--trainer.enable_progress_bar", "false", "--trainer.logger", "false",
+        "--trainer.enable_checkpointing", "false", "--trainer.callbacks", "[]", "--trainer.limit_val_batches", "0"]
+
+
+class StepLosses(L.Callback):
+    """Every logged training value of each step."""
+
+    def __init__(self):
+        self.steps = []
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
+        self.steps.append({k: float(v) for k, v in trainer.callback_metrics.items() if k.endswith("_step")})
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf")])
+def test_a_skipped_nonfinite_step_leaves_the_epoch_losses_finite(tiny_uapd, tmp_path, monkeypatch, bad):
+    monkeypatch.chdir(tmp_path)
+    cli = run_lightning_cli(["--config", str(QUICKSTART), "--data.class_path",
+                             "dapm_lightning.data.datamodules.UAPDDataModule", "--data.init_args.root", str(tiny_uapd),
+                             *TINY, "--trainer.max_epochs", "1"], run=False)
+    model, calls = cli.model, []
+    real = model.criterion.forward
+
+    def first_step_nonfinite(out, targets):
+        terms = real(out, targets)
+        calls.append(1)
+        return {k: v * bad for k, v in terms.items()} if len(calls) == 1 else terms
+
+    monkeypatch.setattr(model.criterion, "forward", first_step_nonfinite)
+    recorder = StepLosses()
+    cli.trainer.callbacks.append(recorder)
+    with pytest.warns(UserWarning, match="non-finite training loss"):
+        cli.trainer.fit(model, datamodule=cli.datamodule)
+    assert model.nonfinite_steps == 1 and len(recorder.steps) == 2  # 4 images, 2 a batch: step 0 skipped, step 1 ran
+    first, second = recorder.steps
+    assert math.isnan(first["train_loss_step"]) or math.isinf(first["train_loss_step"])  # each step as it was
+    assert math.isfinite(second["train_loss_step"])
+    metrics = {k: float(v) for k, v in cli.trainer.callback_metrics.items()}
+    epoch = {k: v for k, v in metrics.items() if k.startswith("train_loss") and k.endswith("_epoch")}
+    assert {"train_loss_epoch", "train_loss_depth_epoch", "train_loss_pose_epoch"} <= set(epoch)
+    for key, value in epoch.items():  # the mean over the one finite step
+        assert value == pytest.approx(second[key.replace("_epoch", "_step")], rel=1e-6), key
+    assert all(math.isfinite(v) for v in epoch.values()), epoch
+    assert torch.isfinite(cli.trainer.callback_metrics["train_loss_epoch"])
