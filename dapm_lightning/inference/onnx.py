@@ -29,8 +29,9 @@ from dapm_lightning.inference.inputs import SIZE_MULTIPLE, network_size
 from dapm_lightning.models.config import DAPMConfig
 from dapm_lightning.models.prior import PosePrior
 
-PRIOR_INPUTS = ("prior", "prior_sigma")
-"""The exported inputs of a model with a pose branch, after ``image``."""
+PRIOR_INPUTS = ("prior", "prior_known", "prior_sigma")
+"""The exported inputs of a model with a pose branch, after ``image``: the values (finite; any value where
+unknown), which are known (bool), and their σ. No NaN enters the graph, so int8 calibration sees none."""
 METADATA_NET = "dapm.net"
 """The metadata key that marks a dapm-lightning export: the network's settings as JSON."""
 
@@ -56,18 +57,21 @@ class ExportWrapper(nn.Module):
         self.names = tuple(out)
         self.eval()
 
-    def forward_outputs(self, image: Tensor, prior: Tensor | None = None,
+    def forward_outputs(self, image: Tensor, prior: Tensor | None = None, prior_known: Tensor | None = None,
                         prior_sigma: Tensor | None = None) -> dict[str, Tensor]:
         """The outputs by name."""
         pose_prior = None
-        if self.takes_prior and prior is not None and prior_sigma is not None:
-            pose_prior = PosePrior(prior.float(), prior_sigma.float())
+        if self.takes_prior and prior is not None and prior_known is not None and prior_sigma is not None:
+            pose_prior = PosePrior(prior.float(), prior_sigma.float(), prior_known)
         out = self.net(image.half() if self.half_precision else image, prior=pose_prior)
-        return {name: value.float() for name, value in out.inference_outputs(spread=True).named().items()}
+        outputs = {name: value.float() for name, value in out.inference_outputs(spread=True).named().items()}
+        if pose_prior is not None and "pose" in outputs:  # nothing known (eager skips the fusion): used = own
+            outputs.setdefault("pose_network", outputs["pose"])
+        return outputs
 
-    def forward(self, image: Tensor, prior: Tensor | None = None,
+    def forward(self, image: Tensor, prior: Tensor | None = None, prior_known: Tensor | None = None,
                 prior_sigma: Tensor | None = None) -> tuple[Tensor, ...]:
-        outputs = self.forward_outputs(image, prior, prior_sigma)
+        outputs = self.forward_outputs(image, prior, prior_known, prior_sigma)
         return tuple(outputs[name] for name in self.names)
 
 
@@ -79,10 +83,10 @@ def example_inputs(batch: int, size: tuple[int, int], takes_prior: bool, *, seed
     if not takes_prior:
         return (image,)
     prior = torch.tensor([40.0, -45.0, 0.0, 70.0]) + 5 * torch.randn(batch, 4, generator=generator)
-    prior = torch.where(torch.rand(batch, 4, generator=generator) < 0.5, prior, torch.full_like(prior, float("nan")))
+    known = torch.rand(batch, 4, generator=generator) < 0.5
     sigma = torch.rand(batch, 4, generator=generator) * torch.tensor([3.0, 1.0, 1.0, 2.0])
     sigma = torch.where(torch.rand(batch, 4, generator=generator) < 0.5, sigma, torch.zeros_like(sigma))
-    return image, prior, sigma
+    return image, torch.where(known, prior, torch.zeros_like(prior)), known, sigma
 
 
 def check_sizes(size: tuple[int, int], dynamic: bool) -> list[tuple[int, int, int]]:
@@ -112,8 +116,8 @@ def export_metadata(net: nn.Module, train_image_size: tuple[int, int] | None = N
               "dapm.depth_kind": igd.depth_kind, "dapm.max_depth_m": repr(igd.max_depth),
               "dapm.igd_model": igd.model, "dapm.sky_threshold": repr(SKY_PROBABILITY_THRESHOLD),
               "dapm.inputs": "image [B, 3, H, W] float RGB in [0, 1], any H and W"
-                             + ("; prior [B, 4] (height m, pitch, roll, fov deg; NaN unknown); prior_sigma [B, 4]"
-                                if config.use_pose else "")}
+                             + ("; prior [B, 4] (height m, pitch, roll, fov deg), prior_known [B, 4] bool, "
+                                "prior_sigma [B, 4]" if config.use_pose else "")}
     if source is not None:
         values["dapm.source_sha256"] = hashlib.sha256(Path(source).read_bytes()).hexdigest()
     return values

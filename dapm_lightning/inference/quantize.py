@@ -45,8 +45,16 @@ def quantize_int8(float_path: str | Path, int8_path: str | Path, calibration: Se
 
         def get_next(self) -> dict[str, np.ndarray] | None:
             image = next(self.items, None)
-            return None if image is None else {"image": image}
+            if image is None:
+                return None
+            feed = {"image": image}
+            if takes_prior:  # calibrated without telemetry: the network's own pose
+                feed["prior"] = np.zeros((image.shape[0], 4), np.float32)
+                feed["prior_known"] = np.zeros((image.shape[0], 4), np.bool_)
+                feed["prior_sigma"] = np.zeros((image.shape[0], 4), np.float32)
+            return feed
 
+    takes_prior = "prior" in {i.name for i in onnx.load(str(float_path), load_external_data=False).graph.input}
     int8_path = Path(int8_path)
     int8_path.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory() as folder:

@@ -127,10 +127,12 @@ class OnnxRuntime:
         feed = {"image": unit_image(images.cpu()).float().numpy()}
         if self.takes_prior:
             batch = images.shape[0]
-            value = prior.value if prior is not None else torch.full((batch, 4), float("nan"))
-            sigma = prior.sigma if prior is not None else torch.zeros(batch, 4)
-            feed[PRIOR_INPUTS[0]] = value.detach().cpu().float().numpy()
-            feed[PRIOR_INPUTS[1]] = sigma.detach().cpu().float().expand(batch, 4).contiguous().numpy()
+            value = prior.value.detach().cpu().float() if prior is not None else torch.zeros(batch, 4)
+            known = prior.known.cpu() if prior is not None else torch.zeros(batch, 4, dtype=torch.bool)
+            sigma = prior.sigma.detach().cpu().float().expand(batch, 4) if prior is not None else torch.zeros(batch, 4)
+            feed[PRIOR_INPUTS[0]] = torch.where(known, value, torch.zeros_like(value)).numpy()
+            feed[PRIOR_INPUTS[1]] = known.numpy()
+            feed[PRIOR_INPUTS[2]] = sigma.contiguous().numpy()
         outputs = {name: torch.from_numpy(value) for name, value in zip(self.names, self.session.run(None, feed))}
         if prior is None:  # given no prior, the pose used is the network's own (as PyTorch reports it)
             outputs.pop("pose_network", None)

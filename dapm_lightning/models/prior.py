@@ -70,6 +70,8 @@ class PosePrior:
 
     value: Tensor
     sigma: Tensor
+    mask: Tensor | None = None
+    """``[B, 4]`` bool: which components are known, when given apart from NaN (an exported graph holds no NaN)."""
 
     def __post_init__(self) -> None:
         if self.value.ndim != 2 or self.value.shape[-1] != 4:
@@ -90,11 +92,12 @@ class PosePrior:
     @property
     def known(self) -> Tensor:
         """``[B, 4]`` bool: which components are given."""
-        return torch.isfinite(self.value)
+        return torch.isfinite(self.value) if self.mask is None else self.mask
 
     def to(self, device: torch.device | str) -> PosePrior:
         """The same prior on ``device``."""
-        return PosePrior(self.value.to(device), self.sigma.to(device))
+        return PosePrior(self.value.to(device), self.sigma.to(device),
+                         None if self.mask is None else self.mask.to(device))
 
 
 def bins_spread(bin_logits: Tensor) -> Tensor:

@@ -35,12 +35,12 @@ def test_dynamic_onnx_matches_pytorch_at_other_sizes(tmp_path):
         assert row["depth_m"] < 1e-2 and row["sky_prob"] < 1e-4 and row["pose"] < 1e-3
     session = onnxruntime.InferenceSession(str(tmp_path / "m.onnx"))
     assert [o.name for o in session.get_outputs()] == ["depth_m", "sky_prob", "pose", "pose_network", "pose_spread"]
-    assert [i.name for i in session.get_inputs()] == ["image", "prior", "prior_sigma"]
+    assert [i.name for i in session.get_inputs()] == ["image", "prior", "prior_known", "prior_sigma"]
     batch, _, height, width = session.get_inputs()[0].shape
     assert all(isinstance(d, str) for d in (batch, height, width))  # symbolic: dynamic
-    unknown = torch.full((3, 4), float("nan")).numpy()
-    depth = session.run(["depth_m"], {"image": torch.rand(3, 3, 90, 161).numpy(), "prior": unknown,
-                                      "prior_sigma": torch.zeros(3, 4).numpy()})[0]
+    nothing_known = {"prior": torch.zeros(3, 4).numpy(), "prior_known": torch.zeros(3, 4, dtype=torch.bool).numpy(),
+                     "prior_sigma": torch.zeros(3, 4).numpy()}
+    depth = session.run(["depth_m"], {"image": torch.rand(3, 3, 90, 161).numpy(), **nothing_known})[0]
     assert depth.shape == (3, 1, 90, 161) and (depth < 1000).any()  # any size, not only multiples of 32
 
 
