@@ -6,15 +6,20 @@ from pathlib import Path
 
 import numpy as np
 
+from dapm_lightning.data.files import open_atomic
+
 PLY_COMMENT = ("dapm-lightning point cloud: metres, gravity-aligned world frame (origin on the ground under the "
                "camera, X horizontal along the optical axis, Y left, Z up; ground at z = 0)")
-
 
 
 def write_ply(path: str | Path, xyz: np.ndarray, rgb: np.ndarray | None = None, comment: str = PLY_COMMENT) -> Path:
     """Write ``xyz`` ``[N, 3]`` (and ``rgb`` ``[N, 3]`` uint8) as a binary little-endian PLY; returns the path.
 
-    Opens in MeshLab, CloudCompare, Open3D (``o3d.io.read_point_cloud``) and trimesh.
+    Opens in MeshLab, CloudCompare, Open3D (``o3d.io.read_point_cloud``) and trimesh. Written whole or not at
+    all (:func:`~dapm_lightning.data.files.open_atomic`).
+
+    Raises:
+        WriteError: the file could not be written (a full disk, a read-only or missing folder).
     """
     xyz = np.asarray(xyz, np.float32).reshape(-1, 3)
     fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
@@ -30,7 +35,7 @@ def write_ply(path: str | Path, xyz: np.ndarray, rgb: np.ndarray | None = None, 
     header = ["ply", "format binary_little_endian 1.0", f"comment {comment}", f"element vertex {xyz.shape[0]}",
               *(f"property {'float' if kind == '<f4' else 'uchar'} {name}" for name, kind in fields), "end_header"]
     path = Path(path)
-    with path.open("wb") as handle:
+    with open_atomic(path) as handle:
         handle.write(("\n".join(header) + "\n").encode("ascii"))
         handle.write(vertices.tobytes())
     return path

@@ -6,16 +6,24 @@ limit), ``depth_color.png`` for people, ``sky.png`` (probability x 255), ``camer
 the pose per component with its source and the network's own estimate), ``points.ply`` (metric point cloud in
 the gravity-aligned world frame of docs/conventions.md, ground at z = 0, coloured, sky left out) and, on request,
 ``npz`` (all of it in one ``NAME.npz``). Per run: ``poses.csv`` / ``poses.json`` (merged with those of earlier
-runs into the same folder) and ``contact_sheet.png``.
+runs into the same folder, under a lock: runs into one folder at once keep every row) and ``contact_sheet.png``
+(tiles bounded for any aspect).
+
+Every file is written whole or not at all and checked (:mod:`dapm_lightning.data.files`): a failed write raises
+:class:`~dapm_lightning.data.files.WriteError` naming the file and the fix. The output folder is checked before
+any work and made with the first file; one inside the source is refused (:func:`check_output_outside_source`).
 """
 
 from __future__ import annotations
 
 import csv
+import fnmatch
 import json
 import re
+import warnings
 from collections.abc import Iterable, Sequence
 from pathlib import Path
+from types import TracebackType
 from typing import Any, Literal, get_args
 
 import cv2
@@ -25,10 +33,21 @@ import torch
 from lightning.pytorch.callbacks import BasePredictionWriter
 from lightning.pytorch.utilities import rank_zero_info
 
+from dapm_lightning.data.files import (
+    WriteError,
+    check_folder_writable,
+    exclusive_lock,
+    make_folder,
+    open_atomic,
+    remove_empty_folders,
+    write_image,
+    write_text,
+)
 from dapm_lightning.data.pictures import colorize_depth
 from dapm_lightning.geometry.camera import horizon_segment
 from dapm_lightning.geometry.constants import POSE_FIELDS, POSE_KEYS, pose_field
 from dapm_lightning.geometry.igd import IGDSpec
+from dapm_lightning.inference.inputs import PredictSource
 from dapm_lightning.inference.postprocess import Prediction, batch_predictions
 from dapm_lightning.inference.runtime import apply_inference_options
 from dapm_lightning.models.dapm import DAPMOutput
@@ -43,6 +62,11 @@ DEPTH16_SCALE = 64.0
 POSE_COLUMNS = ["name", *POSE_FIELDS]
 CONTACT_TILE = 160
 """Height in pixels of one contact-sheet row."""
+CONTACT_MAX_ASPECT = 4
+"""A contact-sheet picture tile is at most this many times as wide as high, and at least a quarter of its
+height wide: images of other aspects are letter-boxed, so a 10 x 30000 image's tile is 640 x 160, not 480000 x 160."""
+CONTACT_MAX_IMAGES = 64
+"""The most images a contact sheet shows (a sheet stays under about 25 Mpx, ~70 MB in memory)."""
 
 
 def check_outputs(outputs: Iterable[str] | None) -> list[str]:
@@ -58,37 +82,47 @@ def write_prediction(out: Path, prediction: Prediction, outputs: Iterable[str] =
                      points_stride: int = 2, points_max_depth: float | None = None) -> list[Path]:
     """Write the selected per-image files of one prediction (``OUT/NAME_*``); returns the paths written.
 
-    The point cloud is coloured with the prediction's ``rgb`` when it carries the input's pixels.
+    Each file is written whole or not at all and checked (:mod:`dapm_lightning.data.files`). The point cloud is
+    coloured with the prediction's ``rgb`` when it carries the input's pixels.
+
+    Raises:
+        WriteError: a file could not be written (a full disk, a read-only folder, an image too large to encode).
     """
-    outputs, written, name = set(outputs), [], prediction.name
+    return list(prediction_files(out, prediction, outputs, points_stride, points_max_depth).values())
+
+
+def prediction_files(out: Path, prediction: Prediction, outputs: Iterable[str] = DEFAULT_OUTPUTS,
+                     points_stride: int = 2, points_max_depth: float | None = None) -> dict[str, Path]:
+    """:func:`write_prediction`, returning each kind written with its path (what the model could give of it)."""
+    outputs, written, name = set(outputs), {}, prediction.name
     if prediction.depth_m is not None:
         depth = prediction.depth_m.astype(np.float32)
         if "depth_npy" in outputs:
-            written.append(out / f"{name}_depth.npy")
-            np.save(written[-1], depth)
+            written["depth_npy"] = out / f"{name}_depth.npy"
+            with open_atomic(written["depth_npy"]) as handle:
+                np.save(handle, depth)
         if "depth_tiff" in outputs:  # 32-bit float TIFF: GDAL, QGIS, PIL ("F" mode), tifffile, OpenCV read it
-            written.append(out / f"{name}_depth.tif")
-            cv2.imwrite(str(written[-1]), depth)
+            written["depth_tiff"] = write_image(out / f"{name}_depth.tif", depth)
         if "depth16" in outputs:
-            written.append(out / f"{name}_depth16.png")
-            cv2.imwrite(str(written[-1]), np.clip(np.round(depth * DEPTH16_SCALE), 0, 65535).astype(np.uint16))
+            written["depth16"] = write_image(out / f"{name}_depth16.png",
+                                             np.clip(np.round(depth * DEPTH16_SCALE), 0, 65535).astype(np.uint16))
         if "depth_color" in outputs:
-            written.append(out / f"{name}_depth_color.png")
             color = colorize_depth(torch.from_numpy(depth), prediction.max_depth)
-            cv2.imwrite(str(written[-1]), cv2.cvtColor(color, cv2.COLOR_RGB2BGR))
+            written["depth_color"] = write_image(out / f"{name}_depth_color.png",
+                                                 cv2.cvtColor(color, cv2.COLOR_RGB2BGR))
     if "sky" in outputs and prediction.sky_prob is not None:
-        written.append(out / f"{name}_sky.png")
-        cv2.imwrite(str(written[-1]), np.round(np.clip(prediction.sky_prob, 0, 1) * 255).astype(np.uint8))
+        written["sky"] = write_image(out / f"{name}_sky.png",
+                                     np.round(np.clip(prediction.sky_prob, 0, 1) * 255).astype(np.uint8))
     if "camera" in outputs and prediction.pose is not None:
-        written.append(out / f"{name}_camera.json")
-        written[-1].write_text(_json_rows(prediction.camera_dict()))
+        written["camera"] = write_text(out / f"{name}_camera.json", _json_rows(prediction.camera_dict()))
     if "points" in outputs and prediction.depth_m is not None and prediction.pose is not None:
-        written.append(out / f"{name}_points.ply")
-        prediction.points(points_stride, points_max_depth, prediction.rgb).write_ply(written[-1])
+        written["points"] = prediction.points(points_stride, points_max_depth, prediction.rgb).write_ply(
+            out / f"{name}_points.ply")
     if "npz" in outputs:
-        written.append(out / f"{name}.npz")
+        written["npz"] = out / f"{name}.npz"
         arrays: dict[str, Any] = npz_arrays(prediction)
-        np.savez_compressed(written[-1], **arrays)
+        with open_atomic(written["npz"]) as handle:
+            np.savez_compressed(handle, **arrays)
     return written
 
 
@@ -130,24 +164,32 @@ def write_poses(out: Path, rows: list[dict[str, Any]], suffix: str = "") -> Path
     """``poses{suffix}.csv`` and ``.json``, merged with the folder's earlier ones.
 
     A row of the same name is replaced, the others are kept (a second run into one folder adds to its table).
+    The read, merge and rewrite hold a lock (:func:`~dapm_lightning.data.files.exclusive_lock`), so runs into
+    one folder at once keep every row; both tables are written whole from the same merged rows, so a reader
+    never sees half a table and a failed write leaves the earlier tables as they were.
+
+    Raises:
+        WriteError: a table could not be written.
     """
     path = out / f"poses{suffix}.csv"
-    merged: dict[str, dict[str, Any]] = {}
-    if path.is_file():
-        with path.open(newline="") as handle:
-            merged = {row["name"]: row for row in csv.DictReader(handle) if row.get("name")}
-    merged.update({row["name"]: row for row in rows})
-    columns = POSE_COLUMNS + sorted({k for row in merged.values() for k in row} - set(POSE_COLUMNS))
-    for row in merged.values():  # rows of images without telemetry: their pose is the network's
-        for column in columns[len(POSE_COLUMNS):]:
-            if row.get(column) in (None, "") and column.endswith(("_source", "_network")):
-                row[column] = "network" if column.endswith("_source") else row.get(column[:-len("_network")], "")
-    with path.open("w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=columns, restval="")
-        writer.writeheader()
-        writer.writerows(merged.values())
-    values = [{k: _number(v) for k, v in row.items()} for row in merged.values()]
-    (out / f"poses{suffix}.json").write_text(json.dumps(values, indent=2) + "\n")
+    with exclusive_lock(path):
+        merged: dict[str, dict[str, Any]] = {}
+        if path.is_file():
+            with path.open(newline="", encoding="utf-8") as handle:
+                merged = {row["name"]: {k: v for k, v in row.items() if k is not None}  # no cells past the header
+                          for row in csv.DictReader(handle) if row.get("name")}
+        merged.update({row["name"]: row for row in rows})
+        columns = POSE_COLUMNS + sorted({k for row in merged.values() for k in row} - set(POSE_COLUMNS))
+        for row in merged.values():  # rows of images without telemetry: their pose is the network's
+            for column in columns[len(POSE_COLUMNS):]:
+                if row.get(column) in (None, "") and column.endswith(("_source", "_network")):
+                    row[column] = "network" if column.endswith("_source") else row.get(column[:-len("_network")], "")
+        with open_atomic(path, "w") as handle:
+            writer = csv.DictWriter(handle, fieldnames=columns, restval="")
+            writer.writeheader()
+            writer.writerows(merged.values())
+        values = [{k: _number(v) for k, v in row.items()} for row in merged.values()]
+        write_text(out / f"poses{suffix}.json", json.dumps(values, indent=2) + "\n")
     return path
 
 
@@ -161,32 +203,56 @@ def _number(value: Any) -> Any:
     return value
 
 
+def contact_tile(height: int, width: int, tile: int = CONTACT_TILE) -> tuple[int, int, int, int, int, int]:
+    """Where an ``height x width`` picture goes in its contact-sheet tile.
+
+    The tile is ``tile`` pixels high and the picture's own aspect wide, bounded to between a quarter and
+    :data:`CONTACT_MAX_ASPECT` times its height; a picture of another aspect is shrunk to fit and centred.
+    Returns ``(tile_w, tile_h, w, h, left, top)``: the tile's size, the picture's size and offset in it.
+    """
+    natural = max(1, round(width * tile / height))
+    tile_w = min(max(natural, max(1, tile // CONTACT_MAX_ASPECT)), CONTACT_MAX_ASPECT * tile)
+    if tile_w == natural:
+        return tile_w, tile, tile_w, tile, 0, 0
+    scale = min(tile_w / width, tile / height)
+    w, h = max(1, min(tile_w, round(width * scale))), max(1, min(tile, round(height * scale)))
+    return tile_w, tile, w, h, (tile_w - w) // 2, (tile - h) // 2
+
+
 def contact_row(prediction: Prediction, tile: int = CONTACT_TILE) -> np.ndarray:
     """``image | depth | sky | pose`` for one prediction (its ``rgb``, grey without), ``tile`` pixels high.
 
-    The horizon of the pose used is drawn on the image, the pose written on the last tile.
+    The horizon of the pose used is drawn on the image, the pose written on the last tile. Each picture tile is
+    at most :data:`CONTACT_MAX_ASPECT` times ``tile`` wide, whatever the image's aspect (:func:`contact_tile`).
     """
     height, width = prediction.size
-    w = max(1, round(width * tile / height))
+    tile_w, tile_h, w, h, left, top = contact_tile(height, width, tile)
+    grey = np.full((tile_h, tile_w, 3), 40, np.uint8)
 
     def fit(picture: np.ndarray) -> np.ndarray:
-        return cv2.resize(picture, (w, tile), interpolation=cv2.INTER_AREA)
+        resized = cv2.resize(picture, (w, h), interpolation=cv2.INTER_AREA)
+        if (w, h) == (tile_w, tile_h):
+            return resized
+        boxed = grey.copy()
+        boxed[top:top + h, left:left + w] = resized
+        return boxed
 
-    grey = np.full((tile, w, 3), 40, np.uint8)
     image = fit(prediction.rgb) if prediction.rgb is not None else grey.copy()
     if prediction.pose is not None:
         segment = horizon_segment(prediction.pose["pitch"], prediction.pose["roll"], prediction.pose["fov"],
                                   (height, width))
         if segment is not None:
             (x0, y0), (x1, y1) = segment
-            scale = tile / height
-            cv2.line(image, (round(x0 * scale), round(y0 * scale)), (round(x1 * scale), round(y1 * scale)),
-                     (255, 220, 0), 2, cv2.LINE_AA)
+            sx, sy = w / width, h / height
+            if (w, h) == (tile_w, tile_h):  # the picture fills its tile: one scale, as the tile was sized
+                sx = sy = tile / height
+            cv2.line(image, (left + round(x0 * sx), top + round(y0 * sy)),
+                     (left + round(x1 * sx), top + round(y1 * sy)), (255, 220, 0), 2, cv2.LINE_AA)
     depth = (fit(colorize_depth(torch.from_numpy(prediction.depth_m), prediction.max_depth))
              if prediction.depth_m is not None else grey)
     sky = (fit(np.repeat((np.clip(prediction.sky_prob, 0, 1) * 255).astype(np.uint8)[..., None], 3, axis=2))
            if prediction.sky_prob is not None else grey)
-    text = np.full((tile, 2 * tile, 3), 255, np.uint8)
+    text = np.full((tile_h, 2 * tile, 3), 255, np.uint8)
     lines = [prediction.name[:28]]
     if prediction.pose is not None:
         sources = prediction.pose_source or {}
@@ -205,42 +271,125 @@ def contact_sheet(rows: Sequence[np.ndarray]) -> np.ndarray:
                            for r in rows], axis=0)
 
 
+def _glob_magic(text: str) -> bool:
+    return any(c in text for c in "*?[")
+
+
+def source_holding(out: str | Path, source: str | Path) -> Path | None:
+    """The source folder, or glob pattern root, that the output folder ``out`` is or lies in; None if apart.
+
+    A folder source holds ``out`` when ``out`` is the folder or inside it. A glob pattern's root (its path up to
+    the first component with ``*``, ``?`` or ``[``) holds ``out`` when ``out`` is the root, or lies where the
+    pattern reaches: anywhere below it with ``**``, else in a folder the pattern's components match (so
+    ``'*.jpg'`` with ``--out predictions`` is apart, ``'flight/*/*.jpg'`` with ``--out flight/out`` is not).
+    An image or a video file holds nothing. Paths are compared resolved (links followed).
+    """
+    text = str(source)
+    path = Path(text).expanduser()
+    target = Path(out).expanduser().resolve()
+    if path.is_dir():
+        root = path.resolve()
+        return path if target == root or root in target.parents else None
+    if path.exists() or not _glob_magic(text):
+        return None
+    parts = path.parts
+    first = next(k for k, part in enumerate(parts) if _glob_magic(part))
+    root_path = Path(*parts[:first]) if first else Path(".")
+    rest = parts[first:]
+    try:
+        inside = target.relative_to(root_path.resolve()).parts
+    except ValueError:
+        return None
+    if not inside or "**" in rest:
+        return root_path
+    if len(inside) < len(rest) and all(fnmatch.fnmatchcase(p, pattern) for p, pattern in zip(inside, rest)):
+        return root_path
+    return None
+
+
+def check_output_outside_source(out: str | Path, source: str | Path, option: str = "--out") -> None:
+    """Refuse an output folder whose files the source would read back as images (one line).
+
+    Raises:
+        ValueError: ``out`` is the source folder or lies inside it (:func:`source_holding`).
+    """
+    root = source_holding(out, source)
+    if root is not None:
+        where = "is" if Path(out).expanduser().resolve() == root.resolve() else "lies inside"
+        raise ValueError(f"{option} {out} {where} the source {root}, so its files would be read back as images: "
+                         "give an output folder outside the source")
+
+
 class PredictionFiles:
     """One run's files: each prediction's as it comes, then the poses table, contact sheet and summary line.
 
     :meth:`add` writes a prediction's files, :meth:`finish` the run's. Used by :class:`PredictionWriter` and
-    the one-line ``predict`` command.
+    the one-line ``predict`` command. The output folder is checked when this is made (before a model is loaded)
+    and created with the first file, so a run that writes nothing leaves no folder; as a context manager (or
+    through :meth:`close`) a folder it created goes again when the run fails before writing into it. Every
+    file is written whole and checked: a failed write raises
+    :class:`~dapm_lightning.data.files.WriteError` naming the file and the fix.
 
     Args:
-        output_dir: where the files go (created).
+        output_dir: where the files go (created with the first file).
         outputs: which per-image files to write, any of depth_npy, depth_tiff, depth16, depth_color, sky, camera,
             points, npz (default: all but npz).
         points_stride: point clouds keep every points_stride-th row and column.
         points_max_depth: point clouds drop points farther than this (metres; sky is always dropped).
         contact_sheet: ``contact_sheet.png`` with the first this many images (image and horizon | depth | sky |
-            pose); 0: none.
+            pose), at most :data:`CONTACT_MAX_IMAGES`; 0: none.
+        option: the setting that named ``output_dir`` (e.g. ``--out``), named in error messages.
     """
 
     def __init__(self, output_dir: str | Path = "predictions", outputs: Iterable[str] | None = None,
-                 points_stride: int = 2, points_max_depth: float | None = None, contact_sheet: int = 8) -> None:
+                 points_stride: int = 2, points_max_depth: float | None = None, contact_sheet: int = 8,
+                 option: str | None = None) -> None:
         self.output_dir = Path(output_dir)
         self.outputs = check_outputs(outputs)
         if points_stride < 1:
             raise ValueError(f"points_stride must be >= 1, got {points_stride}")
         self.points_stride, self.points_max_depth = points_stride, points_max_depth
-        self.contact_images = max(0, contact_sheet)
+        if contact_sheet > CONTACT_MAX_IMAGES:
+            warnings.warn(f"a contact sheet shows at most {CONTACT_MAX_IMAGES} images, not {contact_sheet}",
+                          stacklevel=2)
+        self.contact_images = min(max(0, contact_sheet), CONTACT_MAX_IMAGES)
+        self.option = option
+        check_folder_writable(self.output_dir, option)
+        self.created: list[Path] = []
+        """The folders this object created (outermost first)."""
         self.start()
 
     def start(self) -> None:
-        """A new run: nothing counted yet; the folder is created."""
+        """A new run: nothing counted yet (the folder is created with the first file)."""
         self.rows: list[dict[str, Any]] = []
         self.contact_rows: list[np.ndarray] = []
         self.images = 0
-        self.output_dir.mkdir(parents=True, exist_ok=True)
+        self.kinds: set[str] = set()
+        """The per-image kinds written for at least one image."""
+
+    def _folder(self) -> Path:
+        if not self.output_dir.is_dir():
+            self.created += make_folder(self.output_dir)
+        return self.output_dir
+
+    def _failed(self, error: BaseException) -> BaseException:
+        """After a failed write: the folder goes if this run created it and it is empty; the error names the option."""
+        self.close()
+        if isinstance(error, WriteError) and self.option and self.option not in error.fix:
+            return WriteError(error.path, error.reason, f"{error.fix} ({self.option})")
+        return error
 
     def add(self, prediction: Prediction) -> None:
         """Write one prediction's files (its ``rgb``, when kept, colours the points and the contact sheet)."""
-        write_prediction(self.output_dir, prediction, self.outputs, self.points_stride, self.points_max_depth)
+        try:
+            written = prediction_files(self._folder(), prediction, self.outputs, self.points_stride,
+                                       self.points_max_depth)
+        except BaseException as error:
+            raised = self._failed(error)
+            if raised is error:
+                raise
+            raise raised from error
+        self.kinds.update(written)
         if prediction.pose is not None:
             self.rows.append(pose_row(prediction))
         if len(self.contact_rows) < self.contact_images:
@@ -248,22 +397,45 @@ class PredictionFiles:
         self.images += 1
 
     def finish(self, suffix: str = "") -> str:
-        """Write the poses table (merged with the folder's) and the contact sheet; returns the summary line."""
+        """Write the poses table (merged with the folder's) and the contact sheet; returns the summary line.
+
+        The summary names only the files written: the per-image kinds the model gave, the tables and sheet.
+        """
         extra = []
-        if self.rows:
-            extra.append(write_poses(self.output_dir, self.rows, suffix).name)
-        if self.contact_rows:
-            path = self.output_dir / f"contact_sheet{suffix}.png"
-            cv2.imwrite(str(path), cv2.cvtColor(contact_sheet(self.contact_rows), cv2.COLOR_RGB2BGR))
-            extra.append(path.name)
-        return summary_line(self.images, self.outputs, self.output_dir, extra)
+        try:
+            if self.rows:
+                extra.append(write_poses(self._folder(), self.rows, suffix).name)
+            if self.contact_rows:
+                path = write_image(self._folder() / f"contact_sheet{suffix}.png",
+                                   cv2.cvtColor(contact_sheet(self.contact_rows), cv2.COLOR_RGB2BGR))
+                extra.append(path.name)
+        except BaseException as error:
+            raised = self._failed(error)
+            if raised is error:
+                raise
+            raise raised from error
+        return summary_line(self.images, [k for k in self.outputs if k in self.kinds], self.output_dir, extra)
+
+    def close(self) -> None:
+        """The end of a run, done or failed: the folders this run created go again if nothing was written there."""
+        remove_empty_folders(self.created)
+        self.created = [folder for folder in self.created if folder.is_dir()]
+
+    def __enter__(self) -> PredictionFiles:
+        return self
+
+    def __exit__(self, kind: type[BaseException] | None, error: BaseException | None,
+                 traceback: TracebackType | None) -> None:
+        self.close()
 
 
 class PredictionWriter(BasePredictionWriter):
     """Lightning's side of :class:`PredictionFiles`: each batch's files, then the run's, then one summary line.
 
     Predictions are not kept in memory (the trainer's return_predictions is switched off), so memory
-    stays flat over any number of images or frames.
+    stays flat over any number of images or frames. The output folder is checked when the writer is made, and
+    refused before the first batch when the data module's source would read its files back as images; a run
+    that writes nothing leaves no folder.
 
     Args:
         output_dir, outputs, points_stride, points_max_depth, contact_sheet: as in :class:`PredictionFiles`.
@@ -274,12 +446,16 @@ class PredictionWriter(BasePredictionWriter):
     Under DDP every process writes its own images and poses_rank<k>.{csv,json}.
     """
 
+    OPTION = "--trainer.callbacks.output_dir"
+    """The setting that names the output folder, in messages."""
+
     def __init__(self, output_dir: str = "predictions", outputs: list[Output] | None = None, points_stride: int = 2,
                  points_max_depth: float | None = None, contact_sheet: int = 8, channels_last: bool = False,
                  compile: bool = False) -> None:
         super().__init__(write_interval="batch")
         self.channels_last, self.compile = channels_last, compile
-        self.files = PredictionFiles(output_dir, outputs, points_stride, points_max_depth, contact_sheet)
+        self.files = PredictionFiles(output_dir, outputs, points_stride, points_max_depth, contact_sheet,
+                                     option=self.OPTION)
         self.spec = IGDSpec()
 
     @property
@@ -288,6 +464,9 @@ class PredictionWriter(BasePredictionWriter):
         return self.files.output_dir
 
     def on_predict_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        source = getattr(getattr(trainer, "datamodule", None), "source", None)
+        if isinstance(source, PredictSource):  # before the first batch; a missing checkpoint is named first
+            check_output_outside_source(self.output_dir, source.path, self.OPTION)
         trainer.predict_loop.return_predictions = False  # the files are the result: keep nothing in memory
         apply_inference_options(pl_module, self.channels_last, self.compile)
         config = getattr(pl_module, "net_config", None)
@@ -306,13 +485,24 @@ class PredictionWriter(BasePredictionWriter):
     def on_predict_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         suffix = f"_rank{trainer.global_rank}" if trainer.world_size > 1 else ""
         message = self.files.finish(suffix)
+        self.files.close()
         if trainer.world_size > 1:
             print(f"{message} (process {trainer.global_rank} of {trainer.world_size})", flush=True)
         else:
             rank_zero_info(message)
 
+    def on_exception(self, trainer: L.Trainer, pl_module: L.LightningModule, exception: BaseException) -> None:
+        self.files.close()  # a run that failed before writing anything leaves no folder
+
 
 def summary_line(images: int, outputs: Sequence[str], out: Path, extra: Sequence[str] = ()) -> str:
-    """``predicted N images: depth_npy, ... per image; poses.csv, contact_sheet.png in OUT``."""
-    files = f"; {', '.join(extra)}" if extra else ""
-    return f"predicted {images} image{'s' if images != 1 else ''}: {', '.join(outputs)} per image{files} in {out}/"
+    """``predicted N images: depth_npy, ... per image; poses.csv, contact_sheet.png in OUT/``.
+
+    ``outputs``: the per-image kinds written, ``extra``: the run's files written; with neither, ``nothing written``.
+    """
+    count = f"predicted {images} image{'s' if images != 1 else ''}"
+    if not outputs and not extra:
+        return f"{count}: nothing written"
+    per_image = f"{', '.join(outputs)} per image" if outputs else ""
+    files = ", ".join(extra)
+    return f"{count}: {per_image}{'; ' if per_image and files else ''}{files} in {out}/"

@@ -15,9 +15,14 @@ import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
-from dapm_lightning.inference.inputs import DEFAULT_BATCH_SIZE, PredictSource
+from dapm_lightning.inference.inputs import DEFAULT_BATCH_SIZE, PredictSource, resolve_source
 from dapm_lightning.inference.runtime import PRECISIONS
-from dapm_lightning.inference.writers import DEFAULT_OUTPUTS, OUTPUT_KINDS, PredictionFiles
+from dapm_lightning.inference.writers import (
+    DEFAULT_OUTPUTS,
+    OUTPUT_KINDS,
+    PredictionFiles,
+    check_output_outside_source,
+)
 from dapm_lightning.models.prior import EXACT_SIGMA, PRIOR_MODES
 
 LIGHTNING_OPTIONS = ("--config", "--data", "--trainer", "--model", "--print_config", "--seed_everything")
@@ -60,7 +65,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--frame_step", type=int, default=1, help="videos: every N-th frame (default: 1)")
     parser.add_argument("--max_frames", type=int, default=None, help="videos: stop after this many frames")
     parser.add_argument("--contact_sheet", type=int, default=8,
-                        help="contact_sheet.png of the first N images; 0: none (default: %(default)s)")
+                        help="contact_sheet.png of the first N images (at most 64); 0: none (default: %(default)s)")
     parser.add_argument("--points_stride", type=int, default=2, help="point clouds: every N-th row and column")
     parser.add_argument("--num_workers", type=int, default=0, help="decoding processes (default: 0)")
     flight = parser.add_argument_group("telemetry (docs/predict.md): the pose the drone knows, for metric depth")
@@ -108,7 +113,12 @@ def predict_main(argv: Sequence[str]) -> None:
 
     args = parse(argv)
     warnings.formatwarning = _short_warning  # "warning: MESSAGE", not the source line that raised it
-    files = PredictionFiles(Path(args.out), args.outputs, args.points_stride, contact_sheet=args.contact_sheet)
+    # what can be found wrong without the model is found before it loads (seconds): a missing source, an
+    # output folder inside it (its files would be read back as images) or one that cannot be written
+    resolve_source(args.source)
+    check_output_outside_source(args.out, args.source, "--out")
+    files = PredictionFiles(Path(args.out), args.outputs, args.points_stride, contact_sheet=args.contact_sheet,
+                            option="--out")
     predictor = DAPMPredictor.from_checkpoint(args.ckpt_path, args.image_width, args.device,
                                               precision=args.precision, batch_size=args.batch_size,
                                               telemetry_mode=args.telemetry_mode,
@@ -116,6 +126,7 @@ def predict_main(argv: Sequence[str]) -> None:
     source = PredictSource(args.source, args.frame_step, args.max_frames, args.telemetry, not args.no_metadata,
                            args.sensor_width_mm)
     keep_rgb = "points" in files.outputs or files.contact_images > 0
-    for prediction in predictor.predict_source(source, keep_rgb=keep_rgb, num_workers=args.num_workers):
-        files.add(prediction)
-    print(files.finish(), file=sys.stdout, flush=True)
+    with files:  # the output folder is made with the first file, and goes again if the run fails before it
+        for prediction in predictor.predict_source(source, keep_rgb=keep_rgb, num_workers=args.num_workers):
+            files.add(prediction)
+        print(files.finish(), file=sys.stdout, flush=True)

@@ -1,0 +1,383 @@
+"""Prediction outputs as a user meets them: nothing lost, nothing faked.
+
+A full disk, an image the encoder refuses, an output folder inside the source or one that cannot be written,
+a run that fails before writing, images of extreme aspect, and runs writing one poses table at once.
+"""
+
+import csv
+import json
+import subprocess
+import threading
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from dapm_lightning.data import files as files_module
+from dapm_lightning.data.files import (
+    WriteError,
+    check_folder_writable,
+    exclusive_lock,
+    open_atomic,
+    write_bytes,
+    write_image,
+)
+from dapm_lightning.geometry.igd import IGDSpec
+from dapm_lightning.inference.postprocess import make_prediction
+from dapm_lightning.inference.predictor import DAPMPredictor
+from dapm_lightning.inference.writers import (
+    CONTACT_MAX_ASPECT,
+    CONTACT_MAX_IMAGES,
+    CONTACT_TILE,
+    PredictionFiles,
+    PredictionWriter,
+    contact_row,
+    contact_sheet,
+    source_holding,
+    write_poses,
+)
+from dapm_lightning.models import DAPMConfig
+from dapm_lightning.training.module import DAPMModule
+from tests.conftest import run_main
+
+TINY = {"backbone": "resnet18", "decoder_channels": 16, "head_channels": 8, "igd_channels": 4, "pose_hidden": 16,
+        "depth_bins": (2, 4), "pose_bins": (4,)}
+ROW_MAX_WIDTH = 3 * CONTACT_MAX_ASPECT * CONTACT_TILE + 2 * CONTACT_TILE
+
+
+def mount_tmpfs(folder, options):
+    """Mount a tmpfs on ``folder`` (root only); False where this machine does not allow it."""
+    folder.mkdir(parents=True, exist_ok=True)
+    try:
+        done = subprocess.run(["mount", "-t", "tmpfs", "-o", options, "tmpfs", str(folder)], capture_output=True)
+    except FileNotFoundError:
+        return False
+    return done.returncode == 0
+
+
+@pytest.fixture()
+def small_disk(tmp_path):
+    """A 384 KiB file system (a tmpfs), or None where none can be mounted (the tests then fake the failure)."""
+    disk = tmp_path / "disk"
+    if not mount_tmpfs(disk, "size=384k"):
+        yield None
+        return
+    try:
+        yield disk
+    finally:
+        subprocess.run(["umount", "-l", str(disk)], capture_output=True)
+
+
+def fill(disk, leave=0):
+    """Fill ``disk`` up to ``leave`` bytes."""
+    try:
+        with (disk / "filler").open("wb") as handle:
+            while True:
+                handle.write(b"\0" * 4096)
+                handle.flush()
+    except OSError:
+        pass
+    if leave:
+        size = (disk / "filler").stat().st_size
+        with (disk / "filler").open("r+b") as handle:
+            handle.truncate(max(0, size - leave))
+
+
+@pytest.fixture()
+def flight(tmp_path):
+    folder = tmp_path / "flight"
+    folder.mkdir()
+    rng = np.random.default_rng(3)
+    for k in range(48):
+        cv2.imwrite(str(folder / f"im{k:02d}.png"), rng.integers(0, 255, (40, 60, 3), np.uint8))
+    return folder
+
+
+def assert_whole(folder, earlier=None):
+    """Every file in ``folder`` is complete: no empty or temporary file, each image and array readable."""
+    names = sorted(p.name for p in folder.iterdir())
+    assert not [n for n in names if n.startswith(".")], names  # no temporary or lock file left behind
+    for path in folder.iterdir():
+        assert path.stat().st_size > 0, path
+        if path.suffix in (".png", ".tif"):
+            assert cv2.imread(str(path), cv2.IMREAD_UNCHANGED) is not None, path
+        elif path.suffix == ".npy":
+            np.load(path)
+        elif path.suffix == ".json":
+            json.loads(path.read_text())
+        elif path.name == "poses.csv" and earlier is not None:
+            assert path.read_text() == earlier  # the earlier table, untouched
+    return names
+
+
+# ------------------------------------------------------------------------------------------------- the file helper
+def test_a_failed_write_leaves_the_earlier_file_and_no_temporary_file(tmp_path):
+    target = write_bytes(tmp_path / "table.csv", b"earlier\n")
+    with pytest.raises(RuntimeError), open_atomic(target, "w") as handle:
+        handle.write("half a ta")
+        raise RuntimeError("the writer stops half-way")
+    assert target.read_bytes() == b"earlier\n" and sorted(p.name for p in tmp_path.iterdir()) == ["table.csv"]
+    with pytest.raises(WriteError, match=r"missing/x.png: cannot be written \(its folder .* does not exist\)"):
+        write_image(tmp_path / "missing" / "x.png", np.zeros((4, 4), np.uint8))
+    # OpenCV returns False, it does not raise: a row libpng refuses (over 1,000,000 pixels) is an error here
+    with pytest.raises(WriteError, match=r"wide.png: cannot be written \(OpenCV cannot encode a 2x1100000x3 uint8"):
+        write_image(tmp_path / "wide.png", np.zeros((2, 1_100_000, 3), np.uint8))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["table.csv"]
+    error = WriteError(tmp_path / "x", "why")
+    assert isinstance(error, OSError) and isinstance(error, ValueError)  # a user's error: a message, no traceback
+
+
+def test_the_table_lock_is_exclusive_and_leaves_no_file(tmp_path):
+    table = tmp_path / "poses.csv"
+    inside, most = [0], [0]
+
+    def hold():
+        for _ in range(20):
+            with exclusive_lock(table):
+                inside[0] += 1
+                most[0] = max(most[0], inside[0])
+                threading.Event().wait(0.001)
+                inside[0] -= 1
+
+    threads = [threading.Thread(target=hold) for _ in range(4)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    assert most[0] == 1 and list(tmp_path.iterdir()) == []
+
+
+# ------------------------------------------------------------------------------------------- one table, many runs
+def test_runs_writing_one_poses_table_at_once_keep_every_row(tmp_path):
+    """Four runs merge their rows into a 20,000-row table at once: every earlier and new row is kept."""
+    earlier = [{"name": f"old{k:05d}", "height_m": 10 + k % 7, "pitch_deg": -40, "roll_deg": 1, "fov_deg": 70}
+               for k in range(20_000)]
+    write_poses(tmp_path, earlier)
+    before = (tmp_path / "poses.csv").read_text().splitlines()
+    start = threading.Barrier(4)
+    errors = []
+
+    def run(k):
+        rows = [{"name": f"run{k}_{i:02d}", "height_m": 50.0 + i, "pitch_deg": -30.0, "roll_deg": 0.5,
+                 "fov_deg": 80.0} for i in range(32)]
+        start.wait()
+        try:
+            write_poses(tmp_path, rows)
+        except Exception as error:  # noqa: BLE001
+            errors.append(error)
+
+    threads = [threading.Thread(target=run, args=(k,)) for k in range(4)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    assert not errors
+    lines = (tmp_path / "poses.csv").read_text().splitlines()
+    assert lines[:len(before)] == before  # every earlier row, unchanged and in order
+    names = [line.split(",")[0] for line in lines[len(before):]]
+    assert sorted(names) == sorted(f"run{k}_{i:02d}" for k in range(4) for i in range(32))
+    with (tmp_path / "poses.csv").open(newline="") as handle:
+        table = list(csv.DictReader(handle))
+    assert [row["name"] for row in json.loads((tmp_path / "poses.json").read_text())] == [r["name"] for r in table]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["poses.csv", "poses.json"]  # no lock or temporary file
+
+
+# --------------------------------------------------------------------------------------------------- a full disk
+def test_a_full_disk_fails_the_run_naming_the_file_and_keeps_the_table(checkpoint, flight, small_disk, capsys,
+                                                                        monkeypatch):
+    """48 images into a disk with room for a few: exit 1 naming the file, no empty file, the table as it was."""
+    if small_disk is None:  # no tmpfs here: the encoder's False return stands for the full disk
+        out = flight.parent / "out"
+        calls = [0]
+
+        def refuse_after_ten(ext, image, *args):
+            calls[0] += 1
+            return (False, None) if calls[0] > 10 else cv2.imencode(ext, image, *args)
+
+        monkeypatch.setattr(files_module.cv2, "imencode", refuse_after_ten)
+    else:
+        out = small_disk / "out"
+    out.mkdir()
+    earlier = "name,height_m,pitch_deg,roll_deg,fov_deg\n" + "".join(f"old{k},50,-40,1,70\n" for k in range(100))
+    (out / "poses.csv").write_text(earlier)
+    code, err = run_main(["predict", str(flight), "--ckpt_path", str(checkpoint), "--out", str(out),
+                          "--device", "cpu", "--batch_size", "8"], capsys)
+    message = err.splitlines()
+    assert code == 1 and message[0].startswith(f"error: {out}/im") and ": cannot be written (" in message[0]
+    assert message[1].startswith("Fix: ") and "--out" in message[1]
+    if small_disk is not None:
+        assert "No space left on device" in message[0] and "free space" in message[1]
+    names = assert_whole(out, earlier)
+    assert 1 < len(names) < 48 * 7  # some images were written, whole; the run stopped at the first failure
+    assert "predicted" not in capsys.readouterr().out
+
+
+def test_a_depth_only_model_into_a_full_disk_raises_and_lists_nothing(flight, small_disk, monkeypatch):
+    torch.manual_seed(0)
+    predictor = DAPMPredictor(DAPMModule(net=DAPMConfig(**TINY, use_pose=False, use_igd_feature=False)),
+                              image_width=32, batch_size=8)
+    if small_disk is None:
+        monkeypatch.setattr(files_module.cv2, "imencode", lambda *args: (False, None))
+        out = flight.parent / "out"
+    else:
+        fill(small_disk, leave=64 * 1024)  # room for a few images' files
+        out = small_disk / "out"
+    files = PredictionFiles(out, ["depth16", "sky"])
+    with pytest.raises(WriteError, match="cannot be written") as info, files:
+        for prediction in predictor.predict_source(flight, keep_rgb=True):
+            files.add(prediction)
+        files.finish()
+    assert info.value.path.parent == out and info.value.path.suffix == ".png"
+    assert_whole(out)
+
+
+def test_a_run_whose_first_write_fails_leaves_no_folder(checkpoint, flight, small_disk, capsys, monkeypatch):
+    if small_disk is None:
+        monkeypatch.setattr(files_module.cv2, "imencode", lambda *args: (False, None))
+        parent = flight.parent
+    else:
+        fill(small_disk)
+        parent = small_disk
+    out = parent / "new" / "out"
+    code, err = run_main(["predict", str(flight), "--ckpt_path", str(checkpoint), "--out", str(out),
+                          "--device", "cpu", "--outputs", "depth16"], capsys)
+    assert code == 1 and "im00_depth16.png: cannot be written" in err
+    assert not (parent / "new").exists()  # the folders the run made went again
+
+
+# ----------------------------------------------------------------------------------- runs that fail before writing
+def test_a_failed_run_leaves_no_output_folder(checkpoint, flight, tmp_path, capsys):
+    out = tmp_path / "out"
+    base = ["--ckpt_path", str(checkpoint), "--out", str(out), "--device", "cpu"]
+    code, err = run_main(["predict", str(tmp_path / "missing"), *base], capsys)
+    assert code == 1 and "no such file or folder" in err
+    table = tmp_path / "flight.csv"
+    table.write_text("name,height_m\nim00.png,tall\n")
+    code, err = run_main(["predict", str(flight), *base, "--telemetry", str(table)], capsys)
+    assert code == 1 and "flight.csv" in err
+    damaged = tmp_path / "damaged"
+    damaged.mkdir()
+    (damaged / "a.png").write_bytes(b"not a png")
+    code, err = run_main(["predict", str(damaged), *base], capsys)
+    assert code == 1 and "a.png: cannot be decoded" in err
+    assert not out.exists()
+
+
+# ------------------------------------------------------------------------------------- where the output folder is
+def test_an_output_folder_in_the_source_is_refused_before_the_model_loads(checkpoint, flight, capsys, monkeypatch):
+    def no_model(*args, **kwargs):
+        raise AssertionError("the model was loaded")
+
+    monkeypatch.setattr(DAPMPredictor, "from_checkpoint", no_model)
+    nested = flight / "sub"
+    (flight / "day1").mkdir()
+    cv2.imwrite(str(flight / "day1" / "a.png"), np.zeros((8, 8), np.uint8))
+    for source, out, root in ((flight, flight, flight), (flight, flight / "pred", flight),
+                              (f"{flight}/**/*.png", nested, flight), (f"{flight}/*.png", flight, flight),
+                              (f"{flight}/*/*.png", nested, flight)):
+        code, err = run_main(["predict", str(source), "--ckpt_path", str(checkpoint), "--out", str(out)], capsys)
+        lines = err.splitlines()
+        assert code == 1 and lines[0] == (f"error: --out {out} {'is' if out == root else 'lies inside'} the source "
+                                          f"{root}, so its files would be read back as images: give an output "
+                                          "folder outside the source"), err
+        assert not nested.exists() and not (flight / "pred").exists()
+    # a glob reaches only the folders its components match: the default --out beside '*.png' is apart
+    assert source_holding(flight.parent / "predictions", f"{flight.parent}/*.png") is None
+    assert source_holding(flight / "pred", f"{flight}/day*/*.png") is None
+    assert source_holding(flight / "pred", flight / "im00.png") is None  # an image holds nothing
+    assert source_holding(flight.parent / "out", flight) is None
+
+
+def test_the_lightning_form_refuses_an_output_folder_in_the_source(checkpoint, flight, tmp_path, capsys,
+                                                                     monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    before = sorted(p.name for p in flight.iterdir())
+    code, err = run_main(["predict", "--config", "configs/predict.yaml", "--ckpt_path", str(checkpoint),
+                          "--data.init_args.source", str(flight), "--data.init_args.num_workers", "0",
+                          "--trainer.callbacks.output_dir", str(flight)], capsys)
+    assert code == 1 and err.splitlines()[0].startswith(f"error: --trainer.callbacks.output_dir {flight} is the "
+                                                        f"source {flight}")
+    assert sorted(p.name for p in flight.iterdir()) == before
+
+
+def test_an_unwritable_output_folder_is_refused_before_the_model_loads(checkpoint, flight, tmp_path, capsys,
+                                                                        monkeypatch):
+    monkeypatch.setattr(DAPMPredictor, "from_checkpoint", lambda *a, **k: pytest.fail("the model was loaded"))
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    code, err = run_main(["predict", str(flight), "--ckpt_path", str(checkpoint), "--out", str(afile / "out")],
+                         capsys)
+    assert code == 1 and err.splitlines()[:2] == [
+        f"error: {afile}/out: cannot be written (it lies under {afile}, which is a file, not a folder)",
+        "Fix: give another output folder (--out)"]
+    code, err = run_main(["predict", str(flight), "--ckpt_path", str(checkpoint), "--out", str(afile)], capsys)
+    assert code == 1 and "it is a file, not a folder" in err
+    with pytest.raises(WriteError, match=r"--trainer.callbacks.output_dir"):
+        PredictionWriter(output_dir=str(afile / "out"))
+    read_only = tmp_path / "ro"
+    if mount_tmpfs(read_only, "ro,size=64k"):  # a read-only file system stops root too
+        try:
+            code, err = run_main(["predict", str(flight), "--ckpt_path", str(checkpoint), "--out",
+                                  str(read_only / "out")], capsys)
+            assert code == 1 and f"{read_only} is read-only or not yours" in err
+        finally:
+            subprocess.run(["umount", "-l", str(read_only)], capture_output=True)
+    with pytest.raises(WriteError):
+        check_folder_writable(afile / "a" / "b")
+
+
+# ---------------------------------------------------------------------------------------- extreme aspects and sizes
+@pytest.mark.parametrize("size", [(10, 30000), (30000, 10), (45, 70), (40, 160), (40, 161), (1, 1)])
+def test_contact_sheet_tiles_are_bounded_for_any_aspect(size):
+    depth = torch.full((1, 16, 16), 30.0)
+    prediction = make_prediction("x", size, depth, torch.zeros(1, 16, 16), torch.tensor([40.0, -20.0, 3.0, 70.0]),
+                                 IGDSpec())
+    prediction.rgb = np.full((*size, 3), 120, np.uint8)
+    row = contact_row(prediction)
+    natural = max(1, round(size[1] * CONTACT_TILE / size[0]))
+    tile = row.shape[1] - 2 * CONTACT_TILE
+    assert row.shape[0] == CONTACT_TILE and row.shape[1] <= ROW_MAX_WIDTH
+    if CONTACT_TILE // CONTACT_MAX_ASPECT <= natural <= CONTACT_MAX_ASPECT * CONTACT_TILE:
+        assert tile == 3 * natural  # ordinary aspects: the tiles as they always were
+    else:
+        assert tile == 3 * min(max(natural, CONTACT_TILE // CONTACT_MAX_ASPECT), CONTACT_MAX_ASPECT * CONTACT_TILE)
+    sheet = contact_sheet([row] * CONTACT_MAX_IMAGES)
+    assert sheet.shape[1] <= ROW_MAX_WIDTH and sheet.shape[0] == CONTACT_MAX_IMAGES * (CONTACT_TILE + 4)
+
+
+def test_thin_and_wide_images_through_the_command(checkpoint, tmp_path, capsys):
+    from dapm_lightning.cli import main
+
+    folder = tmp_path / "thin"
+    folder.mkdir()
+    rng = np.random.default_rng(1)
+    cv2.imwrite(str(folder / "wide.png"), rng.integers(0, 255, (8, 1200, 3), np.uint8))
+    cv2.imwrite(str(folder / "tall.png"), rng.integers(0, 255, (1200, 8, 3), np.uint8))
+    out = tmp_path / "out"
+    main(["predict", str(folder), "--ckpt_path", str(checkpoint), "--out", str(out), "--device", "cpu",
+          "--image_width", "64", "--outputs", "depth16", "sky"])
+    summary = capsys.readouterr().out.strip().splitlines()[-1]
+    assert summary == f"predicted 2 images: depth16, sky per image; poses.csv, contact_sheet.png in {out}/"
+    sheet = cv2.imread(str(out / "contact_sheet.png"))
+    assert sheet.shape[:2] == (2 * (CONTACT_TILE + 4), ROW_MAX_WIDTH)
+    assert cv2.imread(str(out / "wide_depth16.png"), cv2.IMREAD_UNCHANGED).shape == (8, 1200)
+    with pytest.warns(UserWarning, match=f"at most {CONTACT_MAX_IMAGES} images"):
+        assert PredictionFiles(tmp_path / "x", contact_sheet=1000).contact_images == CONTACT_MAX_IMAGES
+    assert not (tmp_path / "x").exists()
+
+
+def test_the_summary_names_only_what_was_written(tmp_path, capsys):
+    torch.manual_seed(0)
+    pose_only = DAPMPredictor(DAPMModule(net=DAPMConfig(**TINY, use_depth=False, use_igd_feature=False)),
+                              image_width=32)
+    out = tmp_path / "out"
+    with PredictionFiles(out, contact_sheet=0) as files:  # every kind asked for; a pose model gives a camera
+        result = pose_only(np.zeros((36, 48, 3), np.uint8))
+        files.add(result)
+        summary = files.finish()
+    assert summary == f"predicted 1 image: camera per image; poses.csv in {out}/"
+    assert sorted(p.name for p in out.iterdir()) == [f"{result.name}_camera.json", "poses.csv", "poses.json"]
+    with PredictionFiles(tmp_path / "none") as files:
+        assert files.finish() == "predicted 0 images: nothing written"
+    assert not (tmp_path / "none").exists()
