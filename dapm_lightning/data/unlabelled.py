@@ -29,6 +29,9 @@ class PredictInput:
         source: the file it came from (``VIDEO#frame`` for a video frame).
         prior: ``[4]`` what telemetry knows of its pose (height m, pitch, roll, fov deg; NaN where unknown).
         rgb: the original ``[H, W, 3]`` uint8 pixels when asked for (point colours, the contact sheet).
+        provenance: per pose component (height, pitch, roll, fov), where its prior came from (``flight.csv line
+            12``, ``DJI_0001.JPG XMP drone-dji:RelativeAltitude``, ``DJI_0005.SRT subtitle 215 rel_alt``);
+            ``""`` where unknown.
     """
 
     image: Tensor
@@ -37,6 +40,7 @@ class PredictInput:
     source: str = ""
     prior: Tensor = field(default_factory=lambda: torch.full((4,), float("nan")))
     rgb: np.ndarray | None = None
+    provenance: tuple[str, ...] = ("", "", "", "")
 
 
 @dataclass
@@ -45,7 +49,7 @@ class PredictBatch:
 
     Attributes:
         images: ``[B, 3, h, w]`` uint8 (or float in [0, 1]) at the network size.
-        names, sizes, sources, rgb: per image, as in :class:`PredictInput`.
+        names, sizes, sources, rgb, provenance: per image, as in :class:`PredictInput`.
         prior: the batch's :class:`PosePrior` (σ from the run's settings), None when nothing is known.
         mode: how the prior is used (:data:`~dapm_lightning.models.prior.PriorMode`).
     """
@@ -57,6 +61,7 @@ class PredictBatch:
     prior: PosePrior | None = None
     mode: PriorMode = "condition"
     rgb: list[np.ndarray | None] = field(default_factory=list)
+    provenance: list[tuple[str, ...]] = field(default_factory=list)
 
     @classmethod
     def collate(cls, items: Sequence[PredictInput], settings: PriorSettings = PriorSettings()) -> PredictBatch:  # noqa: B008
@@ -67,7 +72,7 @@ class PredictBatch:
         prior = PosePrior.from_rows(torch.stack([item.prior.float() for item in items]), settings.sigma)
         return cls(torch.stack([item.image for item in items]), [item.name for item in items],
                    [item.size for item in items], [item.source for item in items], prior, settings.mode,
-                   [item.rgb for item in items])
+                   [item.rgb for item in items], [item.provenance for item in items])
 
     def __len__(self) -> int:
         return len(self.names)
@@ -81,12 +86,12 @@ class PredictBatch:
         """The batch with its tensors on ``device`` (what Lightning calls to move a batch)."""
         return PredictBatch(self.images.to(device, non_blocking=non_blocking), self.names, self.sizes,
                             self.sources, None if self.prior is None else self.prior.to(device), self.mode,
-                            self.rgb)
+                            self.rgb, self.provenance)
 
     def pin_memory(self) -> PredictBatch:
         """The batch with its images in pinned memory (``DataLoader(pin_memory=True)``)."""
         return PredictBatch(self.images.pin_memory(), self.names, self.sizes, self.sources, self.prior, self.mode,
-                            self.rgb)
+                            self.rgb, self.provenance)
 
 
 @dataclass(frozen=True)

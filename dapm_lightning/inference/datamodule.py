@@ -38,6 +38,8 @@ class PredictDataModule(DAPMDataModule):
         read_metadata: also read each JPEG's DJI XMP (relative altitude, gimbal pitch and roll) and EXIF focal
             length, for what the CSV does not give.
         sensor_width_mm: sensor width, to turn an EXIF FocalLength into a FoV when no 35 mm equivalent is given.
+        strict_telemetry: stop when an image's metadata or a video's SRT cannot be read (by default that image or
+            video falls back to the network's pose with one warning).
         telemetry_mode: condition (the known pose enters the network's IGD feature), scale (the depth is fitted
             to the known pose's ground afterwards; any checkpoint) or both.
         telemetry_sigma: σ of the telemetry (height m, pitch, roll, fov deg): 0 replaces the network's value,
@@ -49,9 +51,11 @@ class PredictDataModule(DAPMDataModule):
                  keep_rgb: bool = True, pin_memory: bool = False, telemetry: str | None = None,
                  read_metadata: bool = True, sensor_width_mm: float | None = None,
                  telemetry_mode: PriorMode = "condition",
-                 telemetry_sigma: tuple[float, float, float, float] = EXACT_SIGMA) -> None:
+                 telemetry_sigma: tuple[float, float, float, float] = EXACT_SIGMA,
+                 strict_telemetry: bool = False) -> None:
         super().__init__(batch_size=batch_size, num_workers=num_workers, augment=False, pin_memory=pin_memory)
-        self.source = PredictSource(source, frame_step, max_frames, telemetry, read_metadata, sensor_width_mm)
+        self.source = PredictSource(source, frame_step, max_frames, telemetry, read_metadata, sensor_width_mm,
+                                    strict_telemetry)
         self.image_width, self.keep_rgb = image_width, keep_rgb
         self.prior_settings = PriorSettings(telemetry_mode, telemetry_sigma)
 

@@ -20,6 +20,7 @@ import cv2
 import numpy as np
 import torch
 import torch.nn.functional as F
+from lightning.pytorch.utilities import rank_zero_info
 from torch import Tensor
 from torch.utils.data import DataLoader, Dataset, IterableDataset, Sampler, get_worker_info
 
@@ -174,12 +175,17 @@ def image_size(path: Path) -> tuple[int, int]:
 
 
 def predict_input(rgb: np.ndarray, name: str, source: str, target: NetworkSize, keep_rgb: bool,
-                  prior: np.ndarray | None = None) -> PredictInput:
-    """One image to predict at the network size; ``prior``: ``[4]`` telemetry, NaN where unknown."""
+                  prior: np.ndarray | None = None, provenance: Sequence[str] | None = None) -> PredictInput:
+    """One image to predict at the network size; ``prior``: ``[4]`` telemetry, NaN where unknown.
+
+    ``provenance``: per component, where the prior's value came from (``""`` where unknown).
+    """
     item = PredictInput(prepare_image(rgb, target), name, (int(rgb.shape[0]), int(rgb.shape[1])), source,
                         rgb=rgb if keep_rgb else None)
     if prior is not None:
         item.prior = torch.as_tensor(prior, dtype=torch.float32)
+    if provenance is not None:
+        item.provenance = tuple(provenance)
     return item
 
 
@@ -189,14 +195,16 @@ class ImageFilesDataset(Dataset[PredictInput]):
     Args:
         paths: the files. target: the network size (:data:`NetworkSize`). keep_rgb: also return the original
             pixels (to colour point clouds). priors: ``[N, 4]`` pose priors (NaN where unknown), one per path.
+        provenance: per path, per component where its prior came from.
     """
 
     def __init__(self, paths: Sequence[Path], target: NetworkSize = DEFAULT_NETWORK_SIZE, keep_rgb: bool = False,
-                 priors: np.ndarray | None = None) -> None:
+                 priors: np.ndarray | None = None, provenance: Sequence[Sequence[str]] | None = None) -> None:
         self.paths, self.target, self.keep_rgb = list(paths), target, keep_rgb
         if priors is not None and len(priors) != len(self.paths):
             raise ValueError(f"{len(priors)} pose priors for {len(self.paths)} images")
-        self.priors = priors
+        self.priors, self.provenance = priors, provenance
+        self.telemetry_report: flight.TelemetryReport | None = None
         stems: dict[str, Path] = {}
         for p in self.paths:
             if p.stem in stems:
@@ -227,7 +235,8 @@ class ImageFilesDataset(Dataset[PredictInput]):
     def __getitem__(self, index: int) -> PredictInput:
         path = self.paths[index]
         prior = None if self.priors is None else self.priors[index]
-        return predict_input(read_image(path), path.stem, str(path), self.target, self.keep_rgb, prior)
+        provenance = None if self.provenance is None else self.provenance[index]
+        return predict_input(read_image(path), path.stem, str(path), self.target, self.keep_rgb, prior, provenance)
 
 
 class SizeBatchSampler(Sampler[list[int]]):
@@ -260,21 +269,25 @@ class VideoFramesDataset(IterableDataset[PredictInput]):
             batch size keeps the frames in order with several workers; each worker decodes the whole video
             but converts only its own frames). keep_rgb: also return the frame's pixels.
         priors: frame number -> ``[4]`` pose prior (NaN where unknown), e.g. from the video's SRT telemetry.
+        provenance: frame number -> per component where its prior came from.
 
     Under DDP each process takes its own share of the chunks.
     """
 
     def __init__(self, path: str | Path, target: NetworkSize = DEFAULT_NETWORK_SIZE, frame_step: int = 1,
                  max_frames: int | None = None, chunk: int = 1, keep_rgb: bool = False,
-                 priors: dict[int, np.ndarray] | None = None) -> None:
+                 priors: dict[int, np.ndarray] | None = None,
+                 provenance: dict[int, tuple[str, ...]] | None = None) -> None:
         self.path, self.target, self.keep_rgb = Path(path), target, keep_rgb
         if frame_step < 1 or chunk < 1:
             raise ValueError(f"frame_step and chunk must be >= 1, got {frame_step} and {chunk}")
         self.frame_step, self.max_frames, self.chunk = frame_step, max_frames, chunk
-        self.priors = priors or {}
+        self.priors, self.provenance = priors or {}, provenance or {}
+        self.telemetry_report: flight.TelemetryReport | None = None
         self.rank, self.world_size = 0, 1
         capture = self._open()
         self.frame_count = int(capture.get(cv2.CAP_PROP_FRAME_COUNT))
+        self.fps = float(capture.get(cv2.CAP_PROP_FPS))
         self.frame_size = (int(capture.get(cv2.CAP_PROP_FRAME_HEIGHT)), int(capture.get(cv2.CAP_PROP_FRAME_WIDTH)))
         capture.release()
         note = upscale_note(self.path.name, self.frame_size, network_size(*self.frame_size, target))
@@ -309,7 +322,8 @@ class VideoFramesDataset(IterableDataset[PredictInput]):
                 if not ok:
                     break
                 yield predict_input(to_rgb8(bgr, f"{self.path} frame {frame}"), f"{self.path.stem}_f{frame:06d}",
-                                    f"{self.path}#{frame}", self.target, self.keep_rgb, self.priors.get(frame))
+                                    f"{self.path}#{frame}", self.target, self.keep_rgb, self.priors.get(frame),
+                                    self.provenance.get(frame))
         finally:
             capture.release()
 
@@ -333,10 +347,13 @@ class PredictSource:
         path: a folder of images, a glob pattern ('flight/**/*.jpg'), one image, or a video file.
         frame_step: videos: keep every ``frame_step``-th frame. max_frames: videos: stop after this many.
         telemetry: images: a CSV (``name,height_m,pitch_deg,roll_deg,fov_deg``; see
-            :func:`~dapm_lightning.inference.telemetry.read_telemetry_csv`); videos: a DJI SRT file.
+            :func:`~dapm_lightning.inference.telemetry.read_telemetry_csv`); videos: a DJI SRT file, or a CSV
+            naming frames as their outputs are named (``DJI_0005_f000012``).
         read_metadata: images: each component the CSV lacks from the image's own DJI XMP / EXIF; videos: the
-            video's own ``.SRT`` beside it when no ``telemetry`` is given.
+            video's own ``.SRT`` beside it, for what no ``telemetry`` CSV gives.
         sensor_width_mm: sensor width, for an EXIF FocalLength without a 35 mm equivalent.
+        strict_telemetry: a drone-written file whose telemetry cannot be read (a damaged XMP, an SRT that is not
+            one) stops the run; by default that image or video falls back to the network with one warning.
     """
 
     path: str | Path
@@ -345,30 +362,54 @@ class PredictSource:
     telemetry: str | Path | None = None
     read_metadata: bool = True
     sensor_width_mm: float | None = None
+    strict_telemetry: bool = False
+
+
+def _video_telemetry(video: VideoFramesDataset, source: PredictSource) -> flight.TelemetryReport | None:
+    """The video's priors (and their provenance) from its SRT and / or a CSV naming its frames; the report."""
+    given = Path(source.telemetry) if source.telemetry is not None else None
+    csv_path = given if given is not None and given.suffix.lower() == ".csv" else None
+    srt = given if given is not None and csv_path is None else None
+    if srt is None and source.read_metadata:
+        srt = next((p for p in (video.path.with_suffix(".SRT"), video.path.with_suffix(".srt")) if p.is_file()), None)
+    if srt is None and csv_path is None:
+        return None
+    frames = range(0, video.frame_count, video.frame_step)[:video.max_frames] if video.frame_count > 0 else None
+    height, width = video.frame_size
+    found, report = flight.video_telemetry(video.path, frames, srt, csv_path, fps=video.fps,
+                                           size=(width, height) if width > 0 and height > 0 else None,
+                                           strict=source.strict_telemetry)
+    video.priors = {frame: t.values() for frame, t in found.items()}
+    video.provenance = {frame: t.provenance for frame, t in found.items()}
+    return report
 
 
 def source_dataset(source: PredictSource, target: NetworkSize, keep_rgb: bool = False,
                    chunk: int = 1) -> ImageFilesDataset | VideoFramesDataset:
     """The data set of a source at the network size ``target``, each image with its telemetry prior.
 
-    ``chunk``: video frames a loader worker takes in a row (the batch size keeps frames in order).
+    ``chunk``: video frames a loader worker takes in a row (the batch size keeps frames in order). When telemetry
+    is read, its summary (how many images or frames use it, from which sources) is logged once.
     """
     kind, paths = resolve_source(source.path)
+    dataset: ImageFilesDataset | VideoFramesDataset
     if kind == "video":
-        video = VideoFramesDataset(paths[0], target, source.frame_step, source.max_frames, chunk, keep_rgb)
-        srt = Path(source.telemetry) if source.telemetry is not None else next(
-            (p for p in (paths[0].with_suffix(".SRT"), paths[0].with_suffix(".srt")) if p.is_file()), None)
-        if srt is not None and (source.telemetry is not None or source.read_metadata):
-            height, width = video.frame_size
-            video.priors = {frame: t.values() for frame, t in flight.read_srt(srt, width=width, height=height).items()}
-        return video
-    priors = None
-    if source.telemetry is not None or source.read_metadata:
-        found = flight.telemetry_for_images(paths, source.telemetry, read_metadata=source.read_metadata,
-                                            sensor_width_mm=source.sensor_width_mm)
+        dataset = VideoFramesDataset(paths[0], target, source.frame_step, source.max_frames, chunk, keep_rgb)
+        report = _video_telemetry(dataset, source)
+    elif source.telemetry is not None or source.read_metadata:
+        found, report = flight.images_telemetry(paths, source.telemetry, read_metadata=source.read_metadata,
+                                                sensor_width_mm=source.sensor_width_mm,
+                                                strict=source.strict_telemetry)
         rows = np.stack([t.values() for t in found])
-        priors = rows if np.isfinite(rows).any() else None
-    return ImageFilesDataset(paths, target, keep_rgb, priors)
+        known = bool(np.isfinite(rows).any())
+        dataset = ImageFilesDataset(paths, target, keep_rgb, rows if known else None,
+                                    [t.provenance for t in found] if known else None)
+    else:
+        dataset, report = ImageFilesDataset(paths, target, keep_rgb), None
+    dataset.telemetry_report = report
+    if report is not None:
+        rank_zero_info(report.summary())
+    return dataset
 
 
 def predict_loader(source: PredictSource, target: NetworkSize, settings: PriorSettings = PriorSettings(),  # noqa: B008

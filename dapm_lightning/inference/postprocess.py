@@ -121,6 +121,9 @@ class Prediction:
         size: ``(H, W)`` of the input image.
         pose_network: the network's own estimate per component (equal to ``pose`` without a prior).
         pose_source: per component, where ``pose`` comes from: ``"network"``, ``"telemetry"`` or ``"fused"``.
+        pose_provenance: per component given by telemetry (``telemetry`` or ``fused``), the file and the place in it
+            (``"flight.csv line 12"``, ``"DJI_0001.JPG XMP drone-dji:RelativeAltitude"``,
+            ``"DJI_0005.SRT subtitle 215 rel_alt"``, ``"Python API prior"``).
         scale_from: how the telemetry scale fit found its factor: ``ground``, ``height`` or ``none``.
         rgb: the input's ``[H, W, 3]`` uint8 pixels, when the loader was asked to keep them.
     """
@@ -137,6 +140,7 @@ class Prediction:
     size: tuple[int, int] = (0, 0)
     pose_network: CameraPose | None = None
     pose_source: dict[str, str] | None = None
+    pose_provenance: dict[str, str] | None = None
     scale_from: str = "none"
     rgb: np.ndarray | None = None
 
@@ -166,18 +170,25 @@ class Prediction:
         return PointCloud(xyz[keep].float().numpy(), colours)
 
     def camera_dict(self) -> dict[str, Any]:
-        """What ``NAME_camera.json`` holds: image size, K, camera-to-world, pose per component, conventions."""
+        """What ``NAME_camera.json`` holds: image size, K, camera-to-world, pose per component, conventions.
+
+        Per pose component (``pose``): its value, its source (``network``, ``telemetry``, ``fused``) and the
+        network's own value; beside it (``pose_provenance``), per component, the file and the place in it the
+        telemetry came from (None where the network's value is used).
+        """
         height, width = self.size
-        pose = None
+        pose = provenance = None
         if self.pose is not None:
             network = self.pose_network or self.pose
-            sources = self.pose_source or {}
+            sources, given = self.pose_source or {}, self.pose_provenance or {}
             pose = {pose_field(k): {"value": v, "source": sources.get(k, "network"),
                                     "network": network.get(k)} for k, v in self.pose.items()}
+            provenance = {pose_field(k): given.get(k) for k in self.pose}
         return {"name": self.name, "width": int(width), "height": int(height),
                 "K": None if self.K is None else self.K.tolist(),
                 "camera_to_world": None if self.camera_to_world is None else self.camera_to_world.tolist(),
-                "pose": pose, "depth_kind": self.depth_kind, "max_depth_m": self.max_depth,
+                "pose": pose, "pose_provenance": provenance, "depth_kind": self.depth_kind,
+                "max_depth_m": self.max_depth,
                 "conventions": "pixel (i, j) centre at (j + 0.5, i + 0.5); camera x right, y down, z forward; world "
                                "origin on the ground under the camera, X horizontal along the optical axis, Y left, "
                                "Z up (docs/conventions.md)"}
@@ -189,13 +200,15 @@ def _camera_pose(pose: Tensor | None) -> CameraPose | None:
 
 def make_prediction(name: str, size: Sequence[int], depth_m: Tensor | None, sky_prob: Tensor | None,
                     pose: Tensor | None, spec: IGDSpec | None = None, *, pose_network: Tensor | None = None,
-                    pose_source: Mapping[str, str] | None = None) -> Prediction:
+                    pose_source: Mapping[str, str] | None = None,
+                    pose_provenance: Mapping[str, str] | None = None) -> Prediction:
     """One image's :class:`Prediction` at the input size ``(H, W)`` from the network's outputs for it.
 
     Args:
         depth_m: ``[1, h, w]`` metres at the network size. sky_prob: ``[1, h, w]``. pose: ``[4]`` physical, the
             one used (telemetry or fused, when there is a prior). spec: the model's IGD settings (depth limit
             and kind). pose_network: ``[4]`` the network's own estimate. pose_source: per component.
+        pose_provenance: per component given by telemetry, where its value came from.
     """
     spec = spec or IGDSpec()
     size = (int(size[0]), int(size[1]))
@@ -219,25 +232,29 @@ def make_prediction(name: str, size: Sequence[int], depth_m: Tensor | None, sky_
         k = intrinsics_matrix(pose64[:, 3], size)[0].numpy()
         c2w = camera_to_world(pose64)[0].numpy()
     return Prediction(depth, sky, pose_used, prob, k, c2w, spec.depth_kind, spec.max_depth, name, size,
-                      _camera_pose(pose_network) or pose_used, dict(pose_source) if pose_source else None)
+                      _camera_pose(pose_network) or pose_used, dict(pose_source) if pose_source else None,
+                      dict(pose_provenance) if pose_provenance else None)
 
 
 def predictions_from_outputs(output: InferenceOutput, names: Sequence[str], sizes: Sequence[Sequence[int]],
                              spec: IGDSpec | None = None, *,
-                             pose_sources: Sequence[Mapping[str, str]] | None = None) -> list[Prediction]:
+                             pose_sources: Sequence[Mapping[str, str]] | None = None,
+                             provenance: Sequence[Mapping[str, str]] | None = None) -> list[Prediction]:
     """A batch's :class:`Prediction` per image, each at its input size (no prior applied here).
 
     Args:
         output: at the network size; ``pose`` the pose used, ``pose_network`` the network's own where they differ.
         names, sizes: per image, its name and ``(H, W)``. spec: the model's IGD settings.
         pose_sources: per image, per component, where the pose used comes from.
+        provenance: per image, per component given by telemetry, where its value came from.
     """
     def row(value: Tensor | None, k: int) -> Tensor | None:
         return None if value is None else value[k]
 
     return [make_prediction(names[k], sizes[k], row(output.depth_m, k), row(output.sky_prob, k),
                             row(output.pose, k), spec, pose_network=row(output.pose_network, k),
-                            pose_source=None if pose_sources is None else pose_sources[k])
+                            pose_source=None if pose_sources is None else pose_sources[k],
+                            pose_provenance=None if provenance is None else provenance[k])
             for k in range(len(names))]
 
 
@@ -248,8 +265,14 @@ def batch_predictions(output: InferenceOutput, batch: PredictBatch, spec: IGDSpe
     :class:`~dapm_lightning.inference.predictor.DAPMPredictor` (any runtime) both call it.
     """
     applied = apply_pose_prior(output, batch.prior, batch.mode, spec)
+    provenance = None
+    if batch.prior is not None:
+        given = batch.provenance or [("",) * len(POSE_KEYS)] * len(batch)
+        provenance = [{k: where for k, where in zip(POSE_KEYS, wheres) if where and sources[k] != "network"}
+                      for wheres, sources in zip(given, applied.sources)]
     predictions = predictions_from_outputs(applied.output, batch.names, batch.sizes, spec,
-                                           pose_sources=applied.sources if batch.prior is not None else None)
+                                           pose_sources=applied.sources if batch.prior is not None else None,
+                                           provenance=provenance)
     for prediction, scale_from, rgb in zip(predictions, applied.scale_from, batch.rgb or [None] * len(batch)):
         prediction.scale_from, prediction.rgb = scale_from, rgb
     return predictions

@@ -28,7 +28,7 @@ from dapm_lightning.inference.inputs import (
 )
 from dapm_lightning.inference.onnx import ensure_exported
 from dapm_lightning.inference.postprocess import Prediction, batch_predictions
-from dapm_lightning.inference.prior import as_prior
+from dapm_lightning.inference.prior import prior_rows
 from dapm_lightning.inference.runtime import OnnxRuntime, Precision, Runtime, TorchRuntime
 from dapm_lightning.models.prior import EXACT_SIGMA, PriorMode, PriorSettings
 from dapm_lightning.training.checkpointing import load_dapm_module
@@ -113,7 +113,7 @@ class DAPMPredictor:
         """
         return batch_predictions(self.runtime(batch.images, batch.network_prior), batch, self.spec)
 
-    def _predict_input(self, image: Any, index: int, prior: Tensor) -> PredictInput:
+    def _predict_input(self, image: Any, index: int, prior: Tensor, provenance: tuple[str, ...]) -> PredictInput:
         """One image (numpy RGB, PIL, or tensor ``[3, H, W]``) at the network size, with its prior."""
         if isinstance(image, Tensor) and image.dtype != torch.uint8:  # float RGB: resized as floats
             if image.ndim != 3 or image.shape[0] not in (1, 3):
@@ -121,7 +121,8 @@ class DAPMPredictor:
                                  f"{tuple(image.shape)}")
             size = (int(image.shape[1]), int(image.shape[2]))
             net = network_size(*size, self.target)
-            item = PredictInput(resize_images(image.expand(3, -1, -1)[None], net)[0], str(index), size, prior=prior)
+            item = PredictInput(resize_images(image.expand(3, -1, -1)[None], net)[0], str(index), size, prior=prior,
+                                provenance=provenance)
         else:
             if isinstance(image, Tensor):
                 if image.ndim != 3 or image.shape[0] not in (1, 3):
@@ -129,7 +130,7 @@ class DAPMPredictor:
                                      f"{tuple(image.shape)}")
                 image = image.expand(3, -1, -1).permute(1, 2, 0).numpy()
             rgb = to_rgb8(np.asarray(image), f"image {index}", bgr=False)
-            item = predict_input(rgb, str(index), "", self.target, False, prior.numpy())
+            item = predict_input(rgb, str(index), "", self.target, False, prior.numpy(), provenance)
         note = upscale_note(f"image {index}", item.size, tuple(item.image.shape[-2:]))
         if note:
             warnings.warn(note, stacklevel=3)
@@ -144,7 +145,9 @@ class DAPMPredictor:
                 a ``[B, H, W, 3]`` numpy array or a ``[B, 3, H, W]`` tensor.
             prior: what is known of the pose (telemetry): for one image a dict (``height_m``, ``pitch_deg``,
                 ``roll_deg``, ``fov_deg``, any subset), a ``[4]`` array with NaN where unknown, or a
-                ``PoseTelemetry``; for several, a list of those (None for an image without).
+                ``PoseTelemetry``; for several, a list of those (None for an image without). Checked as a
+                telemetry CSV is: an impossible value (height <= 0, |pitch| > 180, FoV outside (0, 180), inf) is a
+                ``TelemetryError``.
 
         Returns:
             a :class:`Prediction` for one image, a list of them for several (in order), at each input's size.
@@ -156,8 +159,8 @@ class DAPMPredictor:
         priors = [prior] if single else list(prior) if prior is not None else [None] * len(items)
         if len(priors) != len(items):
             raise ValueError(f"{len(priors)} priors for {len(items)} images: give one per image (None: unknown)")
-        known = as_prior(priors)
-        values = known.value if known is not None else torch.full((len(items), 4), float("nan"))
+        rows, provenance = prior_rows(priors)
+        values = torch.from_numpy(rows).float()
         results: list[Prediction] = []
         pending: list[PredictInput] = []
 
@@ -167,7 +170,7 @@ class DAPMPredictor:
                 pending.clear()
 
         for index, image in enumerate(items):
-            item = self._predict_input(image, index, values[index])
+            item = self._predict_input(image, index, values[index], provenance[index])
             if pending and (len(pending) >= self.batch_size or item.image.shape != pending[0].image.shape
                             or item.image.dtype != pending[0].image.dtype):
                 flush()
@@ -188,14 +191,16 @@ class DAPMPredictor:
 
     def predict_source(self, source: str | Path | PredictSource, frame_step: int = 1, max_frames: int | None = None,
                        keep_rgb: bool = False, num_workers: int = 0, telemetry: str | Path | None = None,
-                       read_metadata: bool = True, sensor_width_mm: float | None = None) -> Iterator[Prediction]:
+                       read_metadata: bool = True, sensor_width_mm: float | None = None,
+                       strict_telemetry: bool = False) -> Iterator[Prediction]:
         """Predictions for a folder, glob pattern, image or video file, one at a time (constant memory).
 
         With ``keep_rgb`` each prediction's ``rgb`` holds the input pixels (for coloured points).
-        ``frame_step``, ``max_frames``, ``telemetry``, ``read_metadata``, ``sensor_width_mm``: as in
-        :class:`~dapm_lightning.inference.inputs.PredictSource` (or give one as ``source``).
+        ``frame_step``, ``max_frames``, ``telemetry``, ``read_metadata``, ``sensor_width_mm``,
+        ``strict_telemetry``: as in :class:`~dapm_lightning.inference.inputs.PredictSource` (or give one as ``source``).
         """
         if not isinstance(source, PredictSource):
-            source = PredictSource(source, frame_step, max_frames, telemetry, read_metadata, sensor_width_mm)
+            source = PredictSource(source, frame_step, max_frames, telemetry, read_metadata, sensor_width_mm,
+                                   strict_telemetry)
         for batch in self.loader(source, keep_rgb, num_workers):
             yield from self.predict_batch(batch)

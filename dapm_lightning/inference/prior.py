@@ -22,7 +22,8 @@ from torch import Tensor
 from dapm_lightning.geometry.constants import POSE_KEYS, SKY_PROBABILITY_THRESHOLD, pose_field
 from dapm_lightning.geometry.depth_codec import sky_at_limit
 from dapm_lightning.geometry.igd import IGDSpec
-from dapm_lightning.inference.telemetry import PoseTelemetry
+from dapm_lightning.inference.telemetry import PoseTelemetry, TelemetryError
+from dapm_lightning.inference.telemetry.pose import limit_error
 from dapm_lightning.models.dapm import InferenceOutput
 from dapm_lightning.models.prior import EXACT_SIGMA, PRIOR_MODES, PosePrior, PriorMode, fuse_pose
 
@@ -32,32 +33,69 @@ MIN_GROUND_SHARE = 0.02
 """Below this share of ground pixels, the scale comes from the heights (known / predicted) instead."""
 
 
-def as_prior(values: Sequence[Any], sigma: Sequence[float] | Tensor = EXACT_SIGMA) -> PosePrior | None:
-    """A :class:`PosePrior` from one entry per image, or None when nothing is known.
+API_PROVENANCE = "Python API prior"
+"""The provenance of a component given to the Python API as a dict or an array."""
+
+
+def _checked(k: int, key: str, value: Any) -> float:
+    """Prior ``k``'s component ``key`` as float: NaN / None = unknown; impossible values refused as in a CSV."""
+    if value is None:
+        return math.nan
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        raise TelemetryError(f"pose prior {k}: {pose_field(key)} = {value!r} is not a number") from None
+    if not math.isnan(number) and (why := limit_error(key, number)) is not None:
+        raise TelemetryError(f"pose prior {k}: {pose_field(key)} = {value!r} {why}; give NaN (or leave it out) for "
+                             "unknown")
+    return number
+
+
+def prior_rows(values: Sequence[Any]) -> tuple[np.ndarray, list[tuple[str, ...]]]:
+    """``[N, 4]`` priors (NaN where unknown) and per image the provenance of each known component.
 
     An entry: None; a ``[4]`` array / sequence (height m, pitch, roll, fov deg; NaN unknown); a mapping with
     any of ``height``/``height_m``, ``pitch``/``pitch_deg``, ``roll``/``roll_deg``, ``fov``/``fov_deg``; or a
-    :class:`~dapm_lightning.inference.telemetry.PoseTelemetry`.
+    :class:`~dapm_lightning.inference.telemetry.PoseTelemetry` (its own provenance). Values are checked as the
+    telemetry CSV's are: a height <= 0, |pitch| or |roll| > 180, a FoV outside (0, 180) or an infinite value is an
+    error.
+
+    Raises:
+        TelemetryError: an impossible value or one that is not a number (a ``ValueError``). ValueError: an
+            unknown key, an array of another size.
     """
     rows = np.full((len(values), 4), np.nan)
+    provenance: list[tuple[str, ...]] = []
     for k, value in enumerate(values):
-        if value is None:
-            continue
         if isinstance(value, PoseTelemetry):
             rows[k] = value.values()
+            provenance.append(value.provenance)
+            continue
+        if value is None:
+            pass
         elif isinstance(value, Mapping):
             unknown = set(value) - set(POSE_KEYS) - {pose_field(key) for key in POSE_KEYS}
             if unknown:
                 raise ValueError(f"pose prior {k}: unknown key(s) {sorted(unknown)}; use height_m, pitch_deg, "
                                  "roll_deg, fov_deg (or height, pitch, roll, fov)")
             for i, key in enumerate(POSE_KEYS):
-                got = value.get(key, value.get(pose_field(key)))
-                rows[k, i] = np.nan if got is None else float(got)
+                rows[k, i] = _checked(k, key, value.get(key, value.get(pose_field(key))))
         else:
             row = np.asarray(value.cpu() if isinstance(value, Tensor) else value, dtype=np.float64).reshape(-1)
             if row.shape != (4,):
                 raise ValueError(f"pose prior {k}: expected 4 values (height m, pitch, roll, fov deg), got {row.shape}")
-            rows[k] = row
+            rows[k] = [_checked(k, key, v) for key, v in zip(POSE_KEYS, row.tolist())]
+        provenance.append(tuple(API_PROVENANCE if np.isfinite(v) else "" for v in rows[k]))
+    return rows, provenance
+
+
+def as_prior(values: Sequence[Any], sigma: Sequence[float] | Tensor = EXACT_SIGMA) -> PosePrior | None:
+    """A :class:`PosePrior` from one entry per image (:func:`prior_rows`), or None when nothing is known.
+
+    Raises:
+        TelemetryError: an impossible value (height <= 0, |pitch| or |roll| > 180, FoV outside (0, 180), inf).
+    """
+    rows, _ = prior_rows(values)
     return PosePrior.from_rows(torch.from_numpy(rows).float(), torch.as_tensor(sigma, dtype=torch.float32))
 
 

@@ -75,6 +75,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help="ignore the images' DJI XMP / EXIF and a video's own .SRT")
     flight.add_argument("--sensor_width_mm", type=float, default=None,
                         help="sensor width, for an EXIF FocalLength without a 35 mm equivalent")
+    flight.add_argument("--strict_telemetry", action="store_true",
+                        help="stop when an image's XMP/EXIF or a video's SRT cannot be read (default: that image or "
+                             "video falls back to the network's pose, with a warning)")
     flight.add_argument("--telemetry_mode", choices=PRIOR_MODES, default="condition",
                         help="into the network's IGD (condition), depth fitted afterwards (scale), or both "
                              "(default: %(default)s)")
@@ -124,7 +127,7 @@ def predict_main(argv: Sequence[str]) -> None:
                                               telemetry_mode=args.telemetry_mode,
                                               telemetry_sigma=args.telemetry_sigma)
     source = PredictSource(args.source, args.frame_step, args.max_frames, args.telemetry, not args.no_metadata,
-                           args.sensor_width_mm)
+                           args.sensor_width_mm, args.strict_telemetry)
     keep_rgb = "points" in files.outputs or files.contact_images > 0
     with files:  # the output folder is made with the first file, and goes again if the run fails before it
         for prediction in predictor.predict_source(source, keep_rgb=keep_rgb, num_workers=args.num_workers):

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from os import PathLike
 from typing import Any
 
@@ -14,10 +14,20 @@ import numpy.typing as npt
 from dapm_lightning.geometry.constants import POSE_FIELDS, POSE_KEYS
 
 StrPath = str | PathLike[str]
-
+Provenance = tuple[str, str, str, str]
+"""Per pose component (``POSE_KEYS`` order), where its value came from (``""`` where unknown)."""
+NO_PROVENANCE: Provenance = ("", "", "", "")
 
 FULL_FRAME_DIAGONAL_MM: float = math.hypot(36.0, 24.0)
 """43.27 mm: the diagonal of a 36 x 24 mm frame, to which a 35-mm-equivalent focal length refers."""
+
+MIN_HEIGHT_M = 1.0
+"""A drone's relative altitude below this is read as "on the ground": its barometer measures the height above the
+take-off point to about +-0.5 m (up to 2 m in gusts), so a smaller value cannot be told from a drone standing there
+(the Neo 2's SRT reads 0.100 m on the ground). Telemetry readers leave such heights unknown, with a warning."""
+
+EQUIRECTANGULAR_ASPECT = 2.0
+"""Width / height of a 360-degree equirectangular image (Avata 360, panoramas): no pinhole FoV applies to it."""
 
 
 class TelemetryError(ValueError):
@@ -41,15 +51,23 @@ def limit_error(key: str, value: float) -> str | None:
     return None
 
 
-@dataclass(frozen=True, eq=False)
+def is_equirectangular(width: float, height: float) -> bool:
+    """Whether a ``width`` x ``height`` image has the 2:1 shape of a 360-degree equirectangular image (within 1 %)."""
+    return height > 0 and abs(width / height - EQUIRECTANGULAR_ASPECT) <= 0.01 * EQUIRECTANGULAR_ASPECT
+
+
+@dataclass(frozen=True, eq=False, slots=True)
 class PoseTelemetry:
-    """A pose prior from telemetry in the project's conventions (design.md §1); NaN = unknown.
+    """A pose prior from telemetry in the project's conventions (docs/conventions.md); NaN = unknown.
 
     Args:
         height_m: metres above the ground under the camera. pitch_deg: 0 = horizontal, -90 = nadir.
         roll_deg: positive = camera turned clockwise seen from behind (horizon's right end up).
         fov_deg: horizontal field of view across the image width. source: where the known values came
             from (``"flight.csv line 4"``, ``"DJI_0001.JPG XMP/EXIF"``, ``"DJI_0002.SRT frame 12"``).
+        provenance: per component, the file and the place in it its value was read from
+            (``"flight.csv line 12"``, ``"DJI_0001.JPG XMP drone-dji:RelativeAltitude"``,
+            ``"DJI_0005.SRT subtitle 215 rel_alt"``); by default ``source`` for each known component.
 
     Raises:
         ValueError: a known value that is physically impossible (height <= 0, |pitch| or |roll| > 180,
@@ -61,6 +79,7 @@ class PoseTelemetry:
     roll_deg: float = math.nan
     fov_deg: float = math.nan
     source: str = ""
+    provenance: Provenance = NO_PROVENANCE
 
     def __post_init__(self) -> None:
         for key, name in zip(POSE_KEYS, POSE_FIELDS):
@@ -69,12 +88,24 @@ class PoseTelemetry:
             if not math.isnan(value) and (why := limit_error(key, value)) is not None:
                 raise ValueError(f"PoseTelemetry{f' ({self.source})' if self.source else ''}: {name} = {value!r} "
                                  f"{why}; use NaN for unknown")
+        given = tuple(self.provenance)
+        if len(given) != len(POSE_KEYS):
+            raise ValueError(f"PoseTelemetry: provenance needs one entry per component {POSE_KEYS}, got {given!r}")
+        default = self.source if not any(given) else ""
+        object.__setattr__(self, "provenance", tuple(
+            (str(p) or default) if known else "" for p, known in zip(given, self.known())))
 
     @classmethod
-    def from_values(cls, values: Sequence[float], source: str) -> PoseTelemetry:
-        """A :class:`PoseTelemetry` from 4 values in ``POSE_KEYS`` order (height, pitch, roll, fov)."""
+    def from_values(cls, values: Sequence[float], source: str,
+                    provenance: Sequence[str] | None = None) -> PoseTelemetry:
+        """A :class:`PoseTelemetry` from 4 values in ``POSE_KEYS`` order (height, pitch, roll, fov).
+
+        ``provenance``: per component where it came from; None: ``source`` for each known component.
+        """
         h, p, r, f = values
-        return cls(height_m=h, pitch_deg=p, roll_deg=r, fov_deg=f, source=source)
+        prov = NO_PROVENANCE if provenance is None else tuple(provenance)
+        return cls(height_m=h, pitch_deg=p, roll_deg=r, fov_deg=f, source=source,
+                   provenance=prov)  # type: ignore[arg-type]
 
     def values(self) -> npt.NDArray[np.float64]:
         """``[4]`` float64 in ``POSE_KEYS`` order (height, pitch, roll, fov); NaN where unknown."""
@@ -84,6 +115,10 @@ class PoseTelemetry:
         """Which components are known, in ``POSE_KEYS`` order."""
         h, p, r, f = (not math.isnan(v) for v in (self.height_m, self.pitch_deg, self.roll_deg, self.fov_deg))
         return h, p, r, f
+
+    def provenance_dict(self) -> dict[str, str]:
+        """``{pose key: where its value came from}`` for the known components."""
+        return {key: where for key, where, known in zip(POSE_KEYS, self.provenance, self.known()) if known}
 
     def merged(self, fallback: PoseTelemetry) -> PoseTelemetry:
         """This telemetry's known components, the others from ``fallback``; ``source`` says which came whence."""
@@ -95,10 +130,17 @@ class PoseTelemetry:
         else:
             source = self.source if mine else fallback.source if theirs else ""
         values = [a if o else b for a, b, o in zip(self.values().tolist(), fallback.values().tolist(), own)]
-        return PoseTelemetry.from_values(values, source)
+        provenance = [a if o else b for a, b, o in zip(self.provenance, fallback.provenance, own)]
+        return PoseTelemetry.from_values(values, source, provenance)
+
+    def without(self, keys: Sequence[str]) -> PoseTelemetry:
+        """This telemetry with the components ``keys`` made unknown."""
+        values = [math.nan if k in keys else v for k, v in zip(POSE_KEYS, self.values().tolist())]
+        provenance = ["" if k in keys else p for k, p in zip(POSE_KEYS, self.provenance)]
+        return PoseTelemetry.from_values(values, self.source if any(provenance) else "", provenance)
 
     def _key(self) -> tuple[Any, ...]:
-        return (*(None if math.isnan(v) else v for v in self.values().tolist()), self.source)
+        return (*(None if math.isnan(v) else v for v in self.values().tolist()), self.source, self.provenance)
 
     def __eq__(self, other: object) -> bool:
         """Equal when the same components are known with the same values (NaN equals NaN) and the same source."""
@@ -110,8 +152,10 @@ class PoseTelemetry:
         return hash(self._key())
 
     def __repr__(self) -> str:
-        parts = [f"{f.name}={getattr(self, f.name)!r}" for f in fields(self)
-                 if f.name == "source" or not math.isnan(getattr(self, f.name))]
+        parts = [f"{name}={getattr(self, name)!r}" for name in POSE_FIELDS if not math.isnan(getattr(self, name))]
+        parts.append(f"source={self.source!r}")
+        if self.provenance != NO_PROVENANCE and set(self.provenance) - {"", self.source}:
+            parts.append(f"provenance={self.provenance!r}")
         return f"PoseTelemetry({', '.join(parts)})"
 
 

@@ -1,0 +1,186 @@
+"""Telemetry for a whole run, per image or video frame: one file's problem costs only that file; a summary at the end.
+
+A CSV is the user's own instruction: its errors stop the run. A drone-written file (an image's XMP/EXIF, a video's
+SRT) that cannot be read makes that image or video fall back to the network, with one warning naming the file, the
+reason and the fix in the command line's terms; ``strict=True`` (``--strict_telemetry``) makes it an error.
+:class:`TelemetryReport` counts what was used from where (the run's summary line).
+"""
+
+from __future__ import annotations
+
+import re
+import warnings
+from collections import Counter
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from dapm_lightning.geometry.constants import POSE_KEYS
+from dapm_lightning.inference.telemetry.csv_file import read_telemetry_csv
+from dapm_lightning.inference.telemetry.image_metadata import SHOW_NAMES, image_telemetry, warn_notes
+from dapm_lightning.inference.telemetry.pose import PoseTelemetry, StrPath, TelemetryError, TelemetryWarning
+from dapm_lightning.inference.telemetry.srt import read_srt
+
+STRICT_HINT = "--strict_telemetry stops instead; strict_telemetry=True in Python"
+
+
+@dataclass
+class TelemetryReport:
+    """What telemetry a run uses: of how many images or frames, which components, from which kinds of source.
+
+    Attributes:
+        kind: ``"image"`` or ``"frame"``. total: images or frames predicted. with_telemetry: those with any
+        component known. sources: per kind of source (the CSV's name, ``XMP``, ``EXIF``, the SRT's name), the
+        images or frames it gave a component to. components: per pose key, the images or frames that know it.
+        fell_back: the files whose telemetry could not be read (the network estimates their pose).
+    """
+
+    kind: str
+    total: int = 0
+    with_telemetry: int = 0
+    sources: Counter[str] = field(default_factory=Counter)
+    components: Counter[str] = field(default_factory=Counter)
+    fell_back: list[str] = field(default_factory=list)
+
+    def add(self, telemetry: PoseTelemetry) -> None:
+        """Count one image's or frame's telemetry."""
+        self.total += 1
+        known = telemetry.provenance_dict()
+        if known:
+            self.with_telemetry += 1
+        self.components.update(known.keys())
+        self.sources.update({source_kind(where) for where in known.values()})
+
+    def summary(self) -> str:
+        """One line: ``telemetry: 3 of 5 images (height 3, pitch 2, ...) from flight.csv 2, XMP 1; ...``."""
+        line = f"telemetry: {self.with_telemetry} of {self.total} {self.kind}(s) with telemetry"
+        if self.with_telemetry:
+            parts = ", ".join(f"{k} {self.components[k]}" for k in POSE_KEYS if self.components[k])
+            line += f" ({parts}) from " + ", ".join(f"{s} {n}" for s, n in sorted(self.sources.items()))
+        if self.fell_back:
+            names = ", ".join(self.fell_back[:SHOW_NAMES]) + (f" (and {len(self.fell_back) - SHOW_NAMES} more)"
+                                                             if len(self.fell_back) > SHOW_NAMES else "")
+            line += f"; telemetry unreadable, network pose used: {names}"
+        return line
+
+
+def source_kind(provenance: str) -> str:
+    """The kind of source a provenance names: ``XMP``, ``EXIF``, or the CSV's or SRT's file name."""
+    for marker in (" XMP ", " EXIF "):
+        if marker in provenance:
+            return marker.strip()
+    for marker in (" line ", " subtitle"):
+        if marker in provenance:
+            return provenance.split(marker, 1)[0]
+    return provenance
+
+
+def fall_back(error: Exception, what: str, strict: bool) -> None:
+    """One file's telemetry could not be read: an error with ``strict``, else one warning (``what``: its kind)."""
+    if strict:
+        raise TelemetryError(f"{error} (stopped by --strict_telemetry)") from error
+    warnings.warn(f"{error}; this {what}'s telemetry is not used, the network estimates its pose "
+                  f"({STRICT_HINT})", TelemetryWarning, stacklevel=3)
+
+
+def _unmatched(csv_path: StrPath, rows: Sequence[str], matched: set[str], total: int, how: str) -> None:
+    """One warning for CSV names that match nothing predicted."""
+    unmatched = [k for k in rows if k not in matched]
+    if unmatched:
+        shown = ", ".join(unmatched[:SHOW_NAMES]) + (f" (and {len(unmatched) - SHOW_NAMES} more)"
+                                                     if len(unmatched) > SHOW_NAMES else "")
+        warnings.warn(f"{csv_path}: {len(unmatched)} of {total} name(s) match no {how}: {shown}; names are matched "
+                      "by file name with or without extension (case-sensitive), those rows are unused",
+                      TelemetryWarning, stacklevel=3)
+
+
+def images_telemetry(paths: Iterable[StrPath], csv_path: StrPath | None = None, *, read_metadata: bool = True,
+                     sensor_width_mm: float | None = None,
+                     strict: bool = False) -> tuple[list[PoseTelemetry], TelemetryReport]:
+    """Per image its CSV row, each unknown component from the image's own metadata; and the run's report.
+
+    An image whose metadata cannot be read (a damaged XMP or EXIF block, an impossible DJI value) falls back to
+    the network with one warning, or stops the run with ``strict``. CSV errors always stop it.
+    """
+    image_paths = [Path(p) for p in paths]
+    rows = read_telemetry_csv(csv_path) if csv_path is not None else {}
+    report = TelemetryReport("image")
+    out: list[PoseTelemetry] = []
+    notes: dict[str, dict[str, str]] = {}
+    for p in image_paths:
+        row = rows.get(p.stem, PoseTelemetry())
+        meta = PoseTelemetry()
+        if read_metadata and not all(row.known()):
+            try:
+                meta, image_notes = image_telemetry(p, sensor_width_mm)
+            except TelemetryError as exc:
+                fall_back(exc, "image", strict)
+                report.fell_back.append(p.name)
+            else:
+                used = {k: v for k, v in image_notes.items() if not row.known()[POSE_KEYS.index(k)]}
+                if used:
+                    notes[p.name] = used
+        out.append(row.merged(meta))
+        report.add(out[-1])
+    if csv_path is not None:
+        _unmatched(csv_path, list(rows), {p.stem for p in image_paths}, len(rows), "image")
+    warn_notes(notes, stacklevel=2)
+    return out, report
+
+
+def telemetry_for_images(paths: Iterable[StrPath], csv_path: StrPath | None = None, *, read_metadata: bool = True,
+                         sensor_width_mm: float | None = None, strict: bool = False) -> list[PoseTelemetry]:
+    """Telemetry for each image: its CSV row, each unknown component falling back to the image's metadata.
+
+    A CSV row matches an image when its ``name``, with or without extension, equals the image's file name
+    or stem (case-sensitive). CSV names that match no image give one :class:`TelemetryWarning` naming the
+    CSV, their count and the first few. ``read_metadata=False`` reads no image metadata (CSV only). An image
+    whose metadata cannot be read gets none from it, with one warning (an error with ``strict``).
+
+    Raises:
+        TelemetryError: see :func:`read_telemetry_csv`; with ``strict``, :func:`telemetry_from_image`'s errors.
+    """
+    return images_telemetry(paths, csv_path, read_metadata=read_metadata, sensor_width_mm=sensor_width_mm,
+                            strict=strict)[0]
+
+
+def video_telemetry(video: Path, frames: Sequence[int] | None, srt_path: StrPath | None = None,
+                    csv_path: StrPath | None = None, *, size: tuple[int, int] | None = None, fps: float | None = None,
+                    strict: bool = False) -> tuple[dict[int, PoseTelemetry], TelemetryReport]:
+    """Per frame to be predicted (``frames``), its telemetry: a CSV row, each unknown component from the SRT.
+
+    The CSV names frames as their outputs are named (``DJI_0005_f000012``). An SRT that cannot be read falls back
+    to the network with one warning (an error with ``strict``); one that covers fewer frames than are predicted
+    gives one warning naming the frames left to the network. ``size``: the video's ``(width, height)``;
+    ``frames`` None: the video's frame count is not known, every frame the SRT or the CSV names.
+    """
+    report = TelemetryReport("frame")
+    srt: dict[int, PoseTelemetry] = {}
+    if srt_path is not None:
+        width, height = size if size is not None else (None, None)
+        try:
+            srt = read_srt(srt_path, width, height, fps=fps if fps and fps > 0 else None)
+        except (ValueError, OSError) as exc:  # TelemetryError is a ValueError; so is "no frame rate"
+            fall_back(exc, "video", strict)
+            report.fell_back.append(Path(srt_path).name)
+    rows = read_telemetry_csv(csv_path) if csv_path is not None else {}
+    frame_name = re.compile(re.escape(video.stem) + r"_f(\d{6,})")
+    if frames is None:
+        named = (frame_name.fullmatch(k) for k in rows)
+        frames = sorted(set(srt) | {int(m.group(1)) for m in named if m is not None})
+    out: dict[int, PoseTelemetry] = {}
+    for frame in frames:
+        telemetry = rows.get(f"{video.stem}_f{frame:06d}", PoseTelemetry()).merged(srt.get(frame, PoseTelemetry()))
+        report.add(telemetry)
+        if any(telemetry.known()):
+            out[frame] = telemetry
+    if any(any(t.known()) for t in srt.values()):
+        missing = [f for f in frames if f not in srt]
+        if missing:
+            warnings.warn(f"{srt_path}: its subtitles cover frames up to {max(srt)} of {video.name}; {len(missing)} "
+                          f"of the {len(frames)} frame(s) predicted (the first: {missing[0]}) have none, the network "
+                          "estimates their pose (is it this video's SRT?)", TelemetryWarning, stacklevel=2)
+    if csv_path is not None:
+        _unmatched(csv_path, list(rows), {k for k in rows if frame_name.fullmatch(k)}, len(rows),
+                   f"frame of {video.name} (frames are named as their outputs: {video.stem}_f000012)")
+    return out, report

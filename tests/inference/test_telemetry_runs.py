@@ -1,0 +1,185 @@
+"""Telemetry in a run: one bad file costs only itself, --strict_telemetry, the summary, provenance in the outputs."""
+
+from __future__ import annotations
+
+import json
+import math
+import warnings
+
+import cv2
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from dapm_lightning.cli import main
+from dapm_lightning.inference.inputs import PredictSource, source_dataset
+from dapm_lightning.inference.predictor import DAPMPredictor
+from dapm_lightning.inference.prior import as_prior, prior_rows
+from dapm_lightning.inference.telemetry import (
+    PoseTelemetry,
+    TelemetryError,
+    TelemetryWarning,
+    images_telemetry,
+    video_telemetry,
+)
+
+NAN = math.nan
+
+
+def dji_jpeg(path, **tags):
+    attrs = " ".join(f'drone-dji:{k}="{v}"' for k, v in tags.items())
+    packet = ('<x:xmpmeta xmlns:x="adobe:ns:meta/"><rdf:RDF xmlns:rdf="http://www.w3.org/1999/02/22-rdf-syntax-ns#">'
+              f'<rdf:Description xmlns:drone-dji="http://www.dji.com/drone-dji/1.0/" {attrs}/></rdf:RDF></x:xmpmeta>')
+    Image.new("RGB", (60, 40), (90, 120, 60)).save(path, xmp=packet.encode())
+    return path
+
+
+def broken_jpeg(path):
+    Image.new("RGB", (60, 40), (90, 120, 60)).save(path, xmp=b"<x:xmpmeta><rdf:RDF>")
+    return path
+
+
+def record(fn, *args, **kwargs):
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        out = fn(*args, **kwargs)
+    return out, [str(w.message) for w in caught if issubclass(w.category, TelemetryWarning)]
+
+
+@pytest.fixture()
+def flight(tmp_path):
+    folder = tmp_path / "flight"
+    folder.mkdir()
+    dji_jpeg(folder / "a.jpg", RelativeAltitude="+40.0", GimbalPitchDegree="-60.0", FlightPitchDegree="5.0")
+    broken_jpeg(folder / "b.jpg")
+    cv2.imwrite(str(folder / "c.png"), np.full((40, 60, 3), 90, np.uint8))
+    table = tmp_path / "flight.csv"
+    table.write_text("name,height_m,pitch_deg,roll_deg,fov_deg\nc.png,30,,,\n")
+    return folder, table
+
+
+def test_one_bad_image_falls_back_alone_with_one_warning(flight):
+    folder, table = flight
+    paths = sorted(folder.iterdir())
+    (a, b, c), caught = record(lambda: images_telemetry(paths, table)[0])
+    assert a.values()[:2].tolist() == [40.0, -60.0] and b == PoseTelemetry() and c.height_m == 30.0
+    assert a.provenance[:2] == ("a.jpg XMP drone-dji:RelativeAltitude", "a.jpg XMP drone-dji:GimbalPitchDegree")
+    assert c.provenance[0] == "flight.csv line 2"
+    assert len(caught) == 1
+    assert "b.jpg" in caught[0] and "not well-formed" in caught[0] and "--no_metadata" in caught[0]
+    assert "--telemetry CSV" in caught[0] and "--strict_telemetry" in caught[0]
+    with pytest.raises(TelemetryError, match=r"b.jpg.*not well-formed.*--strict_telemetry"):
+        images_telemetry(paths, table, strict=True)
+    report, _ = record(lambda: images_telemetry(paths, table)[1])
+    assert report.summary() == ("telemetry: 2 of 3 image(s) with telemetry (height 2, pitch 1) from XMP 1, "
+                                "flight.csv 1; telemetry unreadable, network pose used: b.jpg")
+
+
+def write_video(path, frames=9, size=(36, 48), fps=10.0):
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), fps, (size[1], size[0]))
+    for k in range(frames):
+        writer.write(np.full((*size, 3), 20 * k, np.uint8))
+    writer.release()
+    return path
+
+
+def per_frame_srt(path, count, first_height=20.0):
+    path.write_text("".join(f"{k}\n00:00:00,{100 * (k - 1):03d} --> 00:00:00,{100 * k:03d}\n"
+                            f"[focal_len: 24.00] [rel_alt: {first_height + k:.3f} abs_alt: 300.000] "
+                            "[gb_yaw: 1.0 gb_pitch: -45.0 gb_roll: 0.0]\n\n" for k in range(1, count + 1)))
+    return path
+
+
+def test_an_srt_with_fewer_subtitles_than_frames_warns_once_and_a_csv_names_frames(tmp_path):
+    video = write_video(tmp_path / "v.avi")
+    srt = per_frame_srt(tmp_path / "v.SRT", 5)
+    (frames, _), caught = record(video_telemetry, video, range(9), srt, size=(48, 36), fps=10.0)
+    assert sorted(frames) == [0, 1, 2, 3, 4] and frames[4].provenance[0] == "v.SRT subtitle 5 rel_alt"
+    assert len(caught) == 1 and "cover frames up to 4 of v.avi; 4 of the 9 frame(s) predicted (the first: 5)" in \
+        caught[0]
+    table = tmp_path / "frames.csv"
+    table.write_text("name,height_m,fov_deg\nv_f000002,55.5,\nv_f000007,60,70\nother,1,\n")
+    (frames, report), caught = record(video_telemetry, video, range(9), srt, table, size=(48, 36), fps=10.0)
+    assert frames[2].height_m == 55.5 and frames[2].provenance[0] == "frames.csv line 2"
+    assert frames[2].pitch_deg == -45.0 and frames[2].provenance[1] == "v.SRT subtitle 3 gb_pitch"  # SRT fills in
+    assert frames[7].values().tolist()[::3] == [60.0, 70.0] and math.isnan(frames[7].pitch_deg)
+    assert any("1 of 3 name(s) match no frame of v.avi" in m for m in caught)
+    assert report.total == 9 and report.with_telemetry == 6
+
+
+def test_a_broken_srt_falls_back_and_strict_stops(tmp_path):
+    video = write_video(tmp_path / "v.avi")
+    srt = tmp_path / "v.SRT"
+    srt.write_text("this is not a subtitle file\n")
+    (frames, report), caught = record(video_telemetry, video, range(9), srt, size=(48, 36), fps=10.0)
+    assert frames == {} and report.fell_back == ["v.SRT"]
+    assert len(caught) == 1 and "v.SRT, line 1: expected a subtitle number" in caught[0]
+    assert "this video's telemetry is not used" in caught[0]
+    with pytest.raises(TelemetryError, match="expected a subtitle number.*--strict_telemetry"):
+        video_telemetry(video, range(9), srt, size=(48, 36), fps=10.0, strict=True)
+    per_frame_srt(srt, 9)
+    dataset = source_dataset(PredictSource(video, frame_step=2), 32)
+    assert sorted(dataset.priors) == [0, 2, 4, 6, 8] and dataset.provenance[8][0] == "v.SRT subtitle 9 rel_alt"
+    assert dataset.telemetry_report.summary().startswith("telemetry: 5 of 5 frame(s) with telemetry (height 5")
+
+
+@pytest.mark.parametrize(("prior", "match"), [
+    ({"height_m": -5}, "height_m = -5 must be > 0 m"),
+    ({"fov_deg": 250}, r"fov_deg = 250 must be within \(0, 180\)"),
+    ({"pitch": 1000}, r"pitch_deg = 1000 must be within \[-180, 180\]"),
+    ({"height": math.inf}, "height_m = inf is not finite"),
+    ([40.0, -30.0, 0.0, -math.inf], "fov_deg = -inf is not finite"),
+    ({"roll_deg": "left"}, "roll_deg = 'left' is not a number"),
+])
+def test_python_api_priors_are_checked_as_the_csv_is(prior, match):
+    with pytest.raises(TelemetryError, match=match):
+        as_prior([prior])
+
+
+def test_python_api_priors_carry_their_provenance():
+    rows, provenance = prior_rows([{"height_m": 30.0, "pitch": NAN}, None, torch.tensor([NAN, -50.0, NAN, 70.0]),
+                                   PoseTelemetry(height_m=12.0, source="x.csv line 3")])
+    assert np.isnan(rows[0, 1]) and rows[2, 3] == 70.0
+    assert provenance == [("Python API prior", "", "", ""), ("", "", "", ""),
+                          ("", "Python API prior", "", "Python API prior"), ("x.csv line 3", "", "", "")]
+
+
+def test_the_outputs_name_where_each_component_came_from(checkpoint, flight, tmp_path, capsys):
+    folder, table = flight
+    out = tmp_path / "out"
+    _, caught = record(main, ["predict", str(folder), "--ckpt_path", str(checkpoint), "--out", str(out),
+                              "--device", "cpu", "--telemetry", str(table), "--outputs", "camera"])
+    assert len(caught) == 1 and "b.jpg" in caught[0] and "--no_metadata" in caught[0]
+
+    def provenance(name):
+        return json.loads((out / f"{name}_camera.json").read_text())["pose_provenance"]
+
+    assert provenance("a") == {"height_m": "a.jpg XMP drone-dji:RelativeAltitude",
+                               "pitch_deg": "a.jpg XMP drone-dji:GimbalPitchDegree", "roll_deg": None, "fov_deg": None}
+    assert set(provenance("b").values()) == {None}
+    assert provenance("c")["height_m"] == "flight.csv line 2"
+    with pytest.raises(SystemExit) as info:
+        main(["predict", str(folder), "--ckpt_path", str(checkpoint), "--out", str(tmp_path / "strict"),
+              "--device", "cpu", "--telemetry", str(table), "--strict_telemetry"])
+    assert info.value.code == 1 and "b.jpg" in capsys.readouterr().err
+
+
+def test_api_and_video_predictions_carry_provenance(checkpoint, tmp_path):
+    predictor = DAPMPredictor.from_checkpoint(checkpoint, image_width=32)
+    rgb = np.random.default_rng(0).integers(0, 255, (40, 60, 3), np.uint8)
+    result = predictor(rgb, prior={"height_m": 33.0})
+    assert result.pose_provenance == {"height": "Python API prior"}
+    assert result.camera_dict()["pose_provenance"]["height_m"] == "Python API prior"
+    with pytest.raises(TelemetryError, match="must be > 0"):
+        predictor(rgb, prior={"height_m": 0.0})
+    video = write_video(tmp_path / "clip.avi", frames=6)
+    per_frame_srt(tmp_path / "clip.SRT", 4)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        results = list(predictor.predict_source(video))
+    assert [r.pose_provenance for r in results][3:] == [{"height": "clip.SRT subtitle 4 rel_alt",
+                                                        "pitch": "clip.SRT subtitle 4 gb_pitch",
+                                                        "roll": "clip.SRT subtitle 4 gb_roll",
+                                                        "fov": "clip.SRT subtitle 4 focal_len"}, None, None]
+    assert sum("cover frames up to 3" in str(w.message) for w in caught) == 1
