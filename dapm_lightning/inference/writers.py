@@ -154,10 +154,24 @@ def pose_row(prediction: Prediction) -> dict[str, Any]:
                            **{pose_field(k): round(v, 4) for k, v in prediction.pose.items()}}
     if prediction.pose_source:
         network = prediction.pose_network or prediction.pose
+        provenance = prediction.pose_provenance or {}
         for key in POSE_KEYS:
             row[f"{pose_field(key)}_source"] = prediction.pose_source.get(key, "network")
+            row[f"{pose_field(key)}_provenance"] = provenance.get(key, "")
             row[f"{pose_field(key)}_network"] = round(network[key], 4)
     return row
+
+
+def table_columns(rows: Iterable[dict[str, Any]]) -> list[str]:
+    """The poses table's columns in their order.
+
+    Name, the pose (height, pitch, roll, FoV), then per component the sources, the provenance and the network's
+    values, then any other column.
+    """
+    present = {key for row in rows for key in row}
+    ordered = [*POSE_COLUMNS, *(f"{field}_{kind}" for kind in ("source", "provenance", "network")
+                                for field in POSE_FIELDS)]
+    return [c for c in ordered if c in present or c in POSE_COLUMNS] + sorted(present - set(ordered))
 
 
 def write_poses(out: Path, rows: list[dict[str, Any]], suffix: str = "") -> Path:
@@ -179,7 +193,7 @@ def write_poses(out: Path, rows: list[dict[str, Any]], suffix: str = "") -> Path
                 merged = {row["name"]: {k: v for k, v in row.items() if k is not None}  # no cells past the header
                           for row in csv.DictReader(handle) if row.get("name")}
         merged.update({row["name"]: row for row in rows})
-        columns = POSE_COLUMNS + sorted({k for row in merged.values() for k in row} - set(POSE_COLUMNS))
+        columns = table_columns(merged.values())
         for row in merged.values():  # rows of images without telemetry: their pose is the network's
             for column in columns[len(POSE_COLUMNS):]:
                 if row.get(column) in (None, "") and column.endswith(("_source", "_network")):

@@ -1,5 +1,7 @@
 """One predict pipeline: the one-line command, the Lightning form and the Python API give the same files."""
 
+import csv
+
 import cv2
 import numpy as np
 import pytest
@@ -80,3 +82,20 @@ def test_one_loader_batches_by_size_with_the_runs_prior_settings(mixed_flight):
     with pytest.raises(ValueError, match="one network size"):
         PredictBatch.collate([PredictInput(torch.zeros(3, 32, 32, dtype=torch.uint8), "x", (32, 32)),
                               PredictInput(torch.zeros(3, 32, 64, dtype=torch.uint8), "y", (32, 64))])
+
+
+def test_the_poses_table_keeps_the_pose_order_then_sources_provenance_and_network_values(checkpoint, mixed_flight,
+                                                                                          tmp_path):
+    folder, table = mixed_flight
+    out = tmp_path / "out"
+    main(["predict", str(folder), "--ckpt_path", str(checkpoint), "--out", str(out), "--device", "cpu",
+          "--telemetry", str(table), "--outputs", "camera"])
+    with (out / "poses.csv").open() as handle:
+        rows = list(csv.DictReader(handle))
+    fields = ["height_m", "pitch_deg", "roll_deg", "fov_deg"]
+    assert list(rows[0]) == ["name", *fields, *(f"{f}_{kind}" for kind in ("source", "provenance", "network")
+                                                 for f in fields)]
+    first = {row["name"]: row for row in rows}["a"]
+    assert first["height_m_source"] == "telemetry" and first["height_m_provenance"] == "flight.csv line 2"
+    assert first["roll_deg_source"] == "telemetry" and first["roll_deg_provenance"] == "flight.csv line 2"
+    assert {row["name"]: row for row in rows}["c"]["height_m_source"] == "network"
