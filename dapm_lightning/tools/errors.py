@@ -2,7 +2,8 @@
 
 ``dapm-lightning`` runs every subcommand through :func:`run_reporting_errors`: bad paths, bad data
 (:class:`~dapm_lightning.data.errors.DatasetError`), unreadable checkpoints, files that are not dapm-lightning
-checkpoints and bad settings end in two or three lines on stderr and exit status 1. The Python traceback is
+checkpoints, refused checkpoints (pickled code), failed saves and bad settings end in two or three lines on stderr and
+exit status 1; Ctrl-C ends in exit status 130, whether Lightning or this module caught it. The Python traceback is
 shown only with ``--debug`` (anywhere on the command line) or ``DAPM_DEBUG=1``. A command line the parser
 refuses (an unknown or abbreviated option, a value of the wrong type) ends in a few lines with the closest
 valid options and exit status 2 (:class:`~dapm_lightning.training.lightning_cli.DAPMArgumentParser`).
@@ -54,6 +55,8 @@ def describe(error: BaseException) -> tuple[str, bool]:
     if isinstance(error, _PATH_ERRORS):
         fix = f"Fix: check the path (relative paths start from the current directory, {os.getcwd()})."
         return (message if "Fix" in message else f"{message}\n{fix}"), True
+    if getattr(error, "explained", False):  # says what happened and the fix itself (refused or unsaved checkpoints)
+        return message, True
     if "not a readable checkpoint" in message:
         return (f"{message}\nFix: copy the checkpoint again (a file cut short by a full disk or an interrupted "
                 "transfer cannot be read) or pick another one, e.g. the run's last.ckpt."), True
@@ -66,10 +69,19 @@ def describe(error: BaseException) -> tuple[str, bool]:
 
 
 def run_reporting_errors(function: Callable[[], Any], debug: bool, stream: TextIO | None = None) -> Any:
-    """Call ``function``; on an exception print a short message and exit 1 (re-raise it when ``debug``)."""
+    """Call ``function``; on an exception print a short message and exit 1 (re-raise it when ``debug``).
+
+    Ctrl-C exits 130: a KeyboardInterrupt, and Lightning's own ``sys.exit(1)`` after one (its graceful
+    shutdown). A stop by SIGTERM or a first Ctrl-C during training (``CheckpointOnSigterm``) keeps its status.
+    """
     stream = stream or sys.stderr
     try:
         return function()
+    except SystemExit as stop:
+        if stop.code == EXIT_ERROR and isinstance(stop.__context__, KeyboardInterrupt):  # Lightning's Ctrl-C
+            print("\ninterrupted", file=stream)
+            raise SystemExit(EXIT_INTERRUPTED) from None
+        raise
     except KeyboardInterrupt:
         if debug:
             raise

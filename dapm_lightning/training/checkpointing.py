@@ -1,24 +1,46 @@
-"""Checkpoints for long jobs: safe loading, ``last.ckpt``, SIGTERM saves (RNG states: :mod:`.rng`).
+"""Checkpoints for long jobs: safe reading, atomic writes, ``last.ckpt``, SIGTERM/SIGINT saves (RNG: :mod:`.rng`).
 
-``last.ckpt`` is kept at the latest state (:class:`LastCheckpoint`) and ``--ckpt_path last`` finds it in
-any of the run's log versions (:func:`find_last_checkpoint`). :func:`load_dapm_module` is the one way to
-build a model from a checkpoint file: safe loading, and a clear error for damaged files and for files
-that are not dapm-lightning checkpoints.
+Every read of a checkpoint goes through :func:`read_checkpoint`: ``weights_only`` loading with the project's
+allow-list (:data:`SAFE_GLOBALS`), for local files, ``file://`` paths, ``http(s)://`` addresses and other fsspec
+paths alike; a file that holds pickled code is refused (:class:`UnsafeCheckpointError`) without running it. Every
+write goes through :func:`save_atomically`: a temporary file in the checkpoint's own folder, flushed and
+fsynced, then renamed over the target, so the previous file stays complete until the new one is.
+:class:`SafeCheckpointIO` is Lightning's side of both, and :func:`enforce_safe_checkpoint_io` puts it on a
+trainer whatever its plugins say. ``last.ckpt`` is kept at the latest state (:class:`LastCheckpoint`) and
+``--ckpt_path last`` finds the newest complete one in any of the run's log versions
+(:func:`resolve_last_checkpoint`). :func:`load_dapm_module` is the one way to build a model from a checkpoint.
 """
 
 from __future__ import annotations
 
+import errno
+import hashlib
 import inspect
+import io
+import os
 import re
+import secrets
+import shutil
 import signal
-from collections.abc import Iterable, Mapping
+import socket
+import threading
+import urllib.error
+import urllib.request
+from collections.abc import Callable, Iterable, Iterator, Mapping
+from contextlib import suppress
 from pathlib import Path
-from typing import Any
+from types import FrameType
+from typing import IO, Any
+from urllib.parse import unquote, urlsplit
 
 import lightning as L
+import torch
+from lightning.fabric.plugins.io.checkpoint_io import CheckpointIO
 from lightning.fabric.plugins.io.torch_io import TorchCheckpointIO
 from lightning.pytorch.callbacks import ModelCheckpoint
+from lightning.pytorch.plugins.io.wrapper import _WrappingCheckpointIO
 from lightning.pytorch.trainer.states import TrainerFn
+from lightning.pytorch.utilities import rank_zero_info, rank_zero_warn
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 from torch import Tensor
 
@@ -27,25 +49,437 @@ from dapm_lightning.training.module import DAPMModule
 EXIT_SIGTERM = 128 + signal.SIGTERM
 """Exit status of a run stopped by SIGTERM after saving ``last.ckpt`` (143: a job script can tell it from 0)."""
 
+EXIT_SIGINT = 128 + signal.SIGINT
+"""Exit status of a run stopped by SIGINT (Ctrl-C) after saving ``last.ckpt`` (130, as a shell reports it)."""
+
+SAFE_GLOBALS: tuple[Any, ...] = ()
+"""The project's allow-list: Python types a checkpoint may hold beyond what torch's ``weights_only`` loading accepts
+(tensors, numbers, strings, lists, dicts...). Empty: dapm-lightning checkpoints hold plain values only (settings as
+dicts, RNG states as tensors, :mod:`.rng`). A type added here must be data, never something that runs code."""
+
+_CHUNK = 1 << 22  # bytes copied at a time when fetching a remote checkpoint
+_PARTIAL = re.compile(r"\.partial-(?P<host>.*)-(?P<pid>\d+)-[0-9a-f]{8}$")
+"""The name of a save in progress: ``NAME.partial-HOST-PID-TOKEN`` next to ``NAME`` (see :func:`save_atomically`)."""
+
+
+class CheckpointReadError(RuntimeError):
+    """A checkpoint file that cannot be read: truncated, corrupt or not a PyTorch file (the message names it)."""
+
+
+class UnsafeCheckpointError(RuntimeError):
+    """A checkpoint refused because it holds pickled Python objects (code could run); nothing in it was run."""
+
+    explained = True  # the message says what it is and the fix: printed as it is (tools/errors.py)
+
+
+class CheckpointSaveError(RuntimeError):
+    """A checkpoint that could not be written (full disk, read-only folder...); the message names it and the fix."""
+
+    explained = True
+
+
+class CheckpointFetchError(RuntimeError):
+    """A remote checkpoint (``http(s)://``, another fsspec path) that could not be fetched, with the fix."""
+
+    explained = True
+
+
+class UnsafeCheckpointIOError(ValueError):
+    """A ``CheckpointIO`` plugin that reads checkpoints its own way, which cannot be made safe."""
+
+
+def is_remote(path: str | Path) -> bool:
+    """Whether ``path`` is an address (``http://``, ``s3://``, ``memory://``...) rather than a local file.
+
+    ``file://`` paths are local. Lightning's special ``--ckpt_path`` values (``last``, ``best``, ``hpc``,
+    ``registry:NAME``) are not addresses.
+    """
+    text = str(path)
+    scheme = urlsplit(text).scheme
+    return "://" in text and len(scheme) > 1 and scheme != "file"
+
+
+def local_path(path: str | Path) -> Path:
+    """``path`` as a local :class:`~pathlib.Path` (a ``file://`` URL's path; anything else as it is)."""
+    text = str(path)
+    if text.startswith("file://"):
+        return Path(unquote(urlsplit(text).path))
+    return Path(path)
+
+
+def _host() -> str:
+    return re.sub(r"[^\w.-]", "_", socket.gethostname()) or "host"
+
+
+def _remote_chunks(url: str) -> Iterator[bytes]:
+    """The bytes of the file at ``url``, a chunk at a time: urllib for ``http(s)``, fsspec for other protocols."""
+    scheme = urlsplit(url).scheme
+    try:
+        if scheme in ("http", "https"):
+            opened: Any = urllib.request.urlopen(url, timeout=60)  # noqa: S310 (http(s) only)
+        else:
+            import fsspec
+
+            opened = fsspec.open(url, "rb")
+        with opened as stream:
+            while chunk := stream.read(_CHUNK):
+                yield chunk
+    except (OSError, ValueError, ImportError) as error:  # urllib's URLError is an OSError
+        if isinstance(error, (ValueError, ImportError)) and scheme not in ("http", "https"):
+            raise CheckpointFetchError(
+                f"{url}: cannot read a checkpoint from a {scheme}:// path here ({error}).\n"
+                "Fix: download the file and pass its local path, or install the fsspec filesystem for "
+                f"{scheme}://.") from error
+        reason = getattr(error, "reason", None) or error
+        raise CheckpointFetchError(f"{url}: could not fetch the checkpoint ({reason}).\n"
+                                   "Fix: check the address, or download the file and pass its local path.") from error
+
+
+def _space_left(error: BaseException) -> bool:
+    """Whether ``error`` (or an error it was raised from, as torch wraps them) is a full disk or quota."""
+    seen: BaseException | None = error
+    while seen is not None:
+        if isinstance(seen, OSError) and seen.errno in (errno.ENOSPC, errno.EDQUOT):
+            return True
+        seen = seen.__cause__ or seen.__context__
+    return False
+
+
+def _os_error(error: BaseException) -> OSError | None:
+    seen: BaseException | None = error
+    while seen is not None:
+        if isinstance(seen, OSError):
+            return seen
+        seen = seen.__cause__ or seen.__context__
+    return None
+
+
+def _megabytes(count: int) -> str:
+    return f"{count / 1e6:.1f} MB"
+
+
+def _tensor_bytes(value: Any, seen: set[int] | None = None) -> int:
+    """The bytes of the tensors in ``value`` (nested dicts, lists, tuples), each storage counted once."""
+    seen = set() if seen is None else seen
+    if isinstance(value, Tensor):
+        storage = value.untyped_storage()
+        if storage.data_ptr() in seen:
+            return 0
+        seen.add(storage.data_ptr())
+        return int(storage.nbytes())
+    if isinstance(value, Mapping):
+        return sum(_tensor_bytes(v, seen) for v in value.values())
+    if isinstance(value, (list, tuple)):
+        return sum(_tensor_bytes(v, seen) for v in value)
+    return 0
+
+
+def _write_error(path: Path, error: BaseException, written: int, what: str = "save the checkpoint") -> Exception:
+    """The one-paragraph error of a failed write of ``path``: the file, the cause, the fix."""
+    folder = path.parent
+    if _space_left(error):
+        free = shutil.disk_usage(folder).free if folder.is_dir() else 0
+        previous = path.stat().st_size if path.is_file() else 0
+        need = max(written, previous)
+        needed = f", about {_megabytes(need)} needed" if need > free else ""
+        kept = f" The previous {path.name} is unchanged." if previous else ""
+        return CheckpointSaveError(
+            f"{path}: could not {what}: no space left in {folder} ({_megabytes(free)} free{needed}).{kept}\n"
+            f"Fix: free space in {folder}, or write the run to another disk with --trainer.default_root_dir DIR.")
+    cause = _os_error(error)
+    reason = f"{cause.strerror or cause}" if cause is not None else str(error).splitlines()[0]
+    return CheckpointSaveError(f"{path}: could not {what} ({reason}).\nFix: make {folder} writable with space "
+                               "for the checkpoint, or write the run elsewhere with --trainer.default_root_dir DIR.")
+
+
+def _fsync_folder(folder: Path) -> None:
+    """Make a rename in ``folder`` durable (some filesystems cannot sync a folder: ignored there)."""
+    with suppress(OSError):
+        descriptor = os.open(folder, os.O_RDONLY)
+        try:
+            os.fsync(descriptor)
+        finally:
+            os.close(descriptor)
+
+
+def _atomic_write(path: Path, write: Callable[[IO[bytes]], None], what: str, size: Callable[[], int] = lambda: 0
+                  ) -> None:
+    """``write`` into a temporary file beside ``path``, flushed and fsynced, then renamed over ``path``.
+
+    ``size`` estimates the bytes needed, for the message of a full disk.
+    """
+    folder = path.parent
+    temporary = path.with_name(f"{path.name}.partial-{_host()}-{os.getpid()}-{secrets.token_hex(4)}")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with open(temporary, "xb") as stream:
+            write(stream)
+            stream.flush()
+            os.fsync(stream.fileno())
+        os.replace(temporary, path)
+    except BaseException as error:  # KeyboardInterrupt too: never leave the temporary file behind
+        written = temporary.stat().st_size if temporary.exists() else 0
+        with suppress(OSError):
+            temporary.unlink()
+        if isinstance(error, Exception) and not getattr(error, "explained", False) and _os_error(error) is not None:
+            raise _write_error(path, error, max(written, size()), what) from error
+        raise
+    _fsync_folder(folder)
+
+
+def save_atomically(checkpoint: Any, path: str | Path) -> None:
+    """``torch.save(checkpoint)`` to ``path`` so that ``path`` is always either the old file or the new one.
+
+    The checkpoint is written to ``NAME.partial-HOST-PID-TOKEN`` in ``path``'s own folder (never ``$TMPDIR``),
+    flushed and fsynced, then renamed over ``path`` with ``os.replace`` (atomic on one filesystem), and the
+    folder is fsynced. A failed save removes its temporary file and raises :class:`CheckpointSaveError` naming
+    the file and the fix (free space in the folder, or ``--trainer.default_root_dir``); a killed one leaves it,
+    and :func:`remove_unfinished_saves` removes it on the next start.
+
+    Args:
+        checkpoint: what ``torch.save`` takes (a Lightning checkpoint dictionary).
+        path: the checkpoint file (a local path or ``file://`` URL).
+    """
+    _atomic_write(local_path(path), lambda stream: torch.save(checkpoint, stream), "save the checkpoint",
+                  lambda: _tensor_bytes(checkpoint))
+
+
+def _writer_alive(match: re.Match[str]) -> bool:
+    """Whether the process that started a save (``NAME.partial-HOST-PID-...``) may still be writing it."""
+    pid = int(match["pid"])
+    if match["host"] != _host() or pid == os.getpid():
+        return False  # another machine's leftover (only one process saves), or this process before its first save
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    with suppress(OSError, IndexError):  # a killed process not yet reaped by its parent is a zombie: gone
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    return True
+
+
+def remove_unfinished_saves(folders: Iterable[str | Path], recursive: bool = True) -> list[Path]:
+    """Remove the temporary files of saves that were killed (``*.partial-HOST-PID-TOKEN``), named in one warning.
+
+    A file whose writer is still running on this machine is kept.
+
+    Args:
+        folders: where to look (missing folders are skipped).
+        recursive: also in their subfolders.
+
+    Returns:
+        The files removed.
+    """
+    removed: list[Path] = []
+    for folder in dict.fromkeys(local_path(f) for f in folders):
+        if not folder.is_dir():
+            continue
+        for path in sorted(folder.rglob("*.partial-*") if recursive else folder.glob("*.partial-*")):
+            match = _PARTIAL.search(path.name)
+            if match is None or not path.is_file() or _writer_alive(match):
+                continue
+            with suppress(FileNotFoundError):
+                path.unlink()
+                removed.append(path)
+    if removed:
+        rank_zero_warn(f"removed {len(removed)} unfinished checkpoint file(s) left by interrupted saves: "
+                       + ", ".join(str(p) for p in removed))
+    return removed
+
+
+def _fetch_name(url: str) -> str:
+    name = re.sub(r"[^\w.-]", "_", unquote(urlsplit(url).path.rsplit("/", 1)[-1])) or "checkpoint.ckpt"
+    return f"{hashlib.sha256(url.encode()).hexdigest()[:12]}-{name}"
+
+
+def fetch_checkpoint(url: str, folder: str | Path) -> Path:
+    """Download the checkpoint at ``url`` into ``folder`` (atomically), every time: no cache.
+
+    The file is named ``HASH-NAME``: NAME from the address, HASH from the whole address, so two addresses
+    ending in the same name never share a file. It is read afterwards like any local file.
+
+    Args:
+        url: an ``http(s)://`` address or another fsspec path (``s3://``, ``memory://``...).
+        folder: the run's folder for fetched files (created).
+
+    Returns:
+        The local file.
+
+    Raises:
+        CheckpointFetchError: the address cannot be read (the message names it and the fix).
+        CheckpointSaveError: the file cannot be written into ``folder``.
+    """
+    path = Path(folder) / _fetch_name(url)
+    digest = hashlib.sha256()
+
+    def copy(target: IO[bytes]) -> None:
+        for chunk in _remote_chunks(url):
+            digest.update(chunk)
+            target.write(chunk)
+
+    _atomic_write(path, copy, f"fetch {url}")
+    rank_zero_info(f"fetched {url} into {path} ({_megabytes(path.stat().st_size)}, sha256 {digest.hexdigest()[:16]})")
+    return path
+
+
+def _refused_globals(source: str | Path | bytes) -> list[str]:
+    """The pickled globals of a checkpoint that ``weights_only`` loading refuses ([] if none or unreadable)."""
+    allowed = {f"{getattr(g, '__module__', '')}.{getattr(g, '__qualname__', g)}" for g in SAFE_GLOBALS}
+    try:
+        found = torch.serialization.get_unsafe_globals_in_checkpoint(
+            io.BytesIO(source) if isinstance(source, bytes) else source)
+    except Exception:  # not a zip checkpoint at all: damaged, not refused
+        return []
+    return [name for name in found if name not in allowed]
+
+
+def read_checkpoint(path: str | Path, map_location: Any = "cpu") -> dict[str, Any]:
+    """Load a checkpoint safely: ``weights_only=True`` with :data:`SAFE_GLOBALS`, from any kind of path.
+
+    Local files and ``file://`` paths are read in place; ``http(s)://`` and other fsspec paths are read into
+    memory (never through torch hub's cache, which is keyed by the file's name). No pickled code runs.
+
+    Args:
+        path: the checkpoint.
+        map_location: where tensors go, as in ``torch.load``.
+
+    Returns:
+        The checkpoint (a dictionary, or whatever plain values the file holds).
+
+    Raises:
+        FileNotFoundError: no such local file.
+        UnsafeCheckpointError: the file holds pickled objects that could run code (refused, nothing run).
+        CheckpointReadError: the file is damaged or not a PyTorch file (``not a readable checkpoint``).
+        CheckpointFetchError: a remote file that cannot be fetched.
+    """
+    source: Path | bytes
+    if is_remote(path):
+        source = b"".join(_remote_chunks(str(path)))
+    else:
+        source = local_path(path)
+        if not source.is_file():
+            raise FileNotFoundError(f"{path}: no such checkpoint file")
+    try:
+        with torch.serialization.safe_globals(list(SAFE_GLOBALS)):
+            if isinstance(source, bytes):
+                return torch.load(io.BytesIO(source), map_location=map_location, weights_only=True)
+            with open(source, "rb") as stream:
+                return torch.load(stream, map_location=map_location, weights_only=True)
+    except Exception as error:  # torch raises RuntimeError / UnpicklingError / EOFError for damaged files
+        refused = _refused_globals(source)
+        if refused:
+            shown = ", ".join(refused[:4]) + (f" and {len(refused) - 4} more" if len(refused) > 4 else "")
+            raise UnsafeCheckpointError(
+                f"{path}: refused: the file holds pickled Python objects ({shown}), which could run code when "
+                "loaded. It was not loaded, and nothing in it was run: dapm-lightning reads checkpoints with "
+                "weights_only=True (tensors and plain values only).\nFix: use a checkpoint written by "
+                "`dapm-lightning fit`; if you made this file yourself and trust it, load it once with "
+                "torch.load(..., weights_only=False) and save it again with tensors and plain values only.") from error
+        size = len(source) if isinstance(source, bytes) else source.stat().st_size
+        first = str(error).strip().splitlines()[0].split(". ")[0] if str(error).strip() else type(error).__name__
+        raise CheckpointReadError(f"{path}: not a readable checkpoint ({size} bytes; truncated, corrupt or not a "
+                                  f"PyTorch file): {first}") from error
+
 
 class SafeCheckpointIO(TorchCheckpointIO):
-    """Lightning's checkpoint I/O with safe loading.
+    """Lightning's checkpoint I/O, reading safely and writing atomically on any filesystem.
 
-    Writes are Lightning's (atomic: an fsspec transaction). Loading uses ``weights_only=True`` by
-    default (no arbitrary pickled code) and names the file when it cannot read it.
+    Loading is :func:`read_checkpoint` whatever ``weights_only`` Lightning passes (tensors and plain values
+    only; remote paths read into memory). Saving to a local path is :func:`save_atomically` (a temporary file
+    in the checkpoint's folder, renamed when complete; before the first save into a folder, the temporary
+    files of killed saves there are removed); saving to a remote path is Lightning's.
     """
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._cleaned: set[Path] = set()
+
+    def save_checkpoint(self, checkpoint: dict[str, Any], path: Any, storage_options: Any | None = None) -> None:
+        """Write ``checkpoint`` to ``path`` atomically (local paths; remote ones as Lightning does)."""
+        if storage_options is not None or is_remote(path):
+            super().save_checkpoint(checkpoint, path, storage_options=storage_options)
+            return
+        folder = local_path(path).parent
+        if folder not in self._cleaned:
+            self._cleaned.add(folder)
+            remove_unfinished_saves([folder], recursive=False)
+        save_atomically(checkpoint, path)
 
     def load_checkpoint(self, path: Any, map_location: Any = lambda storage, loc: storage,
                         weights_only: bool | None = None) -> dict[str, Any]:
-        try:
-            return super().load_checkpoint(path, map_location=map_location,
-                                           weights_only=True if weights_only is None else weights_only)
-        except FileNotFoundError:
-            raise
-        except Exception as error:  # torch raises RuntimeError / UnpicklingError / EOFError for damaged files
-            size = Path(path).stat().st_size if Path(path).is_file() else 0
-            raise RuntimeError(f"{path}: not a readable checkpoint ({size} bytes; truncated, corrupt, or "
-                               f"holding objects that weights_only loading refuses): {error}") from error
+        """:func:`read_checkpoint` (``weights_only`` is always True, whatever is passed)."""
+        return read_checkpoint(path, map_location=map_location)
+
+
+class SafeLoadingCheckpointIO(CheckpointIO):
+    """A user's ``CheckpointIO`` whose saves are kept and whose loads are :func:`read_checkpoint`."""
+
+    def __init__(self, inner: CheckpointIO) -> None:
+        super().__init__()
+        self.inner = inner
+
+    def save_checkpoint(self, checkpoint: dict[str, Any], path: Any, storage_options: Any | None = None) -> None:
+        """The wrapped plugin's save."""
+        self.inner.save_checkpoint(checkpoint, path, storage_options=storage_options)
+
+    def load_checkpoint(self, path: Any, map_location: Any | None = None,
+                        weights_only: bool | None = None) -> dict[str, Any]:
+        """:func:`read_checkpoint`."""
+        return read_checkpoint(path, map_location=map_location)
+
+    def remove_checkpoint(self, path: Any) -> None:
+        """The wrapped plugin's removal."""
+        self.inner.remove_checkpoint(path)
+
+    def teardown(self) -> None:
+        """The wrapped plugin's teardown."""
+        self.inner.teardown()
+
+
+def safe_checkpoint_io(plugin: CheckpointIO | None) -> CheckpointIO:
+    """``plugin`` made safe to load with: the same object, a replacement or a wrapper; else an error.
+
+    - none or Lightning's ``TorchCheckpointIO``: a :class:`SafeCheckpointIO`;
+    - a :class:`SafeCheckpointIO` (or subclass): itself;
+    - a wrapping plugin (``AsyncCheckpointIO``): itself, its inner plugin made safe the same way;
+    - a ``TorchCheckpointIO`` subclass that changes only how checkpoints are saved: wrapped in
+      :class:`SafeLoadingCheckpointIO` (its saves, safe loads);
+    - any other (it reads checkpoints its own way): :class:`UnsafeCheckpointIOError`.
+    """
+    if plugin is None or type(plugin) is TorchCheckpointIO:
+        return SafeCheckpointIO()
+    if isinstance(plugin, (SafeCheckpointIO, SafeLoadingCheckpointIO)):
+        return plugin
+    if isinstance(plugin, _WrappingCheckpointIO):
+        inner = plugin.checkpoint_io
+        safe = safe_checkpoint_io(inner)
+        if safe is not inner:
+            plugin._checkpoint_io = safe  # the public setter keeps an inner plugin once one is set
+        return plugin
+    if isinstance(plugin, TorchCheckpointIO) and type(plugin).load_checkpoint is TorchCheckpointIO.load_checkpoint:
+        return SafeLoadingCheckpointIO(plugin)
+    name = f"{type(plugin).__module__}.{type(plugin).__qualname__}"
+    raise UnsafeCheckpointIOError(
+        f"trainer.plugins: {name} reads checkpoints its own way, which dapm-lightning cannot check is safe (a "
+        "checkpoint's pickled code could run).\nFix: derive it from "
+        "dapm_lightning.training.checkpointing.SafeCheckpointIO (its load_checkpoint reads with weights_only), "
+        "or leave it out of trainer.plugins.")
+
+
+def enforce_safe_checkpoint_io(trainer: L.Trainer) -> None:
+    """Put a safe checkpoint I/O on ``trainer``'s strategy, whatever its plugins (see :func:`safe_checkpoint_io`).
+
+    Called by :class:`~dapm_lightning.training.lightning_cli.DAPMCLI` for every trainer it builds, and by
+    :class:`LastCheckpoint` and :class:`CheckpointOnSigterm` when they are set up (before Lightning restores a
+    ``ckpt_path``), so that no ``--trainer.plugins`` value can bring back unsafe loading.
+    """
+    strategy = trainer.strategy
+    current = strategy.checkpoint_io  # Lightning's default when no plugin set one
+    safe = safe_checkpoint_io(current)
+    if safe is not current:
+        strategy.checkpoint_io = safe
 
 
 class NotADAPMCheckpointError(ValueError):
@@ -103,13 +537,15 @@ def check_dapm_checkpoint(checkpoint: Any, source: str | Path) -> None:
 def load_dapm_module(path: str | Path, map_location: Any = "cpu") -> DAPMModule:
     """A :class:`~dapm_lightning.training.module.DAPMModule` from a checkpoint file, with the checkpoint's settings.
 
-    Loads with ``weights_only=True`` (:class:`SafeCheckpointIO`: tensors and plain values only). Errors, each
-    naming the file: FileNotFoundError; RuntimeError ``not a readable checkpoint`` for a damaged file;
-    :class:`NotADAPMCheckpointError` (a ValueError) for another model's checkpoint or a bare state dict.
+    Loads with :func:`read_checkpoint` (``weights_only=True``: tensors and plain values only). Errors, each
+    naming the file: FileNotFoundError; :class:`CheckpointReadError` (a RuntimeError, ``not a readable
+    checkpoint``) for a damaged file; :class:`UnsafeCheckpointError` for a file holding pickled code (refused,
+    not run); :class:`NotADAPMCheckpointError` (a ValueError) for another model's checkpoint or a bare state dict.
 
     Args:
         path: a checkpoint written by ``dapm-lightning fit`` (``last.ckpt``, ``best-*.ckpt``) or
-            ``trainer.save_checkpoint``.
+            ``trainer.save_checkpoint``: a local file, a ``file://`` path or an ``http(s)://`` (fsspec) address,
+            read into memory.
         map_location: where the tensors go (``"cpu"``, ``"cuda:0"``, a ``torch.device``, a function or
             mapping as in ``torch.load``); the module is moved there.
 
@@ -118,9 +554,7 @@ def load_dapm_module(path: str | Path, map_location: Any = "cpu") -> DAPMModule:
         Its backbone is built without ImageNet weights (``pretrained`` and ``weights_path`` are not used:
         every weight comes from the checkpoint), so loading needs no internet.
     """
-    if not Path(path).is_file():
-        raise FileNotFoundError(f"{path}: no such checkpoint file")
-    checkpoint = SafeCheckpointIO().load_checkpoint(path, map_location=map_location)
+    checkpoint = read_checkpoint(path, map_location=map_location)
     check_dapm_checkpoint(checkpoint, path)
     accepted = inspect.signature(DAPMModule.__init__).parameters
     settings = {k: v for k, v in checkpoint["hyper_parameters"].items() if k in accepted and k != "self"}
@@ -155,6 +589,11 @@ class LastCheckpoint(ModelCheckpoint):
                          every_n_train_steps=every_n_train_steps, every_n_epochs=every_n_epochs,
                          enable_version_counter=False)
 
+    def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
+        """Lightning's setup, and a safe, atomic checkpoint I/O on the trainer (:func:`enforce_safe_checkpoint_io`)."""
+        enforce_safe_checkpoint_io(trainer)
+        super().setup(trainer, pl_module, stage)
+
     def on_train_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         super().on_train_end(trainer, pl_module)
         if trainer.sanity_checking or getattr(trainer, "fast_dev_run", False) or trainer.global_step == 0:
@@ -174,33 +613,145 @@ def best_or_last_checkpoint(trainer: L.Trainer) -> str:
     return next((path for path in best + last if path and Path(path).is_file()), "")
 
 
+def _last_files(roots: Iterable[str | Path]) -> list[Path]:
+    found = {path for root in roots if local_path(root).is_dir() for path in local_path(root).rglob("last*.ckpt")
+             if re.fullmatch(r"last(-v?\d+)?\.ckpt", path.name) and path.is_file()}
+    return sorted(found, key=lambda path: path.stat().st_mtime_ns, reverse=True)
+
+
 def find_last_checkpoint(roots: Iterable[str | Path]) -> Path | None:
     """The newest ``last.ckpt`` (or ``last-N.ckpt``) anywhere under ``roots``, or None.
 
-    What ``--ckpt_path last`` resumes from: a resumed run logs into a new version folder
-    (``tensorboard/version_1``), where Lightning's own lookup would find nothing and start from scratch.
+    Not loaded (:func:`resolve_last_checkpoint` skips damaged files). What ``--ckpt_path last`` resumes from: a
+    resumed run logs into a new version folder (``tensorboard/version_1``), where Lightning's own lookup would find
+    nothing and start from scratch.
     """
-    found = [path for root in roots if Path(root).is_dir() for path in Path(root).rglob("last*.ckpt")
-             if re.fullmatch(r"last(-v?\d+)?\.ckpt", path.name)]
-    return max(found, key=lambda path: path.stat().st_mtime_ns) if found else None
+    found = _last_files(roots)
+    return found[0] if found else None
+
+
+def resolve_last_checkpoint(roots: Iterable[str | Path], folders: Iterable[str | Path] = ()
+                            ) -> tuple[Path, dict[str, Any]] | None:
+    """The checkpoint to resume from, loaded: what ``--ckpt_path last`` takes.
+
+    The newest ``last.ckpt`` under ``roots`` (any log version). If it cannot be loaded (truncated, corrupt) it is
+    skipped with a warning naming it, and the newest complete checkpoint is taken instead: another ``last.ckpt``,
+    or another checkpoint (``best-*.ckpt``...) in a folder holding one or in ``folders``, whichever was written
+    last. A file holding pickled code stops the search (:class:`UnsafeCheckpointError`).
+
+    Args:
+        roots: the run's folders (``default_root_dir``, the loggers' ``save_dir``...), searched recursively.
+        folders: checkpoint folders (the callbacks' ``dirpath``), searched for other checkpoints.
+
+    Returns:
+        ``(path, checkpoint)``, or None when there is no ``last.ckpt`` or no complete checkpoint.
+    """
+    lasts = _last_files(roots)
+    if not lasts:
+        return None  # no last.ckpt at all: a first run starts from scratch
+    places = dict.fromkeys([*(path.parent for path in lasts), *(local_path(f) for f in folders)])
+    others = {path for folder in places if folder.is_dir() for path in folder.glob("*.ckpt") if path.is_file()}
+    rest = sorted(others.union(lasts[1:]) - set(lasts[:1]), key=lambda path: path.stat().st_mtime_ns, reverse=True)
+    candidates = lasts[:1] + rest
+    for path in candidates:
+        try:
+            return path, read_checkpoint(path)
+        except CheckpointReadError as error:
+            reason = str(error).split(": not a readable checkpoint ", 1)[-1]
+            rank_zero_warn(f"--ckpt_path last: skipping {path}: it cannot be loaded {reason}; taking the newest "
+                           "complete checkpoint instead")
+    if candidates:
+        rank_zero_warn(f"--ckpt_path last: none of the {len(candidates)} checkpoint(s) found can be loaded; starting "
+                       "from scratch")
+    return None
 
 
 class CheckpointOnSigterm(L.Callback):
-    """On SIGTERM (what SLURM sends before pre-emption), save ``last.ckpt``, then exit with status 143.
+    """On SIGTERM (SLURM pre-emption) or SIGINT (Ctrl-C), save ``last.ckpt`` and exit with status 143 or 130.
 
     Lightning stops at the end of the current batch with a ``SIGTERMException``; during training this
     writes the checkpoint the run resumes from with ``--ckpt_path last`` (validate, test and predict save
     nothing: they have no training state). Lightning's exception exits with status 0, as a finished run
     would; this sets it to :data:`EXIT_SIGTERM` (128 + 15 = 143, the shell's status for a process ended by
     SIGTERM), so that a job script can tell pre-emption from completion and requeue.
+
+    SIGINT during training is handled the same way (Lightning alone would stop in the middle of a step and exit
+    1 without saving): the run stops at the end of the batch, saves ``last.ckpt`` and exits with
+    :data:`EXIT_SIGINT` (130). A second SIGINT stops at once without saving (the previous ``last.ckpt`` stays
+    complete); SIGINT before training starts (set-up, sanity check) also stops at once. Under DDP the first
+    SIGINT to the main process is passed on to the others, as Lightning does with SIGTERM. DataLoader workers
+    forked from a training process ignore SIGINT: a Ctrl-C in a terminal reaches the whole process group, and
+    a worker that stopped would fail the batches still to come.
     """
 
+    def __init__(self) -> None:
+        super().__init__()
+        self._stopped_by: int | None = None
+        self._previous_handler: Any = None
+        self._pid: int | None = None
+        self._trainer: L.Trainer | None = None
+        self._training = False
+
+    def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
+        """A safe checkpoint I/O on the trainer."""
+        enforce_safe_checkpoint_io(trainer)
+        self._stopped_by, self._training = None, False
+
+    def on_sanity_check_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        """The SIGINT handler, before the validation loaders' workers start (they inherit it, and ignore SIGINT)."""
+        self._handle_sigint(trainer)
+
+    def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        """From here a SIGINT stops at the end of a batch, with ``last.ckpt`` saved."""
+        self._handle_sigint(trainer)
+        self._training = True
+
+    def on_train_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        """After the training loop, a SIGINT stops at once."""
+        self._training = False
+
+    def _handle_sigint(self, trainer: L.Trainer) -> None:
+        # installed after Lightning recorded the process's signal handlers, which it puts back when fit ends
+        if self._pid != os.getpid() and threading.current_thread() is threading.main_thread():
+            self._pid, self._trainer = os.getpid(), trainer
+            self._previous_handler = signal.signal(signal.SIGINT, self._on_sigint)
+
+    def _on_sigint(self, signum: int, frame: FrameType | None) -> None:
+        if os.getpid() != self._pid:
+            return  # a DataLoader worker forked from the training process: the training process decides
+        trainer = self._trainer
+        if trainer is None or not self._training or (self._stopped_by == signal.SIGINT and trainer.is_global_zero):
+            self._restore_sigint()
+            raise KeyboardInterrupt  # before training, or a second Ctrl-C: stop at once (exit status 130)
+        if self._stopped_by is None:
+            self._stopped_by = signal.SIGINT
+            if trainer.is_global_zero:  # os.write: safe inside a signal handler (print may not be)
+                os.write(2, b"\nReceived SIGINT (Ctrl-C): saving last.ckpt at the end of this batch, then exiting "
+                            b"(Ctrl-C again stops at once, without saving)\n")
+            launcher = trainer.strategy.launcher
+            if launcher is not None:
+                launcher.kill(signal.SIGINT)  # DDP processes started by this one, as Lightning does for SIGTERM
+        trainer._signal_connector.received_sigterm = True  # Lightning's graceful stop at the end of the batch
+
+    def _restore_sigint(self) -> None:
+        if self._pid == os.getpid() and signal.getsignal(signal.SIGINT) == self._on_sigint:
+            signal.signal(signal.SIGINT, self._previous_handler)
+        self._pid = None
+
     def on_exception(self, trainer: L.Trainer, pl_module: L.LightningModule, exception: BaseException) -> None:
+        """Save ``last.ckpt`` (training only) and set the exit status, for a stop by SIGTERM or SIGINT."""
+        self._restore_sigint()
         if not isinstance(exception, SIGTERMException):
             return
         if trainer.state.fn == TrainerFn.FITTING:
             self._save_last(trainer)
-        exception.code = EXIT_SIGTERM  # the process exits with it once every callback's on_exception ran
+        # the process exits with it once every callback's on_exception ran
+        exception.code = EXIT_SIGINT if self._stopped_by == signal.SIGINT else EXIT_SIGTERM
+
+    def teardown(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
+        """Give SIGINT back to the handler it had before ``fit``."""
+        self._restore_sigint()
+        self._trainer = None
 
     @staticmethod
     def _save_last(trainer: L.Trainer) -> None:

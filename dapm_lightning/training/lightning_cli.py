@@ -15,19 +15,31 @@ import lightning as L
 import torch
 from lightning.pytorch.callbacks import DeviceStatsMonitor, LearningRateMonitor
 from lightning.pytorch.cli import LightningArgumentParser, LightningCLI, SaveConfigCallback
-from lightning.pytorch.utilities import rank_zero_info
+from lightning.pytorch.utilities import rank_zero_info, rank_zero_only
 
 from dapm_lightning.data.datamodules import DAPMDataModule
 from dapm_lightning.models.config import DAPMConfig
 from dapm_lightning.training.checkpointing import (
-    SafeCheckpointIO,
+    CheckpointReadError,
+    UnsafeCheckpointError,
     check_dapm_checkpoint,
+    enforce_safe_checkpoint_io,
+    fetch_checkpoint,
     find_last_checkpoint,
+    is_remote,
+    local_path,
+    read_checkpoint,
+    remove_unfinished_saves,
+    resolve_last_checkpoint,
 )
 from dapm_lightning.training.module import DAPMModule
 
 TRAINER_DEFAULTS = {"plugins": [{"class_path": "dapm_lightning.training.checkpointing.SafeCheckpointIO"}]}
-"""Checkpoints load with ``weights_only=True`` and a clear error for damaged files."""
+"""Checkpoints load with ``weights_only=True`` and save atomically. A ``--trainer.plugins`` value replaces this list:
+:meth:`DAPMCLI.instantiate_trainer` then puts the safe I/O back (``enforce_safe_checkpoint_io``)."""
+
+FETCHED = "fetched"
+"""Where under ``trainer.default_root_dir`` a remote ``--ckpt_path`` (``http(s)://``, fsspec) is downloaded."""
 
 SUBCOMMANDS = ("fit", "validate", "test", "predict")
 EVALUATION_SUBCOMMANDS = ("validate", "test", "predict")
@@ -204,19 +216,72 @@ class DAPMCLI(LightningCLI):
         super().parse_arguments(parser, args)
 
     def _parse_ckpt_path(self) -> None:
+        """Find, fetch and check ``--ckpt_path`` before anything is built, and take the checkpoint's settings.
+
+        ``last``: the newest complete checkpoint of the run (:meth:`_resolve_last`). An address (``http(s)://``,
+        another fsspec path): downloaded into ``DEFAULT_ROOT_DIR/fetched/`` (every time, named after the whole
+        address) and read from there like a local file; a ``file://`` path is the local file. The file is read
+        once, safely (``weights_only``: a file holding pickled code is refused without running it, a damaged
+        one is named), checked to be a dapm-lightning checkpoint, and for ``fit`` of the same architecture; its
+        ``hyper_parameters`` then override the configuration's model, as LightningCLI does. ``fit`` also removes
+        the temporary files of saves that were killed in the run's folders.
+        """
         subcommand = self.config.get("subcommand")
-        ckpt_path = self.config[subcommand].get("ckpt_path") if subcommand else None
+        if not subcommand:
+            return
+        config = self.config[subcommand]
+        if subcommand == "fit" and getattr(rank_zero_only, "rank", 0) == 0:
+            remove_unfinished_saves(self._run_folders(config, current_directory=False)[0])
+        ckpt_path = config.get("ckpt_path")
+        checkpoint: Any = None
+        fetched_from: str | None = None
         if ckpt_path == "last":
-            ckpt_path = self._resolve_last(self.config[subcommand])
-        if ckpt_path and Path(ckpt_path).is_file():
-            checkpoint = SafeCheckpointIO().load_checkpoint(ckpt_path, map_location="cpu")  # names a damaged file
-            check_dapm_checkpoint(checkpoint, ckpt_path)  # another model's, a bare state dict: what it is, the fix
-            saved = checkpoint.get("hyper_parameters", {}).get("net")
-            net = self.config[subcommand].get("model", {}).get("net")
-            if subcommand == "fit" and saved is not None and net is not None:
-                current = DAPMConfig.from_dict(net.as_dict() if hasattr(net, "as_dict") else dict(net))
-                current.check_loads(saved, str(ckpt_path))
-        super()._parse_ckpt_path()
+            found = self._resolve_last(config)
+            if found is None:
+                return
+            ckpt_path, checkpoint = found
+        elif ckpt_path and is_remote(ckpt_path):
+            trainer = config.get("trainer") or {}
+            fetched_from = str(ckpt_path)
+            ckpt_path = str(fetch_checkpoint(fetched_from, Path(trainer.get("default_root_dir") or ".") / FETCHED))
+        elif ckpt_path and str(ckpt_path).startswith("file://"):
+            ckpt_path = str(local_path(ckpt_path))
+        if not ckpt_path or not Path(ckpt_path).is_file():
+            return  # Lightning's own values (best, hpc...) and its error for a missing file
+        config["ckpt_path"] = str(ckpt_path)
+        if checkpoint is None:
+            try:
+                checkpoint = read_checkpoint(ckpt_path)  # refused pickles and damaged files: named, with the fix
+            except (UnsafeCheckpointError, CheckpointReadError) as error:
+                if fetched_from is None:
+                    raise
+                Path(ckpt_path).unlink(missing_ok=True)  # a refused download is not kept
+                where = f"{fetched_from} (fetched into {ckpt_path}, now removed)"
+                raise type(error)(str(error).replace(str(ckpt_path), where, 1)) from error
+        check_dapm_checkpoint(checkpoint, ckpt_path)  # another model's, a bare state dict: what it is, the fix
+        saved = checkpoint.get("hyper_parameters", {}).get("net")
+        net = config.get("model", {}).get("net")
+        if subcommand == "fit" and saved is not None and net is not None:
+            current = DAPMConfig.from_dict(net.as_dict() if hasattr(net, "as_dict") else dict(net))
+            current.check_loads(saved, str(ckpt_path))
+        self._apply_checkpoint_settings(checkpoint, subcommand)
+
+    def _apply_checkpoint_settings(self, checkpoint: dict[str, Any], subcommand: str) -> None:
+        """The checkpoint's ``hyper_parameters`` over the configuration's model.
+
+        LightningCLI's ``_parse_ckpt_path``, from the checkpoint already read instead of a second ``torch.load``.
+        """
+        hparams = dict(checkpoint.get("hyper_parameters") or {})
+        hparams.pop("_instantiator", None)
+        if not hparams:
+            return
+        if "_class_path" in hparams:
+            hparams = {"class_path": hparams.pop("_class_path"), "dict_kwargs": hparams}
+        try:
+            self.config = self.parser.parse_object({subcommand: {"model": hparams}}, self.config)
+        except SystemExit:
+            sys.stderr.write("Parsing of ckpt_path hyperparameters failed!\n")
+            raise
 
     def before_instantiate_classes(self) -> None:
         subcommand = self.config.get("subcommand")
@@ -246,7 +311,15 @@ class DAPMCLI(LightningCLI):
                        f"for {asked})")
 
     def instantiate_trainer(self, **kwargs: Any) -> L.Trainer:
+        """LightningCLI's trainer, with a safe checkpoint I/O whatever ``trainer.plugins`` holds.
+
+        A ``--trainer.plugins`` value (a cluster environment, a precision plugin) replaces the default list, and
+        with it :class:`~dapm_lightning.training.checkpointing.SafeCheckpointIO`: it is put back here (or a
+        plugin that reads checkpoints its own way is refused, naming it). Without a logger, the callbacks that
+        need one are left out.
+        """
         trainer = super().instantiate_trainer(**kwargs)
+        enforce_safe_checkpoint_io(trainer)
         if not trainer.loggers:
             callbacks: list[L.Callback] = getattr(trainer, "callbacks", [])  # set by Lightning's connector
             dropped = [callback for callback in callbacks if needs_logger(callback)]
@@ -257,26 +330,45 @@ class DAPMCLI(LightningCLI):
         return trainer
 
     @staticmethod
-    def _resolve_last(config: Any) -> str:
-        """``--ckpt_path last``: the newest ``last.ckpt`` under the run's folders, across its log versions.
+    def _run_folders(config: Any, current_directory: bool = True) -> tuple[list[str], list[str]]:
+        """``(roots, checkpoint folders)`` of a run.
 
-        The folders: ``trainer.default_root_dir``, every logger's ``save_dir`` and every callback's
-        ``dirpath``. With none there, ``"last"`` stays as it is: Lightning warns and starts from scratch
-        (the first submission of a job that is always launched with ``--ckpt_path last``).
+        Roots: ``trainer.default_root_dir`` (the current directory when unset, unless ``current_directory`` is
+        False), every logger's ``save_dir`` and every callback's ``dirpath``; checkpoint folders: the callbacks'
+        ``dirpath``.
         """
         trainer = config.get("trainer") or {}
-        roots = [trainer.get("default_root_dir") or "."]
+        root = trainer.get("default_root_dir") or ("." if current_directory else None)
+        roots = [str(root)] if root else []
+        folders: list[str] = []
         for entry in _as_list(trainer.get("logger")) + _as_list(trainer.get("callbacks")):
             init_args = entry.get("init_args") if hasattr(entry, "get") else None
-            for key in ("save_dir", "dirpath"):
-                if init_args is not None and init_args.get(key):
-                    roots.append(init_args.get(key))
-        found = find_last_checkpoint(roots)
+            if init_args is not None and init_args.get("save_dir"):
+                roots.append(str(init_args.get("save_dir")))
+            if init_args is not None and init_args.get("dirpath"):
+                folders.append(str(init_args.get("dirpath")))
+        return roots + folders, folders
+
+    @classmethod
+    def _resolve_last(cls, config: Any) -> tuple[str, dict[str, Any]] | None:
+        """``--ckpt_path last``: the newest complete checkpoint under the run's folders, across its log versions.
+
+        The folders: ``trainer.default_root_dir``, every logger's ``save_dir`` and every callback's ``dirpath``
+        (:func:`~dapm_lightning.training.checkpointing.resolve_last_checkpoint`: a damaged ``last.ckpt`` is
+        skipped with a warning). With none there, ``"last"`` stays as it is: Lightning warns and starts from
+        scratch (the first submission of a job that is always launched with ``--ckpt_path last``); with only damaged
+        ones, the run starts from scratch too.
+        """
+        roots, folders = cls._run_folders(config)
+        found = resolve_last_checkpoint(roots, folders)
         if found is None:
-            return "last"
-        rank_zero_info(f"--ckpt_path last: resuming from {found}")
-        config["ckpt_path"] = str(found)
-        return str(found)
+            if find_last_checkpoint(roots) is not None:  # every checkpoint damaged (warned): from scratch, without
+                config["ckpt_path"] = None  # Lightning's own lookup of "last" reading a damaged file
+            return None
+        path, checkpoint = found
+        rank_zero_info(f"--ckpt_path last: resuming from {path}")
+        config["ckpt_path"] = str(path)
+        return str(path), checkpoint
 
 
 def _as_list(value: Any) -> list[Any]:

@@ -8,7 +8,8 @@ import pytest
 
 from dapm_lightning.cli import main
 from dapm_lightning.data.errors import DatasetError
-from dapm_lightning.tools.errors import debug_requested, describe
+from dapm_lightning.tools.errors import debug_requested, describe, run_reporting_errors
+from dapm_lightning.training.checkpointing import CheckpointSaveError, UnsafeCheckpointError
 from tests.conftest import CONFIGS, QUICKSTART, run_main
 
 
@@ -61,6 +62,32 @@ def test_messages_of_wrapped_and_unexpected_errors():
     assert "/d/x.png: bad" in message and expected
     message, expected = describe(TypeError("unsupported operand"))
     assert not expected and "possibly a bug" in message and "--debug" in message
+
+
+def test_refused_checkpoints_and_failed_saves_keep_their_own_fix():
+    refused = UnsafeCheckpointError("/x/evil.ckpt: refused: the file holds pickled Python objects (builtins.exec) ...\n"
+                                    "Fix: use a checkpoint written by `dapm-lightning fit`")
+    message, expected = describe(refused)
+    assert message == str(refused) and expected and "copy the checkpoint again" not in message
+    full = CheckpointSaveError("/x/last.ckpt: could not save the checkpoint: no space left in /x\nFix: free space")
+    assert describe(full) == (str(full), True)
+
+
+def test_ctrl_c_exits_130_also_after_lightnings_own_shutdown(capsys):
+    def lightning_style():  # what Lightning does on KeyboardInterrupt: a graceful shutdown, then sys.exit(1)
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt:
+            sys.exit(1)
+
+    for function in (lightning_style, lambda: (_ for _ in ()).throw(KeyboardInterrupt)):
+        with pytest.raises(SystemExit) as info:
+            run_reporting_errors(function, debug=False)
+        assert info.value.code == 130 and "interrupted" in capsys.readouterr().err
+    for code in (0, 1, 143):  # other exits keep their status
+        with pytest.raises(SystemExit) as info:
+            run_reporting_errors(lambda: sys.exit(code), debug=False)  # noqa: B023
+        assert info.value.code == code
 
 
 def test_unknown_subcommand(capsys):

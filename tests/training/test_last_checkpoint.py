@@ -1,6 +1,8 @@
-"""last.ckpt is always the latest training state, and `--ckpt_path last` finds it in an earlier log version."""
+"""last.ckpt is always the latest training state (saved on SIGTERM and Ctrl-C too), and `--ckpt_path last` finds it
+in an earlier log version."""
 
 import os
+import signal
 import time
 from pathlib import Path
 
@@ -9,7 +11,13 @@ import pytest
 import torch
 import yaml
 
-from dapm_lightning.training.checkpointing import CheckpointOnSigterm, LastCheckpoint, find_last_checkpoint
+from dapm_lightning.tools.errors import run_reporting_errors
+from dapm_lightning.training.checkpointing import (
+    EXIT_SIGINT,
+    CheckpointOnSigterm,
+    LastCheckpoint,
+    find_last_checkpoint,
+)
 from dapm_lightning.training.lightning_cli import run_lightning_cli
 from tests.conftest import QUICKSTART
 
@@ -55,6 +63,51 @@ def test_sigterm_saves_last_in_training_only_and_exits_143(tmp_path):
     with pytest.raises(SystemExit) as info:
         trainer.validate(TermedAt(), loader)
     assert info.value.code == 143 and not (tmp_path / "val").exists()  # no training state to save
+
+
+class InterruptedAt(Linear):
+    """Presses Ctrl-C (SIGINT to its own process) ``times`` times at a training step, or when fit starts."""
+
+    def __init__(self, train_step=None, times=1):
+        super().__init__()
+        self.train_step, self.times = train_step, times
+
+    def ctrl_c(self):
+        for _ in range(self.times):
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.05)  # Python runs the handler between two bytecodes of the main thread
+
+    def on_fit_start(self):
+        if self.train_step is None:
+            self.ctrl_c()
+
+    def training_step(self, batch, batch_idx):
+        if self.global_step == self.train_step:
+            self.ctrl_c()
+        return super().training_step(batch, batch_idx)
+
+
+def test_ctrl_c_saves_last_like_sigterm_and_exits_130(tmp_path):
+    loader = torch.utils.data.DataLoader(torch.utils.data.TensorDataset(torch.randn(12, 2)), batch_size=2)
+    kwargs = dict(logger=False, enable_progress_bar=False, enable_model_summary=False, default_root_dir=tmp_path)
+    before = signal.getsignal(signal.SIGINT)
+    try:
+        trainer = L.Trainer(max_steps=5, callbacks=[CheckpointOnSigterm(), LastCheckpoint(dirpath=tmp_path / "once")],
+                            **kwargs)
+        with pytest.raises(SystemExit) as info:
+            trainer.fit(InterruptedAt(train_step=2), loader)
+        assert info.value.code == EXIT_SIGINT == 130  # Lightning alone: 1, and no last.ckpt
+        assert torch.load(tmp_path / "once" / "last.ckpt", weights_only=True)["global_step"] == 3  # the batch ended
+        assert signal.getsignal(signal.SIGINT) is before  # handed back after fit
+
+        for name, model in (("twice", InterruptedAt(train_step=2, times=2)), ("setup", InterruptedAt())):
+            trainer = L.Trainer(max_steps=5, callbacks=[CheckpointOnSigterm(), LastCheckpoint(
+                dirpath=tmp_path / name, every_n_train_steps=100)], **kwargs)
+            with pytest.raises(SystemExit) as info:  # at once, without saving; 130 from the command line too
+                run_reporting_errors(lambda: trainer.fit(model, loader), debug=False)  # noqa: B023
+            assert info.value.code == 130 and not (tmp_path / name).exists(), name
+    finally:
+        signal.signal(signal.SIGINT, before)  # Lightning ignores SIGINT after a KeyboardInterrupt
 
 
 def test_the_final_step_is_saved_between_two_periodic_saves(tmp_path):

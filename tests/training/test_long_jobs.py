@@ -1,4 +1,4 @@
-"""Long jobs: resume after SIGKILL / SIGTERM, checkpoints, non-finite losses, bad data at scale, determinism."""
+"""Long jobs: resume after SIGKILL / SIGTERM / SIGINT, checkpoints, non-finite losses, bad data, determinism."""
 
 import json
 import os
@@ -16,7 +16,7 @@ import yaml
 
 from dapm_lightning.data import DatasetError, UAPDDataset
 from dapm_lightning.data.synthetic import generate_uapd
-from dapm_lightning.training.checkpointing import EXIT_SIGTERM, SafeCheckpointIO
+from dapm_lightning.training.checkpointing import EXIT_SIGINT, EXIT_SIGTERM, SafeCheckpointIO
 from dapm_lightning.training.lightning_cli import run_lightning_cli
 
 HERE = Path(__file__).resolve().parent
@@ -94,7 +94,14 @@ def test_killed_and_terminated_runs_resume_to_the_uninterrupted_weights(data8, t
     saved = torch.load(tmp_path / "termed" / "last.ckpt", weights_only=True)
     assert saved["global_step"] == 5
 
-    for name in ("killed", "termed"):
+    interrupted = start(tmp_path, "ctrl_c", data8, pause=6)  # Ctrl-C: saved like SIGTERM, status 130
+    wait_for(tmp_path / "ctrl_c.marker", interrupted)
+    interrupted.send_signal(signal.SIGINT)
+    code, out = finish(interrupted)
+    assert code == EXIT_SIGINT == 130 and "Received SIGINT (Ctrl-C)" in out, out[-2000:]
+    assert torch.load(tmp_path / "ctrl_c" / "last.ckpt", weights_only=True)["global_step"] == 6
+
+    for name in ("killed", "termed", "ctrl_c"):
         code, out = finish(start(tmp_path, name, data8, extra=["--ckpt_path", str(tmp_path / name / "last.ckpt")]))
         assert code == 0, out[-3000:]
         resumed = weights(tmp_path / f"{name}.pt")
@@ -194,7 +201,7 @@ def data16(tmp_path_factory):
 @pytest.mark.slow
 def test_two_process_ddp_resumes_mid_epoch_exactly(data16, tmp_path):
     """2 processes, persistent workers, 4 steps per epoch: stopped by max_steps (step 6) and by SIGTERM (step 3),
-    each resumed from last.ckpt to step 10, equal the uninterrupted run bit for bit."""
+    each resumed from last.ckpt to step 10, equal the uninterrupted run bit for bit; Ctrl-C (step 3) saves too."""
     code, out = finish(start(tmp_path, "straight", data16, extra=DDP), timeout=400)
     assert code == 0, out[-3000:]
     reference = weights(tmp_path / "straight.pt")
@@ -220,6 +227,13 @@ def test_two_process_ddp_resumes_mid_epoch_exactly(data16, tmp_path):
     assert code == EXIT_SIGTERM, out[-3000:]
     position = next(v for k, v in saved.items() if k.endswith("DataModule"))
     assert position == {"epoch": 0, "samples_seen": 3 * 2 * 2}  # global: 3 batches of 2 on each of 2 processes
+
+    interrupted = start(tmp_path, "ctrl_c", data16, extra=DDP, pause=3)  # Ctrl-C to the main process: passed on
+    wait_for(tmp_path / "ctrl_c.marker", interrupted)
+    interrupted.send_signal(signal.SIGINT)
+    code, out = finish(interrupted, timeout=400)
+    assert code == EXIT_SIGINT, out[-3000:]
+    assert torch.load(tmp_path / "ctrl_c" / "last.ckpt", weights_only=True)["global_step"] == 3, out[-3000:]
 
     for name in ("stopped", "termed"):
         code, out = finish(start(tmp_path, name, data16,
