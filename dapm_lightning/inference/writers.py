@@ -16,7 +16,6 @@ any work and made with the first file; one inside the source is refused (:func:`
 
 from __future__ import annotations
 
-import csv
 import fnmatch
 import json
 import re
@@ -36,7 +35,6 @@ from lightning.pytorch.utilities import rank_zero_info
 from dapm_lightning.data.files import (
     WriteError,
     check_folder_writable,
-    exclusive_lock,
     make_folder,
     open_atomic,
     remove_empty_folders,
@@ -44,10 +42,11 @@ from dapm_lightning.data.files import (
     write_text,
 )
 from dapm_lightning.data.pictures import colorize_depth
-from dapm_lightning.geometry.camera import horizon_segment
-from dapm_lightning.geometry.constants import POSE_FIELDS, POSE_KEYS, pose_field
+from dapm_lightning.geometry.constants import POSE_KEYS
 from dapm_lightning.geometry.igd import IGDSpec
+from dapm_lightning.inference.contact_sheet import CONTACT_MAX_IMAGES, contact_row, contact_sheet
 from dapm_lightning.inference.inputs import PredictSource
+from dapm_lightning.inference.poses_table import pose_row, write_poses
 from dapm_lightning.inference.postprocess import Prediction, batch_predictions
 from dapm_lightning.inference.runtime import apply_inference_options
 from dapm_lightning.models.dapm import DAPMOutput
@@ -59,16 +58,6 @@ DEFAULT_OUTPUTS: tuple[str, ...] = tuple(k for k in OUTPUT_KINDS if k != "npz")
 """What is written when nothing is chosen: every kind but the compact ``npz``."""
 DEPTH16_SCALE = 64.0
 """``depth16.png`` stores ``round(depth_m * 64)``: 1/64 m steps, 1000 m = 64000."""
-POSE_COLUMNS = ["name", *POSE_FIELDS]
-CONTACT_TILE = 160
-"""Height in pixels of one contact-sheet row."""
-CONTACT_MAX_ASPECT = 4
-"""A contact-sheet picture tile is at most this many times as wide as high, and at least a quarter of its
-height wide: images of other aspects are letter-boxed, so a 10 x 30000 image's tile is 640 x 160, not 480000 x 160."""
-CONTACT_MAX_IMAGES = 64
-"""The most images a contact sheet shows (a sheet stays under about 25 Mpx, ~70 MB in memory)."""
-
-
 def check_outputs(outputs: Iterable[str] | None) -> list[str]:
     """The chosen output kinds (default :data:`DEFAULT_OUTPUTS`); unknown ones are refused with the valid list."""
     chosen = list(DEFAULT_OUTPUTS if outputs is None else outputs)
@@ -145,144 +134,6 @@ def _json_rows(value: Any) -> str:
     """JSON with each innermost list (a matrix row) on one line."""
     text = json.dumps(value, indent=2)
     return re.sub(r"\[\s+([^\[\]{}]+?)\s+\]", lambda m: "[" + " ".join(m.group(1).split()) + "]", text) + "\n"
-
-
-def pose_row(prediction: Prediction) -> dict[str, Any]:
-    """One poses-table row: the pose used; with a prior also each component's source and the network's value."""
-    assert prediction.pose is not None
-    row: dict[str, Any] = {"name": prediction.name,
-                           **{pose_field(k): round(v, 4) for k, v in prediction.pose.items()}}
-    if prediction.pose_source:
-        network = prediction.pose_network or prediction.pose
-        provenance = prediction.pose_provenance or {}
-        for key in POSE_KEYS:
-            row[f"{pose_field(key)}_source"] = prediction.pose_source.get(key, "network")
-            row[f"{pose_field(key)}_provenance"] = provenance.get(key, "")
-            row[f"{pose_field(key)}_network"] = round(network[key], 4)
-    return row
-
-
-def table_columns(rows: Iterable[dict[str, Any]]) -> list[str]:
-    """The poses table's columns in their order.
-
-    Name, the pose (height, pitch, roll, FoV), then per component the sources, the provenance and the network's
-    values, then any other column.
-    """
-    present = {key for row in rows for key in row}
-    ordered = [*POSE_COLUMNS, *(f"{field}_{kind}" for kind in ("source", "provenance", "network")
-                                for field in POSE_FIELDS)]
-    return [c for c in ordered if c in present or c in POSE_COLUMNS] + sorted(present - set(ordered))
-
-
-def write_poses(out: Path, rows: list[dict[str, Any]], suffix: str = "") -> Path:
-    """``poses{suffix}.csv`` and ``.json``, merged with the folder's earlier ones.
-
-    A row of the same name is replaced, the others are kept (a second run into one folder adds to its table).
-    The read, merge and rewrite hold a lock (:func:`~dapm_lightning.data.files.exclusive_lock`), so runs into
-    one folder at once keep every row; both tables are written whole from the same merged rows, so a reader
-    never sees half a table and a failed write leaves the earlier tables as they were.
-
-    Raises:
-        WriteError: a table could not be written.
-    """
-    path = out / f"poses{suffix}.csv"
-    with exclusive_lock(path):
-        merged: dict[str, dict[str, Any]] = {}
-        if path.is_file():
-            with path.open(newline="", encoding="utf-8") as handle:
-                merged = {row["name"]: {k: v for k, v in row.items() if k is not None}  # no cells past the header
-                          for row in csv.DictReader(handle) if row.get("name")}
-        merged.update({row["name"]: row for row in rows})
-        columns = table_columns(merged.values())
-        for row in merged.values():  # rows of images without telemetry: their pose is the network's
-            for column in columns[len(POSE_COLUMNS):]:
-                if row.get(column) in (None, "") and column.endswith(("_source", "_network")):
-                    row[column] = "network" if column.endswith("_source") else row.get(column[:-len("_network")], "")
-        with open_atomic(path, "w") as handle:
-            writer = csv.DictWriter(handle, fieldnames=columns, restval="")
-            writer.writeheader()
-            writer.writerows(merged.values())
-        values = [{k: _number(v) for k, v in row.items()} for row in merged.values()]
-        write_text(out / f"poses{suffix}.json", json.dumps(values, indent=2) + "\n")
-    return path
-
-
-def _number(value: Any) -> Any:
-    """A CSV cell back to a number where it is one (rows merged from an earlier run's file are text)."""
-    if isinstance(value, str):
-        try:
-            return float(value)
-        except ValueError:
-            return value
-    return value
-
-
-def contact_tile(height: int, width: int, tile: int = CONTACT_TILE) -> tuple[int, int, int, int, int, int]:
-    """Where an ``height x width`` picture goes in its contact-sheet tile.
-
-    The tile is ``tile`` pixels high and the picture's own aspect wide, bounded to between a quarter and
-    :data:`CONTACT_MAX_ASPECT` times its height; a picture of another aspect is shrunk to fit and centred.
-    Returns ``(tile_w, tile_h, w, h, left, top)``: the tile's size, the picture's size and offset in it.
-    """
-    natural = max(1, round(width * tile / height))
-    tile_w = min(max(natural, max(1, tile // CONTACT_MAX_ASPECT)), CONTACT_MAX_ASPECT * tile)
-    if tile_w == natural:
-        return tile_w, tile, tile_w, tile, 0, 0
-    scale = min(tile_w / width, tile / height)
-    w, h = max(1, min(tile_w, round(width * scale))), max(1, min(tile, round(height * scale)))
-    return tile_w, tile, w, h, (tile_w - w) // 2, (tile - h) // 2
-
-
-def contact_row(prediction: Prediction, tile: int = CONTACT_TILE) -> np.ndarray:
-    """``image | depth | sky | pose`` for one prediction (its ``rgb``, grey without), ``tile`` pixels high.
-
-    The horizon of the pose used is drawn on the image, the pose written on the last tile. Each picture tile is
-    at most :data:`CONTACT_MAX_ASPECT` times ``tile`` wide, whatever the image's aspect (:func:`contact_tile`).
-    """
-    height, width = prediction.size
-    tile_w, tile_h, w, h, left, top = contact_tile(height, width, tile)
-    grey = np.full((tile_h, tile_w, 3), 40, np.uint8)
-
-    def fit(picture: np.ndarray) -> np.ndarray:
-        resized = cv2.resize(picture, (w, h), interpolation=cv2.INTER_AREA)
-        if (w, h) == (tile_w, tile_h):
-            return resized
-        boxed = grey.copy()
-        boxed[top:top + h, left:left + w] = resized
-        return boxed
-
-    image = fit(prediction.rgb) if prediction.rgb is not None else grey.copy()
-    if prediction.pose is not None:
-        segment = horizon_segment(prediction.pose["pitch"], prediction.pose["roll"], prediction.pose["fov"],
-                                  (height, width))
-        if segment is not None:
-            (x0, y0), (x1, y1) = segment
-            sx, sy = w / width, h / height
-            if (w, h) == (tile_w, tile_h):  # the picture fills its tile: one scale, as the tile was sized
-                sx = sy = tile / height
-            cv2.line(image, (left + round(x0 * sx), top + round(y0 * sy)),
-                     (left + round(x1 * sx), top + round(y1 * sy)), (255, 220, 0), 2, cv2.LINE_AA)
-    depth = (fit(colorize_depth(torch.from_numpy(prediction.depth_m), prediction.max_depth))
-             if prediction.depth_m is not None else grey)
-    sky = (fit(np.repeat((np.clip(prediction.sky_prob, 0, 1) * 255).astype(np.uint8)[..., None], 3, axis=2))
-           if prediction.sky_prob is not None else grey)
-    text = np.full((tile_h, 2 * tile, 3), 255, np.uint8)
-    lines = [prediction.name[:28]]
-    if prediction.pose is not None:
-        sources = prediction.pose_source or {}
-        lines += [f"{k} {v:.1f} {'m' if k == 'height' else 'deg'}"
-                  + (f" ({sources[k]})" if sources.get(k, "network") != "network" else "")
-                  for k, v in prediction.pose.items()]
-    for row, line in enumerate(lines):
-        cv2.putText(text, line, (6, 22 + 24 * row), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
-    return np.concatenate([image, depth, sky, text], axis=1)
-
-
-def contact_sheet(rows: Sequence[np.ndarray]) -> np.ndarray:
-    """Rows of :func:`contact_row` stacked (padded to the widest), RGB."""
-    width = max(r.shape[1] for r in rows)
-    return np.concatenate([np.pad(r, ((0, 4), (0, width - r.shape[1]), (0, 0)), constant_values=255)
-                           for r in rows], axis=0)
 
 
 def _glob_magic(text: str) -> bool:

@@ -19,17 +19,19 @@ from lightning.pytorch.utilities import rank_zero_info, rank_zero_only
 
 from dapm_lightning.data.datamodules import DAPMDataModule
 from dapm_lightning.models.config import DAPMConfig
-from dapm_lightning.training.checkpointing import (
+from dapm_lightning.training.checkpoint_files import (
     CheckpointReadError,
     UnsafeCheckpointError,
-    check_dapm_checkpoint,
-    enforce_safe_checkpoint_io,
     fetch_checkpoint,
-    find_last_checkpoint,
     is_remote,
     local_path,
     read_checkpoint,
     remove_unfinished_saves,
+)
+from dapm_lightning.training.checkpointing import (
+    check_dapm_checkpoint,
+    enforce_safe_checkpoint_io,
+    find_last_checkpoint,
     resolve_last_checkpoint,
 )
 from dapm_lightning.training.module import DAPMModule

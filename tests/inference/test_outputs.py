@@ -24,19 +24,17 @@ from dapm_lightning.data.files import (
     write_image,
 )
 from dapm_lightning.geometry.igd import IGDSpec
-from dapm_lightning.inference.postprocess import make_prediction
-from dapm_lightning.inference.predictor import DAPMPredictor
-from dapm_lightning.inference.writers import (
+from dapm_lightning.inference.contact_sheet import (
     CONTACT_MAX_ASPECT,
     CONTACT_MAX_IMAGES,
     CONTACT_TILE,
-    PredictionFiles,
-    PredictionWriter,
     contact_row,
     contact_sheet,
-    source_holding,
-    write_poses,
 )
+from dapm_lightning.inference.poses_table import write_poses
+from dapm_lightning.inference.postprocess import make_prediction
+from dapm_lightning.inference.predictor import DAPMPredictor
+from dapm_lightning.inference.writers import PredictionFiles, PredictionWriter, source_holding
 from dapm_lightning.models import DAPMConfig
 from dapm_lightning.training.module import DAPMModule
 from tests.conftest import run_main

@@ -9,7 +9,7 @@ import pytest
 from dapm_lightning.cli import main
 from dapm_lightning.data.errors import DatasetError
 from dapm_lightning.tools.errors import debug_requested, describe, run_reporting_errors
-from dapm_lightning.training.checkpointing import CheckpointSaveError, UnsafeCheckpointError
+from dapm_lightning.training.checkpoint_files import CheckpointSaveError, UnsafeCheckpointError
 from tests.conftest import CONFIGS, QUICKSTART, run_main
 
 

@@ -25,21 +25,23 @@ from lightning.fabric.plugins.io.checkpoint_io import CheckpointIO
 from lightning.fabric.plugins.io.torch_io import TorchCheckpointIO
 from lightning.pytorch.plugins.io.async_plugin import AsyncCheckpointIO
 
-from dapm_lightning.training.checkpointing import (
+from dapm_lightning.training.checkpoint_files import (
     CheckpointFetchError,
     CheckpointReadError,
     CheckpointSaveError,
-    LastCheckpoint,
-    SafeCheckpointIO,
-    SafeLoadingCheckpointIO,
     UnsafeCheckpointError,
     UnsafeCheckpointIOError,
     fetch_checkpoint,
     read_checkpoint,
     remove_unfinished_saves,
+    save_atomically,
+)
+from dapm_lightning.training.checkpointing import (
+    LastCheckpoint,
+    SafeCheckpointIO,
+    SafeLoadingCheckpointIO,
     resolve_last_checkpoint,
     safe_checkpoint_io,
-    save_atomically,
 )
 from dapm_lightning.training.lightning_cli import run_lightning_cli
 from tests.conftest import QUICKSTART, run_main

@@ -1,0 +1,91 @@
+"""The poses table (``poses.csv`` / ``poses.json``): one row per image, merged under a lock with earlier runs'."""
+
+from __future__ import annotations
+
+import csv
+import json
+from collections.abc import Iterable
+from pathlib import Path
+from typing import Any
+
+from dapm_lightning.data.files import (
+    exclusive_lock,
+    open_atomic,
+    write_text,
+)
+from dapm_lightning.geometry.constants import POSE_FIELDS, POSE_KEYS, pose_field
+from dapm_lightning.inference.postprocess import Prediction
+
+POSE_COLUMNS = ["name", *POSE_FIELDS]
+
+
+def pose_row(prediction: Prediction) -> dict[str, Any]:
+    """One poses-table row: the pose used; with a prior also each component's source and the network's value."""
+    assert prediction.pose is not None
+    row: dict[str, Any] = {"name": prediction.name,
+                           **{pose_field(k): round(v, 4) for k, v in prediction.pose.items()}}
+    if prediction.pose_source:
+        network = prediction.pose_network or prediction.pose
+        provenance = prediction.pose_provenance or {}
+        for key in POSE_KEYS:
+            row[f"{pose_field(key)}_source"] = prediction.pose_source.get(key, "network")
+            row[f"{pose_field(key)}_provenance"] = provenance.get(key, "")
+            row[f"{pose_field(key)}_network"] = round(network[key], 4)
+    return row
+
+
+def table_columns(rows: Iterable[dict[str, Any]]) -> list[str]:
+    """The poses table's columns in their order.
+
+    Name, the pose (height, pitch, roll, FoV), then per component the sources, the provenance and the network's
+    values, then any other column.
+    """
+    present = {key for row in rows for key in row}
+    ordered = [*POSE_COLUMNS, *(f"{field}_{kind}" for kind in ("source", "provenance", "network")
+                                for field in POSE_FIELDS)]
+    return [c for c in ordered if c in present or c in POSE_COLUMNS] + sorted(present - set(ordered))
+
+
+def write_poses(out: Path, rows: list[dict[str, Any]], suffix: str = "") -> Path:
+    """``poses{suffix}.csv`` and ``.json``, merged with the folder's earlier ones.
+
+    A row of the same name is replaced, the others are kept (a second run into one folder adds to its table).
+    The read, merge and rewrite hold a lock (:func:`~dapm_lightning.data.files.exclusive_lock`), so runs into
+    one folder at once keep every row; both tables are written whole from the same merged rows, so a reader
+    never sees half a table and a failed write leaves the earlier tables as they were.
+
+    Raises:
+        WriteError: a table could not be written.
+    """
+    path = out / f"poses{suffix}.csv"
+    with exclusive_lock(path):
+        merged: dict[str, dict[str, Any]] = {}
+        if path.is_file():
+            with path.open(newline="", encoding="utf-8") as handle:
+                merged = {row["name"]: {k: v for k, v in row.items() if k is not None}  # no cells past the header
+                          for row in csv.DictReader(handle) if row.get("name")}
+        merged.update({row["name"]: row for row in rows})
+        columns = table_columns(merged.values())
+        for row in merged.values():  # rows of images without telemetry: their pose is the network's
+            for column in columns[len(POSE_COLUMNS):]:
+                if row.get(column) in (None, "") and column.endswith(("_source", "_network")):
+                    row[column] = "network" if column.endswith("_source") else row.get(column[:-len("_network")], "")
+        with open_atomic(path, "w") as handle:
+            writer = csv.DictWriter(handle, fieldnames=columns, restval="")
+            writer.writeheader()
+            writer.writerows(merged.values())
+        values = [{k: _number(v) for k, v in row.items()} for row in merged.values()]
+        write_text(out / f"poses{suffix}.json", json.dumps(values, indent=2) + "\n")
+    return path
+
+
+def _number(value: Any) -> Any:
+    """A CSV cell back to a number where it is one (rows merged from an earlier run's file are text)."""
+    if isinstance(value, str):
+        try:
+            return float(value)
+        except ValueError:
+            return value
+    return value
+
+

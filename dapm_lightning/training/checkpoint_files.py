@@ -1,0 +1,362 @@
+"""Checkpoint files: safe reading (local, ``file://``, ``http(s)``, fsspec) and atomic writing on any filesystem.
+
+:func:`read_checkpoint` loads with ``weights_only`` and the project's allow-list (:data:`SAFE_GLOBALS`); a file that
+holds pickled code is refused (:class:`UnsafeCheckpointError`) without running it, and a remote one is fetched into
+the run's folder first (:func:`fetch_checkpoint`, named by a hash of the whole address). :func:`save_atomically`
+writes a temporary file in the checkpoint's own folder, fsyncs it, then renames it over the target, so the previous
+file stays complete until the new one is; :func:`remove_unfinished_saves` clears what a killed save left.
+"""
+
+from __future__ import annotations
+
+import errno
+import hashlib
+import io
+import os
+import re
+import secrets
+import shutil
+import socket
+import urllib.error
+import urllib.request
+from collections.abc import Callable, Iterable, Iterator, Mapping
+from contextlib import suppress
+from pathlib import Path
+from typing import IO, Any
+from urllib.parse import unquote, urlsplit
+
+import torch
+from lightning.pytorch.utilities import rank_zero_info, rank_zero_warn
+from torch import Tensor
+
+SAFE_GLOBALS: tuple[Any, ...] = ()
+"""The project's allow-list: Python types a checkpoint may hold beyond what torch's ``weights_only`` loading accepts
+(tensors, numbers, strings, lists, dicts...). Empty: dapm-lightning checkpoints hold plain values only (settings as
+dicts, RNG states as tensors, :mod:`.rng`). A type added here must be data, never something that runs code."""
+
+_CHUNK = 1 << 22  # bytes copied at a time when fetching a remote checkpoint
+_PARTIAL = re.compile(r"\.partial-(?P<host>.*)-(?P<pid>\d+)-[0-9a-f]{8}$")
+"""The name of a save in progress: ``NAME.partial-HOST-PID-TOKEN`` next to ``NAME`` (see :func:`save_atomically`)."""
+
+
+class CheckpointReadError(RuntimeError):
+    """A checkpoint file that cannot be read: truncated, corrupt or not a PyTorch file (the message names it)."""
+
+
+class UnsafeCheckpointError(RuntimeError):
+    """A checkpoint refused because it holds pickled Python objects (code could run); nothing in it was run."""
+
+    explained = True  # the message says what it is and the fix: printed as it is (tools/errors.py)
+
+
+class CheckpointSaveError(RuntimeError):
+    """A checkpoint that could not be written (full disk, read-only folder...); the message names it and the fix."""
+
+    explained = True
+
+
+class CheckpointFetchError(RuntimeError):
+    """A remote checkpoint (``http(s)://``, another fsspec path) that could not be fetched, with the fix."""
+
+    explained = True
+
+
+class UnsafeCheckpointIOError(ValueError):
+    """A ``CheckpointIO`` plugin that reads checkpoints its own way, which cannot be made safe."""
+
+
+def is_remote(path: str | Path) -> bool:
+    """Whether ``path`` is an address (``http://``, ``s3://``, ``memory://``...) rather than a local file.
+
+    ``file://`` paths are local. Lightning's special ``--ckpt_path`` values (``last``, ``best``, ``hpc``,
+    ``registry:NAME``) are not addresses.
+    """
+    text = str(path)
+    scheme = urlsplit(text).scheme
+    return "://" in text and len(scheme) > 1 and scheme != "file"
+
+
+def local_path(path: str | Path) -> Path:
+    """``path`` as a local :class:`~pathlib.Path` (a ``file://`` URL's path; anything else as it is)."""
+    text = str(path)
+    if text.startswith("file://"):
+        return Path(unquote(urlsplit(text).path))
+    return Path(path)
+
+
+def _host() -> str:
+    return re.sub(r"[^\w.-]", "_", socket.gethostname()) or "host"
+
+
+def _remote_chunks(url: str) -> Iterator[bytes]:
+    """The bytes of the file at ``url``, a chunk at a time: urllib for ``http(s)``, fsspec for other protocols."""
+    scheme = urlsplit(url).scheme
+    try:
+        if scheme in ("http", "https"):
+            opened: Any = urllib.request.urlopen(url, timeout=60)  # noqa: S310 (http(s) only)
+        else:
+            import fsspec
+
+            opened = fsspec.open(url, "rb")
+        with opened as stream:
+            while chunk := stream.read(_CHUNK):
+                yield chunk
+    except (OSError, ValueError, ImportError) as error:  # urllib's URLError is an OSError
+        if isinstance(error, (ValueError, ImportError)) and scheme not in ("http", "https"):
+            raise CheckpointFetchError(
+                f"{url}: cannot read a checkpoint from a {scheme}:// path here ({error}).\n"
+                "Fix: download the file and pass its local path, or install the fsspec filesystem for "
+                f"{scheme}://.") from error
+        reason = getattr(error, "reason", None) or error
+        raise CheckpointFetchError(f"{url}: could not fetch the checkpoint ({reason}).\n"
+                                   "Fix: check the address, or download the file and pass its local path.") from error
+
+
+def _space_left(error: BaseException) -> bool:
+    """Whether ``error`` (or an error it was raised from, as torch wraps them) is a full disk or quota."""
+    seen: BaseException | None = error
+    while seen is not None:
+        if isinstance(seen, OSError) and seen.errno in (errno.ENOSPC, errno.EDQUOT):
+            return True
+        seen = seen.__cause__ or seen.__context__
+    return False
+
+
+def _os_error(error: BaseException) -> OSError | None:
+    seen: BaseException | None = error
+    while seen is not None:
+        if isinstance(seen, OSError):
+            return seen
+        seen = seen.__cause__ or seen.__context__
+    return None
+
+
+def _megabytes(count: int) -> str:
+    return f"{count / 1e6:.1f} MB"
+
+
+def _tensor_bytes(value: Any, seen: set[int] | None = None) -> int:
+    """The bytes of the tensors in ``value`` (nested dicts, lists, tuples), each storage counted once."""
+    seen = set() if seen is None else seen
+    if isinstance(value, Tensor):
+        storage = value.untyped_storage()
+        if storage.data_ptr() in seen:
+            return 0
+        seen.add(storage.data_ptr())
+        return int(storage.nbytes())
+    if isinstance(value, Mapping):
+        return sum(_tensor_bytes(v, seen) for v in value.values())
+    if isinstance(value, (list, tuple)):
+        return sum(_tensor_bytes(v, seen) for v in value)
+    return 0
+
+
+def _write_error(path: Path, error: BaseException, written: int, what: str = "save the checkpoint") -> Exception:
+    """The one-paragraph error of a failed write of ``path``: the file, the cause, the fix."""
+    folder = path.parent
+    if _space_left(error):
+        free = shutil.disk_usage(folder).free if folder.is_dir() else 0
+        previous = path.stat().st_size if path.is_file() else 0
+        need = max(written, previous)
+        needed = f", about {_megabytes(need)} needed" if need > free else ""
+        kept = f" The previous {path.name} is unchanged." if previous else ""
+        return CheckpointSaveError(
+            f"{path}: could not {what}: no space left in {folder} ({_megabytes(free)} free{needed}).{kept}\n"
+            f"Fix: free space in {folder}, or write the run to another disk with --trainer.default_root_dir DIR.")
+    cause = _os_error(error)
+    reason = f"{cause.strerror or cause}" if cause is not None else str(error).splitlines()[0]
+    return CheckpointSaveError(f"{path}: could not {what} ({reason}).\nFix: make {folder} writable with space "
+                               "for the checkpoint, or write the run elsewhere with --trainer.default_root_dir DIR.")
+
+
+def _fsync_folder(folder: Path) -> None:
+    """Make a rename in ``folder`` durable (some filesystems cannot sync a folder: ignored there)."""
+    with suppress(OSError):
+        descriptor = os.open(folder, os.O_RDONLY)
+        try:
+            os.fsync(descriptor)
+        finally:
+            os.close(descriptor)
+
+
+def _atomic_write(path: Path, write: Callable[[IO[bytes]], None], what: str, size: Callable[[], int] = lambda: 0
+                  ) -> None:
+    """``write`` into a temporary file beside ``path``, flushed and fsynced, then renamed over ``path``.
+
+    ``size`` estimates the bytes needed, for the message of a full disk.
+    """
+    folder = path.parent
+    temporary = path.with_name(f"{path.name}.partial-{_host()}-{os.getpid()}-{secrets.token_hex(4)}")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with open(temporary, "xb") as stream:
+            write(stream)
+            stream.flush()
+            os.fsync(stream.fileno())
+        os.replace(temporary, path)
+    except BaseException as error:  # KeyboardInterrupt too: never leave the temporary file behind
+        written = temporary.stat().st_size if temporary.exists() else 0
+        with suppress(OSError):
+            temporary.unlink()
+        if isinstance(error, Exception) and not getattr(error, "explained", False) and _os_error(error) is not None:
+            raise _write_error(path, error, max(written, size()), what) from error
+        raise
+    _fsync_folder(folder)
+
+
+def save_atomically(checkpoint: Any, path: str | Path) -> None:
+    """``torch.save(checkpoint)`` to ``path`` so that ``path`` is always either the old file or the new one.
+
+    The checkpoint is written to ``NAME.partial-HOST-PID-TOKEN`` in ``path``'s own folder (never ``$TMPDIR``),
+    flushed and fsynced, then renamed over ``path`` with ``os.replace`` (atomic on one filesystem), and the
+    folder is fsynced. A failed save removes its temporary file and raises :class:`CheckpointSaveError` naming
+    the file and the fix (free space in the folder, or ``--trainer.default_root_dir``); a killed one leaves it,
+    and :func:`remove_unfinished_saves` removes it on the next start.
+
+    Args:
+        checkpoint: what ``torch.save`` takes (a Lightning checkpoint dictionary).
+        path: the checkpoint file (a local path or ``file://`` URL).
+    """
+    _atomic_write(local_path(path), lambda stream: torch.save(checkpoint, stream), "save the checkpoint",
+                  lambda: _tensor_bytes(checkpoint))
+
+
+def _writer_alive(match: re.Match[str]) -> bool:
+    """Whether the process that started a save (``NAME.partial-HOST-PID-...``) may still be writing it."""
+    pid = int(match["pid"])
+    if match["host"] != _host() or pid == os.getpid():
+        return False  # another machine's leftover (only one process saves), or this process before its first save
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    with suppress(OSError, IndexError):  # a killed process not yet reaped by its parent is a zombie: gone
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    return True
+
+
+def remove_unfinished_saves(folders: Iterable[str | Path], recursive: bool = True) -> list[Path]:
+    """Remove the temporary files of saves that were killed (``*.partial-HOST-PID-TOKEN``), named in one warning.
+
+    A file whose writer is still running on this machine is kept.
+
+    Args:
+        folders: where to look (missing folders are skipped).
+        recursive: also in their subfolders.
+
+    Returns:
+        The files removed.
+    """
+    removed: list[Path] = []
+    for folder in dict.fromkeys(local_path(f) for f in folders):
+        if not folder.is_dir():
+            continue
+        for path in sorted(folder.rglob("*.partial-*") if recursive else folder.glob("*.partial-*")):
+            match = _PARTIAL.search(path.name)
+            if match is None or not path.is_file() or _writer_alive(match):
+                continue
+            with suppress(FileNotFoundError):
+                path.unlink()
+                removed.append(path)
+    if removed:
+        rank_zero_warn(f"removed {len(removed)} unfinished checkpoint file(s) left by interrupted saves: "
+                       + ", ".join(str(p) for p in removed))
+    return removed
+
+
+def _fetch_name(url: str) -> str:
+    name = re.sub(r"[^\w.-]", "_", unquote(urlsplit(url).path.rsplit("/", 1)[-1])) or "checkpoint.ckpt"
+    return f"{hashlib.sha256(url.encode()).hexdigest()[:12]}-{name}"
+
+
+def fetch_checkpoint(url: str, folder: str | Path) -> Path:
+    """Download the checkpoint at ``url`` into ``folder`` (atomically), every time: no cache.
+
+    The file is named ``HASH-NAME``: NAME from the address, HASH from the whole address, so two addresses
+    ending in the same name never share a file. It is read afterwards like any local file.
+
+    Args:
+        url: an ``http(s)://`` address or another fsspec path (``s3://``, ``memory://``...).
+        folder: the run's folder for fetched files (created).
+
+    Returns:
+        The local file.
+
+    Raises:
+        CheckpointFetchError: the address cannot be read (the message names it and the fix).
+        CheckpointSaveError: the file cannot be written into ``folder``.
+    """
+    path = Path(folder) / _fetch_name(url)
+    digest = hashlib.sha256()
+
+    def copy(target: IO[bytes]) -> None:
+        for chunk in _remote_chunks(url):
+            digest.update(chunk)
+            target.write(chunk)
+
+    _atomic_write(path, copy, f"fetch {url}")
+    rank_zero_info(f"fetched {url} into {path} ({_megabytes(path.stat().st_size)}, sha256 {digest.hexdigest()[:16]})")
+    return path
+
+
+def _refused_globals(source: str | Path | bytes) -> list[str]:
+    """The pickled globals of a checkpoint that ``weights_only`` loading refuses ([] if none or unreadable)."""
+    allowed = {f"{getattr(g, '__module__', '')}.{getattr(g, '__qualname__', g)}" for g in SAFE_GLOBALS}
+    try:
+        found = torch.serialization.get_unsafe_globals_in_checkpoint(
+            io.BytesIO(source) if isinstance(source, bytes) else source)
+    except Exception:  # not a zip checkpoint at all: damaged, not refused
+        return []
+    return [name for name in found if name not in allowed]
+
+
+def read_checkpoint(path: str | Path, map_location: Any = "cpu") -> dict[str, Any]:
+    """Load a checkpoint safely: ``weights_only=True`` with :data:`SAFE_GLOBALS`, from any kind of path.
+
+    Local files and ``file://`` paths are read in place; ``http(s)://`` and other fsspec paths are read into
+    memory (never through torch hub's cache, which is keyed by the file's name). No pickled code runs.
+
+    Args:
+        path: the checkpoint.
+        map_location: where tensors go, as in ``torch.load``.
+
+    Returns:
+        The checkpoint (a dictionary, or whatever plain values the file holds).
+
+    Raises:
+        FileNotFoundError: no such local file.
+        UnsafeCheckpointError: the file holds pickled objects that could run code (refused, nothing run).
+        CheckpointReadError: the file is damaged or not a PyTorch file (``not a readable checkpoint``).
+        CheckpointFetchError: a remote file that cannot be fetched.
+    """
+    source: Path | bytes
+    if is_remote(path):
+        source = b"".join(_remote_chunks(str(path)))
+    else:
+        source = local_path(path)
+        if not source.is_file():
+            raise FileNotFoundError(f"{path}: no such checkpoint file")
+    try:
+        with torch.serialization.safe_globals(list(SAFE_GLOBALS)):
+            if isinstance(source, bytes):
+                return torch.load(io.BytesIO(source), map_location=map_location, weights_only=True)
+            with open(source, "rb") as stream:
+                return torch.load(stream, map_location=map_location, weights_only=True)
+    except Exception as error:  # torch raises RuntimeError / UnpicklingError / EOFError for damaged files
+        refused = _refused_globals(source)
+        if refused:
+            shown = ", ".join(refused[:4]) + (f" and {len(refused) - 4} more" if len(refused) > 4 else "")
+            raise UnsafeCheckpointError(
+                f"{path}: refused: the file holds pickled Python objects ({shown}), which could run code when "
+                "loaded. It was not loaded, and nothing in it was run: dapm-lightning reads checkpoints with "
+                "weights_only=True (tensors and plain values only).\nFix: use a checkpoint written by "
+                "`dapm-lightning fit`; if you made this file yourself and trust it, load it once with "
+                "torch.load(..., weights_only=False) and save it again with tensors and plain values only.") from error
+        size = len(source) if isinstance(source, bytes) else source.stat().st_size
+        first = str(error).strip().splitlines()[0].split(". ")[0] if str(error).strip() else type(error).__name__
+        raise CheckpointReadError(f"{path}: not a readable checkpoint ({size} bytes; truncated, corrupt or not a "
+                                  f"PyTorch file): {first}") from error
+
+
