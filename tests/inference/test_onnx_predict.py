@@ -2,6 +2,7 @@
 
 import json
 
+import cv2
 import numpy as np
 import onnx
 import pytest
@@ -70,16 +71,17 @@ def test_the_file_says_what_it_is_and_a_foreign_file_is_refused(exported, tmp_pa
     model = onnx.load(str(path))
     del model.metadata_props[:]
     onnx.save(model, str(foreign))
+    images = tmp_path / "images"
+    images.mkdir()
+    cv2.imwrite(str(images / "a.png"), np.zeros((40, 60, 3), np.uint8))
     with pytest.raises(SystemExit) as info:
-        main(["predict", str(tmp_path), "--ckpt_path", str(foreign), "--out", str(tmp_path / "out")])
+        main(["predict", str(images), "--ckpt_path", str(foreign), "--out", str(tmp_path / "out")])
     err = capsys.readouterr().err
     assert info.value.code == 1 and "foreign.onnx: not a dapm-lightning export" in err and "Traceback" not in err
 
 
 @pytest.mark.slow
 def test_cli_exports_then_predicts_from_the_onnx_file_alone(checkpoint, tmp_path, capsys):
-    import cv2
-
     model = tmp_path / "model.onnx"
     main(["export", "--ckpt_path", str(checkpoint), "--out", str(model), "--checks", "1"])
     images = tmp_path / "images"
