@@ -269,6 +269,7 @@ def _onnx_runner(name: str, scale: Scale, image: torch.Tensor, device: torch.dev
     except ImportError:
         return None
     from benchmarks.bench_predict import export_onnx, write_checkpoint
+    from dapm_lightning.inference.onnx import onnx_feed
 
     provider = "CUDAExecutionProvider" if device.type == "cuda" else "CPUExecutionProvider"
     if provider not in onnxruntime.get_available_providers():
@@ -278,7 +279,7 @@ def _onnx_runner(name: str, scale: Scale, image: torch.Tensor, device: torch.dev
         checkpoint = write_checkpoint(make_module(name, scale), work / f"{name}.ckpt")
         export_onnx(checkpoint, path, (image.shape[-2], image.shape[-1]))
     session = onnxruntime.InferenceSession(str(path), providers=[provider])
-    feed = {"image": image.cpu().numpy()}
+    feed = onnx_feed(image.cpu().numpy(), [i.name for i in session.get_inputs()])
     depth_index = [o.name for o in session.get_outputs()].index("depth_m")
     return (lambda: session.run(None, feed)[depth_index]), provider.removesuffix("ExecutionProvider")
 

@@ -35,6 +35,7 @@ import dapm_lightning
 from benchmarks.bench import format_table
 from benchmarks.callbacks import MemoryProbe
 from dapm_lightning.geometry.constants import POSE_KEYS
+from dapm_lightning.inference.onnx import onnx_feed
 from dapm_lightning.models.config import DAPMConfig
 from dapm_lightning.models.dapm import DAPMNet
 from dapm_lightning.training.checkpointing import load_dapm_module
@@ -136,7 +137,8 @@ def speed(ckpt_path: str | None = None, backbone: str = "resnet50", size: int = 
         names = [o.name for o in session.get_outputs()]
 
         def run_onnx() -> tuple[Tensor, Tensor]:
-            result = dict(zip(names, session.run(None, {"image": image.numpy()})))
+            feed = onnx_feed(image.numpy(), [i.name for i in session.get_inputs()])
+            result = dict(zip(names, session.run(None, feed)))
             return torch.from_numpy(result["depth_m"]), torch.from_numpy(result["pose"])
 
         variants["onnxruntime"] = run_onnx
@@ -207,7 +209,8 @@ def int8_compare(ckpt_path: str | None = None, backbone: str = "resnet50", size:
         names = [o.name for o in session.get_outputs()]
 
         def run(image: Tensor) -> tuple[Tensor, Tensor]:
-            result = dict(zip(names, session.run(None, {"image": image.numpy()})))
+            feed = onnx_feed(image.numpy(), [i.name for i in session.get_inputs()])
+            result = dict(zip(names, session.run(None, feed)))
             return torch.from_numpy(result["depth_m"]), torch.from_numpy(result["pose"])
 
         return run

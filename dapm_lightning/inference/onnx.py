@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import hashlib
 import json
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -73,6 +73,24 @@ class ExportWrapper(nn.Module):
                 prior_sigma: Tensor | None = None) -> tuple[Tensor, ...]:
         outputs = self.forward_outputs(image, prior, prior_known, prior_sigma)
         return tuple(outputs[name] for name in self.names)
+
+
+def onnx_feed(images: np.ndarray, input_names: Sequence[str],
+              prior: PosePrior | None = None) -> dict[str, np.ndarray]:
+    """An exported model's inputs by name.
+
+    ``images`` ``[B, 3, H, W]`` float32 in [0, 1] and, when the model takes them, the prior's inputs (nothing known
+    without one).
+    """
+    feed = {"image": images}
+    if PRIOR_INPUTS[0] in input_names:
+        batch = images.shape[0]
+        value = prior.value.detach().cpu().float() if prior is not None else torch.zeros(batch, 4)
+        known = prior.known.cpu() if prior is not None else torch.zeros(batch, 4, dtype=torch.bool)
+        sigma = prior.sigma.detach().cpu().float().expand(batch, 4) if prior is not None else torch.zeros(batch, 4)
+        feed.update({PRIOR_INPUTS[0]: torch.where(known, value, torch.zeros_like(value)).numpy(),
+                     PRIOR_INPUTS[1]: known.numpy(), PRIOR_INPUTS[2]: sigma.contiguous().numpy()})
+    return feed
 
 
 def example_inputs(batch: int, size: tuple[int, int], takes_prior: bool, *, seed: int = 0,

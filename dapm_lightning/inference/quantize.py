@@ -10,6 +10,7 @@ import numpy as np
 import torch
 
 from dapm_lightning.geometry.image import unit_image
+from dapm_lightning.inference.onnx import onnx_feed
 
 
 def synthetic_calibration(size: tuple[int, int], count: int, seed: int = 0) -> list[np.ndarray]:
@@ -47,14 +48,9 @@ def quantize_int8(float_path: str | Path, int8_path: str | Path, calibration: Se
             image = next(self.items, None)
             if image is None:
                 return None
-            feed = {"image": image}
-            if takes_prior:  # calibrated without telemetry: the network's own pose
-                feed["prior"] = np.zeros((image.shape[0], 4), np.float32)
-                feed["prior_known"] = np.zeros((image.shape[0], 4), np.bool_)
-                feed["prior_sigma"] = np.zeros((image.shape[0], 4), np.float32)
-            return feed
+            return onnx_feed(image, input_names)  # calibrated without telemetry: the network's own pose
 
-    takes_prior = "prior" in {i.name for i in onnx.load(str(float_path), load_external_data=False).graph.input}
+    input_names = [i.name for i in onnx.load(str(float_path), load_external_data=False).graph.input]
     int8_path = Path(int8_path)
     int8_path.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory() as folder:

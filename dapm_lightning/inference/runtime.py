@@ -17,7 +17,7 @@ import torch
 from torch import Tensor, nn
 
 from dapm_lightning.geometry.image import unit_image
-from dapm_lightning.inference.onnx import METADATA_NET, PRIOR_INPUTS
+from dapm_lightning.inference.onnx import METADATA_NET, PRIOR_INPUTS, onnx_feed
 from dapm_lightning.models.config import DAPMConfig
 from dapm_lightning.models.dapm import InferenceOutput
 from dapm_lightning.models.prior import PosePrior
@@ -124,15 +124,7 @@ class OnnxRuntime:
         self.takes_prior = PRIOR_INPUTS[0] in self.input_names
 
     def __call__(self, images: Tensor, prior: PosePrior | None = None) -> InferenceOutput:
-        feed = {"image": unit_image(images.cpu()).float().numpy()}
-        if self.takes_prior:
-            batch = images.shape[0]
-            value = prior.value.detach().cpu().float() if prior is not None else torch.zeros(batch, 4)
-            known = prior.known.cpu() if prior is not None else torch.zeros(batch, 4, dtype=torch.bool)
-            sigma = prior.sigma.detach().cpu().float().expand(batch, 4) if prior is not None else torch.zeros(batch, 4)
-            feed[PRIOR_INPUTS[0]] = torch.where(known, value, torch.zeros_like(value)).numpy()
-            feed[PRIOR_INPUTS[1]] = known.numpy()
-            feed[PRIOR_INPUTS[2]] = sigma.contiguous().numpy()
+        feed = onnx_feed(unit_image(images.cpu()).float().numpy(), self.input_names, prior)
         outputs = {name: torch.from_numpy(value) for name, value in zip(self.names, self.session.run(None, feed))}
         if prior is None:  # given no prior, the pose used is the network's own (as PyTorch reports it)
             outputs.pop("pose_network", None)

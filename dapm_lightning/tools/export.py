@@ -77,6 +77,7 @@ def _quantize(float_out: Path, out: Path, size: tuple[int, int], images: int) ->
     import numpy as np
     import onnxruntime
 
+    from dapm_lightning.inference.onnx import onnx_feed
     from dapm_lightning.inference.quantize import quantize_int8, synthetic_calibration
 
     start = time.perf_counter()
@@ -85,7 +86,7 @@ def _quantize(float_out: Path, out: Path, size: tuple[int, int], images: int) ->
     names = [o.name for o in sessions[0].get_outputs()]
     gaps = dict.fromkeys(names, 0.0)
     for image in synthetic_calibration(size, 4, seed=1):  # images the calibration did not see
-        reference, got = (s.run(None, {"image": image}) for s in sessions)
+        reference, got = (s.run(None, onnx_feed(image, [i.name for i in s.get_inputs()])) for s in sessions)
         gaps = {n: max(gaps[n], float(np.abs(g - r).max())) for n, g, r in zip(names, got, reference)}
     print(f"wrote {out} in {time.perf_counter() - start:.0f} s: int8 (QDQ), calibrated on {images} synthetic images; "
           f"float32 model {float_out}; max |int8 - float32| on 4 other synthetic images: "
