@@ -56,6 +56,16 @@ def _autocasting() -> bool:
     return torch.is_autocast_enabled("cpu") or torch.is_autocast_enabled("cuda")
 
 
+def held_in(value: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+    """``value`` in the dtype of a network held in half precision (``like``'s), outside autocast; else as it is.
+
+    A float32 result fed to such a network's layers (the IGD of a pose fused with a float32 prior) must be cast.
+    """
+    if like.dtype in (torch.float16, torch.bfloat16) and not _autocasting() and value.dtype == torch.float32:
+        return value.to(like.dtype)
+    return value
+
+
 def float32(fn: Callable[P, R]) -> Callable[P, R]:
     """Decorator: run ``fn`` in float32 with autocast off; its bf16 / fp16 tensor arguments are cast first.
 

@@ -11,6 +11,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from dapm_lightning.geometry.depth_codec import decode_log_depth
+from dapm_lightning.geometry.precision import held_in
 from dapm_lightning.models.blocks import conv_bn_relu
 from dapm_lightning.models.config import DAPMConfig
 from dapm_lightning.models.decoders import DepthDecoder, PoseDecoder
@@ -268,7 +269,7 @@ class DAPMNet(nn.Module):
             pose_norm = own if self.config.igd_feature_grad else own.detach()
             if teacher_forcing is not None:
                 pose_norm = teacher_forcing.blend(pose_norm)
-            igd_norm = igd.depth_norm(pose_norm, head_size)
+            igd_norm = held_in(igd.depth_norm(pose_norm, head_size), pose.pose_norm)
             igd_feature = self.igd_feature(igd_norm)
         refined_logit, sky_logit, bin_logits = self.depth_pqb(feature, init_head, igd_feature)
         if self.config.depth_residual_priors:  # the authors' head: logit + initial depth + IGD (both in [0, 1])
