@@ -8,6 +8,7 @@ Unlike a training :class:`~dapm_lightning.data.sample.Sample`, nothing here is a
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -41,6 +42,8 @@ class PredictInput:
     prior: Tensor = field(default_factory=lambda: torch.full((4,), float("nan")))
     rgb: np.ndarray | None = None
     provenance: tuple[str, ...] = ("", "", "", "")
+    time_s: float | None = None
+    """A video frame's time in the video (seconds); None for an image."""
 
 
 @dataclass
@@ -62,6 +65,7 @@ class PredictBatch:
     mode: PriorMode = "condition"
     rgb: list[np.ndarray | None] = field(default_factory=list)
     provenance: list[tuple[str, ...]] = field(default_factory=list)
+    times: list[float | None] = field(default_factory=list)
 
     @classmethod
     def collate(cls, items: Sequence[PredictInput], settings: PriorSettings = PriorSettings()) -> PredictBatch:  # noqa: B008
@@ -72,7 +76,7 @@ class PredictBatch:
         prior = PosePrior.from_rows(torch.stack([item.prior.float() for item in items]), settings.sigma)
         return cls(torch.stack([item.image for item in items]), [item.name for item in items],
                    [item.size for item in items], [item.source for item in items], prior, settings.mode,
-                   [item.rgb for item in items], [item.provenance for item in items])
+                   [item.rgb for item in items], [item.provenance for item in items], [item.time_s for item in items])
 
     def __len__(self) -> int:
         return len(self.names)
@@ -84,14 +88,12 @@ class PredictBatch:
 
     def to(self, device: torch.device | str, non_blocking: bool = False) -> PredictBatch:
         """The batch with its tensors on ``device`` (what Lightning calls to move a batch)."""
-        return PredictBatch(self.images.to(device, non_blocking=non_blocking), self.names, self.sizes,
-                            self.sources, None if self.prior is None else self.prior.to(device), self.mode,
-                            self.rgb, self.provenance)
+        return dataclasses.replace(self, images=self.images.to(device, non_blocking=non_blocking),
+                                   prior=None if self.prior is None else self.prior.to(device))
 
     def pin_memory(self) -> PredictBatch:
         """The batch with its images in pinned memory (``DataLoader(pin_memory=True)``)."""
-        return PredictBatch(self.images.pin_memory(), self.names, self.sizes, self.sources, self.prior, self.mode,
-                            self.rgb, self.provenance)
+        return dataclasses.replace(self, images=self.images.pin_memory())
 
 
 @dataclass(frozen=True)

@@ -321,9 +321,11 @@ class VideoFramesDataset(IterableDataset[PredictInput]):
                 ok, bgr = capture.retrieve()
                 if not ok:
                     break
-                yield predict_input(to_rgb8(bgr, f"{self.path} frame {frame}"), f"{self.path.stem}_f{frame:06d}",
-                                    f"{self.path}#{frame}", self.target, self.keep_rgb, self.priors.get(frame),
-                                    self.provenance.get(frame))
+                item = predict_input(to_rgb8(bgr, f"{self.path} frame {frame}"), f"{self.path.stem}_f{frame:06d}",
+                                     f"{self.path}#{frame}", self.target, self.keep_rgb, self.priors.get(frame),
+                                     self.provenance.get(frame))
+                item.time_s = frame / self.fps if self.fps > 0 else None
+                yield item
         finally:
             capture.release()
 

@@ -24,6 +24,8 @@ def pose_row(prediction: Prediction) -> dict[str, Any]:
     assert prediction.pose is not None
     row: dict[str, Any] = {"name": prediction.name,
                            **{pose_field(k): round(v, 4) for k, v in prediction.pose.items()}}
+    if prediction.time_s is not None:  # a video frame: its time in the video
+        row["time_s"] = round(prediction.time_s, 3)
     if prediction.pose_source:
         network = prediction.pose_network or prediction.pose
         provenance = prediction.pose_provenance or {}
@@ -37,12 +39,12 @@ def pose_row(prediction: Prediction) -> dict[str, Any]:
 def table_columns(rows: Iterable[dict[str, Any]]) -> list[str]:
     """The poses table's columns in their order.
 
-    Name, the pose (height, pitch, roll, FoV), then per component the sources, the provenance and the network's
-    values, then any other column.
+    Name, a video frame's time, the pose (height, pitch, roll, FoV), then per component the sources, the provenance
+    and the network's values, then any other column.
     """
     present = {key for row in rows for key in row}
-    ordered = [*POSE_COLUMNS, *(f"{field}_{kind}" for kind in ("source", "provenance", "network")
-                                for field in POSE_FIELDS)]
+    ordered = ["name", "time_s", *POSE_COLUMNS[1:], *(f"{field}_{kind}" for kind in ("source", "provenance", "network")
+                                                      for field in POSE_FIELDS)]
     return [c for c in ordered if c in present or c in POSE_COLUMNS] + sorted(present - set(ordered))
 
 

@@ -126,6 +126,7 @@ class Prediction:
             ``"DJI_0005.SRT subtitle 215 rel_alt"``, ``"Python API prior"``).
         scale_from: how the telemetry scale fit found its factor: ``ground``, ``height`` or ``none``.
         rgb: the input's ``[H, W, 3]`` uint8 pixels, when the loader was asked to keep them.
+        time_s: a video frame's time in the video (seconds); None for an image.
     """
 
     depth_m: np.ndarray | None
@@ -143,6 +144,7 @@ class Prediction:
     pose_provenance: dict[str, str] | None = None
     scale_from: str = "none"
     rgb: np.ndarray | None = None
+    time_s: float | None = None
 
     def points(self, stride: int = 1, max_depth: float | None = None, rgb: np.ndarray | None = None) -> PointCloud:
         """Metric point cloud of the non-sky pixels, every ``stride``-th row and column, in the world frame.
@@ -184,7 +186,8 @@ class Prediction:
             pose = {pose_field(k): {"value": v, "source": sources.get(k, "network"),
                                     "network": network.get(k)} for k, v in self.pose.items()}
             provenance = {pose_field(k): given.get(k) for k in self.pose}
-        return {"name": self.name, "width": int(width), "height": int(height),
+        return {"name": self.name, **({} if self.time_s is None else {"time_s": round(self.time_s, 3)}),
+                "width": int(width), "height": int(height),
                 "K": None if self.K is None else self.K.tolist(),
                 "camera_to_world": None if self.camera_to_world is None else self.camera_to_world.tolist(),
                 "pose": pose, "pose_provenance": provenance, "depth_kind": self.depth_kind,
@@ -273,6 +276,7 @@ def batch_predictions(output: InferenceOutput, batch: PredictBatch, spec: IGDSpe
     predictions = predictions_from_outputs(applied.output, batch.names, batch.sizes, spec,
                                            pose_sources=applied.sources if batch.prior is not None else None,
                                            provenance=provenance)
-    for prediction, scale_from, rgb in zip(predictions, applied.scale_from, batch.rgb or [None] * len(batch)):
-        prediction.scale_from, prediction.rgb = scale_from, rgb
+    for prediction, scale_from, rgb, time_s in zip(predictions, applied.scale_from, batch.rgb or [None] * len(batch),
+                                                   batch.times or [None] * len(batch)):
+        prediction.scale_from, prediction.rgb, prediction.time_s = scale_from, rgb, time_s
     return predictions

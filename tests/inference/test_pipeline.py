@@ -1,6 +1,7 @@
 """One predict pipeline: the one-line command, the Lightning form and the Python API give the same files."""
 
 import csv
+import json
 
 import cv2
 import numpy as np
@@ -99,3 +100,19 @@ def test_the_poses_table_keeps_the_pose_order_then_sources_provenance_and_networ
     assert first["height_m_source"] == "telemetry" and first["height_m_provenance"] == "flight.csv line 2"
     assert first["roll_deg_source"] == "telemetry" and first["roll_deg_provenance"] == "flight.csv line 2"
     assert {row["name"]: row for row in rows}["c"]["height_m_source"] == "network"
+
+
+def test_video_rows_carry_the_frame_time(checkpoint, tmp_path):
+    from tests.inference.test_predict import write_video
+
+    video = write_video(tmp_path / "clip.avi", frames=6)  # 10 frames per second
+    out = tmp_path / "out"
+    main(["predict", str(video), "--ckpt_path", str(checkpoint), "--out", str(out), "--device", "cpu",
+          "--frame_step", "2", "--outputs", "camera"])
+    with (out / "poses.csv").open() as handle:
+        rows = list(csv.DictReader(handle))
+    assert list(rows[0])[:2] == ["name", "time_s"]
+    assert [(row["name"], float(row["time_s"])) for row in rows] == [
+        ("clip_f000000", 0.0), ("clip_f000002", 0.2), ("clip_f000004", 0.4)]
+    camera = json.loads((out / "clip_f000004_camera.json").read_text())
+    assert camera["time_s"] == 0.4
