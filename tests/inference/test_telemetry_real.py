@@ -96,7 +96,8 @@ TIMING = r"\d+\r?\n\d\d:\d\d:\d\d[,.]\d+ --> "
 SUBTITLE = re.compile(rf"(?:^|\n)(\d+)\r?\n\d\d:\d\d:\d\d[,.]\d+ --> [^\n]*\n(.*?)(?=\n{TIMING}|\Z)", re.S)
 
 
-@pytest.mark.parametrize("name", sorted(n for n in SRT_EXPECTED if "rel_alt" in (REAL / "srt" / n).read_text()))
+@pytest.mark.parametrize("name", sorted(n for n in SRT_EXPECTED  # read at collection: only when the files are here
+                                        if REAL.is_dir() and "rel_alt" in (REAL / "srt" / n).read_text()))
 def test_every_frame_matches_an_independent_reading_of_the_raw_text(name):
     """rel_alt, gb_pitch, gb_roll of each subtitle, found by a plain search in its raw text, are frame k - 1's."""
     text = (REAL / "srt" / name).read_text(encoding="utf-8-sig")
