@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import shutil
+import signal
 from pathlib import Path
 
 import cv2
@@ -14,6 +15,10 @@ from dapm_lightning.geometry import MAX_DEPTH_M, depth_to_grey
 from dapm_lightning.training.lightning_cli import run_lightning_cli
 
 TINY_HW = (24, 40)  # non-square, so an H/W swap fails
+
+# Ctrl-C as in a terminal: a suite started as a background job inherits SIGINT ignored, and so would the processes
+# the Ctrl-C tests start; Python's own handler here gives this process and (reset on exec) its children the default
+signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 def write_pair(root: Path, split: str, name: str, pose, seed: int = 0, size=TINY_HW) -> None:
