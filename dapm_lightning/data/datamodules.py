@@ -9,6 +9,7 @@ from typing import Any, Literal
 import albumentations as A
 import lightning as L
 import torch
+from lightning.pytorch.trainer.states import TrainerFn
 from torch.utils.data import DataLoader, Dataset
 from torch.utils.data._utils.collate import default_collate
 
@@ -19,6 +20,7 @@ from dapm_lightning.data.samplers import EpochShuffleSampler
 from dapm_lightning.data.synthetic import generate_uapd, is_current
 from dapm_lightning.data.transforms import Augmentation, train_transform
 from dapm_lightning.data.uapd import UAPDDataset
+from dapm_lightning.data.workers import worker_init_fn
 from dapm_lightning.geometry.constants import MAX_DEPTH_M
 
 
@@ -107,21 +109,34 @@ class DAPMDataModule(L.LightningDataModule):
         return DataLoader(dataset, batch_size=batch_size, sampler=sampler, num_workers=self.num_workers,
                           pin_memory=self.pin_memory, persistent_workers=self.persistent_workers,
                           collate_fn=collate_samples, drop_last=train and len(sampler) > batch_size,
+                          worker_init_fn=worker_init_fn(rank) if self.num_workers > 0 else None,  # SIGTERM
                           generator=torch.Generator().manual_seed(self.seed))  # worker seeds: not the global RNG
 
     def train_dataloader(self) -> DataLoader[dict[str, Any]]:
         return self._loader("train", train=True)
 
     def state_dict(self) -> dict[str, Any]:
-        """Where training stands in the epoch, saved in every checkpoint (for an exact mid-epoch resume).
+        """Where training stands in the epoch, saved in every checkpoint of a fit (for an exact mid-epoch resume).
 
-        ``samples_seen`` counts the samples of all processes together (the global position).
+        The position of the next training batch: ``epoch`` and ``samples_seen``, the samples of that epoch
+        already trained on by all processes together (the global position). Right for a checkpoint taken at any
+        point of a fit: after a training batch, during or after a validation (``trainer.training`` is then False),
+        at the end of an epoch (the next epoch, from its start) and when training ends, also when ``max_steps``
+        ended it mid-epoch (Lightning has then already counted the epoch as done: the epoch is the one the
+        batches were drawn from, not ``trainer.current_epoch``); before the first training batch of a resumed
+        run, the position it was restored to. Empty outside a fit.
         """
         trainer = self.trainer
-        if trainer is None or not trainer.training:
+        if trainer is None or trainer.state.fn != TrainerFn.FITTING:
             return {}
-        batches = trainer.fit_loop.epoch_loop.batch_progress.current.processed
-        return {"epoch": trainer.current_epoch, "samples_seen": batches * self.batch_size * trainer.world_size}
+        if self._resume_position is not None:  # restored, and no training batch drawn yet (the sanity check)
+            return dict(self._resume_position)
+        loop = trainer.fit_loop
+        batches = loop.epoch_loop.batch_progress.current.processed
+        epoch = max(0, loop.epoch_progress.current.started - 1)  # the epoch the processed batches belong to
+        if batches >= trainer.num_training_batches:  # that epoch is over: the next starts from its beginning
+            epoch, batches = epoch + 1, 0
+        return {"epoch": epoch, "samples_seen": batches * self.batch_size * trainer.world_size}
 
     def load_state_dict(self, state_dict: dict[str, Any]) -> None:
         self._resume_position = dict(state_dict) if state_dict else None

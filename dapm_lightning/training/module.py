@@ -12,6 +12,7 @@ from typing import Any, Literal, cast
 import lightning as L
 import numpy as np
 import torch
+from lightning.pytorch.trainer.states import TrainerFn
 from lightning.pytorch.utilities import rank_zero_warn
 from lightning.pytorch.utilities.types import OptimizerLRSchedulerConfig
 from torch import Tensor
@@ -26,7 +27,9 @@ from dapm_lightning.models.dapm import DAPMNet, DAPMOutput
 from dapm_lightning.models.prior import PosePrior
 from dapm_lightning.models.teacher_forcing import TeacherForcing
 from dapm_lightning.training.loss import DAPMLoss, LossConfig
+from dapm_lightning.training.resume import resume_after_last_batch
 from dapm_lightning.training.rng import pack_rng_states, rng_states, set_rng_states, unpack_rng_states
+from dapm_lightning.training.signals import SigtermAgreement
 
 Stage = Literal["train", "val", "test"]
 
@@ -220,6 +223,10 @@ class DAPMModule(L.LightningModule):
         self.configure_losses()
         self.configure_metrics(log_space_metrics, authors_depth_metrics, pose_auc_min_error, authors_pose_metrics)
         self.nonfinite_steps = 0
+        self._training_rng_states: dict[str, Any] | None = None
+        """RNG states of the training stream while a validation inside a fit runs (:meth:`on_validation_start`)."""
+        self.sigterm = SigtermAgreement()
+        """Under DDP, SIGTERM acted on by every process after the same training batch (:mod:`.signals`)."""
         self.train_image_size: tuple[int, int] | None = None
         """``(H, W)`` of the training images (saved in checkpoints; inference runs at the same pixel count)."""
 
@@ -336,17 +343,41 @@ class DAPMModule(L.LightningModule):
             return sum((p.sum() * 0.0 for p in self.parameters() if p.requires_grad), torch.zeros(()))
         return None  # Lightning skips backward and the optimiser step
 
+    def on_sanity_check_start(self) -> None:
+        """Under DDP, SIGTERM handled without collectives from here on (:class:`~.signals.SigtermAgreement`)."""
+        self.sigterm.install(self.trainer)
+
+    def on_train_start(self) -> None:
+        """As :meth:`on_sanity_check_start`, for runs without a sanity check."""
+        self.sigterm.install(self.trainer)
+
+    def on_train_batch_end(self, outputs: Any, batch: Any, batch_idx: int) -> None:
+        """Under DDP, every process stops here, after the same batch, when any of them got SIGTERM."""
+        self.sigterm.agree(self.trainer)
+
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        """Add the training image size, the training RNG states and loop counters that resume exactly.
+
+        The RNG states are those of the training stream: during a validation inside a fit, those saved when
+        it started (:meth:`on_validation_start`). Loop counters that Lightning would resume in the wrong epoch
+        (a save after the epoch loop stopped: ``on_train_end`` after ``max_steps``, ``on_train_epoch_end``, a
+        SIGTERM at the end of an epoch) become those of a save right after the last training batch
+        (:func:`~dapm_lightning.training.resume.resume_after_last_batch`).
+        """
         if self.train_image_size is not None:
             checkpoint["dapm_train_image_size"] = list(self.train_image_size)
+        fit_loop = checkpoint.get("loops", {}).get("fit_loop")
+        if fit_loop is not None and self._trainer is not None and self.trainer.state.fn == TrainerFn.FITTING:
+            resume_after_last_batch(fit_loop)
+        states = self._training_rng_states if self._training_rng_states is not None else rng_states()
         # every process saves (Lightning calls this hook on all ranks, rank 0 writes): under DDP the RNG
         # states of all ranks are gathered, so that each resumes its own dropout and augmentation draws
         if self._trainer is not None and self.trainer.world_size > 1:
-            packed = pack_rng_states(rng_states())
+            packed = pack_rng_states(states)
             checkpoint["dapm_rng_states_per_rank"] = {k: cast(Tensor, self.all_gather(v)).cpu()
                                                       for k, v in packed.items()}
         else:
-            checkpoint["dapm_rng_states"] = rng_states()
+            checkpoint["dapm_rng_states"] = states
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         saved = checkpoint.get("hyper_parameters", {}).get("net")
@@ -363,6 +394,22 @@ class DAPMModule(L.LightningModule):
             set_rng_states(unpack_rng_states({k: v[rank].clone() for k, v in per_rank.items()}))
         elif "dapm_rng_states" in checkpoint:
             set_rng_states(checkpoint["dapm_rng_states"])  # a resumed run draws what the uninterrupted one would
+
+    def on_validation_start(self) -> None:
+        """During a fit, keep the RNG states of the training stream (see :meth:`on_validation_end`)."""
+        if self._trainer is not None and self.trainer.state.fn == TrainerFn.FITTING:
+            self._training_rng_states = rng_states()
+
+    def on_validation_end(self) -> None:
+        """Give training back the RNG states it had when the validation started.
+
+        Whatever a validation draws (a callback, a metric, a data set), training then draws what it would
+        have drawn without it: a run resumed from a checkpoint taken before, during or after a validation
+        (which the resumed run does not repeat) trains exactly as the uninterrupted one.
+        """
+        if self._training_rng_states is not None:
+            set_rng_states(self._training_rng_states)
+            self._training_rng_states = None
 
     def validation_step(self, batch: dict[str, Any], batch_idx: int) -> DAPMOutput:  # type: ignore[override]
         return self._shared_step(batch, "val")[1]

@@ -1,0 +1,58 @@
+"""Lightning's loop counters in a checkpoint, made to resume where the training stopped.
+
+Lightning (2.6) counts an epoch as done as soon as its epoch loop stops, also when ``max_steps``, a
+``should_stop`` or a SIGTERM stopped it after a few of its batches. A checkpoint written from then on (the
+``last.ckpt`` of ``on_train_end``, an ``on_train_epoch_end`` save, the SIGTERM save at the end of an
+epoch) makes a resumed run start the *next* epoch, skipping the rest of the stopped one; and after a whole
+epoch it makes the resumed run skip the next epoch entirely (its batch counters still say "all batches
+run"). :func:`resume_after_last_batch` rewrites such counters to those of a checkpoint taken right after
+the last training batch, which Lightning resumes exactly: the same epoch, the next batch (or the next
+epoch from its first batch when the last batch ended it), without repeating the validation that ran there.
+"""
+
+from __future__ import annotations
+
+from collections.abc import MutableMapping
+from typing import Any
+
+
+def epoch_closed(epoch_progress: MutableMapping[str, Any]) -> bool:
+    """Whether the fit loop has closed its current epoch: started, and counted processed.
+
+    Args:
+        epoch_progress: the fit loop's ``epoch_progress`` state (``{"total": ..., "current": ...}``).
+
+    Returns:
+        True from the end of the epoch loop (``on_train_epoch_end``, ``on_train_end``) until the next epoch starts.
+    """
+    current = epoch_progress["current"]
+    return bool(current["started"] > 0 and current["ready"] == current["started"] == current["processed"])
+
+
+def resume_after_last_batch(fit_loop: MutableMapping[str, Any]) -> bool:
+    """Rewrite a fit loop's saved state to that of a save right after its last training batch, if it was closed.
+
+    Args:
+        fit_loop: ``checkpoint["loops"]["fit_loop"]``, changed in place.
+
+    Returns:
+        Whether the state was rewritten (False: the epoch was still open, the state resumes as it is).
+    """
+    epochs = fit_loop.get("epoch_progress")
+    batches = fit_loop.get("epoch_loop.batch_progress")
+    if epochs is None or batches is None or not epoch_closed(epochs):
+        return False
+    if batches["current"]["processed"] == 0 or batches["current"]["completed"] != batches["current"]["processed"]:
+        return False  # no batch in this epoch, or not after a whole batch: nothing Lightning would resume wrongly
+    for progress in (epochs["current"], epochs["total"]):  # the epoch is open again: started, not processed
+        progress["processed"] -= 1
+        progress["completed"] = min(progress["completed"], progress["processed"])
+    for progress in (batches["current"], batches["total"]):  # the last batch processed, its end hooks not counted
+        progress["completed"] = progress["processed"] - 1
+    state = fit_loop.get("epoch_loop.state_dict")
+    if isinstance(state, MutableMapping) and state.get("_batches_that_stepped", 0) > 0:
+        state["_batches_that_stepped"] -= 1  # counted once more when Lightning resumes after a training batch
+    return True
+
+
+__all__ = ["epoch_closed", "resume_after_last_batch"]
