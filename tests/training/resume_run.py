@@ -1,7 +1,11 @@
 """Fit through the DAPM CLI in a subprocess, optionally pausing at a step (for a test to signal it),
 and save the final weights. Usage: python resume_run.py WEIGHTS.pt [CLI fit args without 'fit'].
-Environment: PAUSE_AT="STEP,MARKER_FILE" pauses after STEP until SIGTERM (or 120 s); RECORD_IMAGES=PREFIX writes
-PREFIX<rank>.json: per epoch, a digest of every training image as the model received it (after augmentation)."""
+Environment: PAUSE_AT="STEP,MARKER_FILE[,WHERE[,RANK]]" pauses until this process is told to stop (SIGTERM,
+SIGINT) or 120 s, after writing MARKER_FILE: WHERE "train" (the default) after training step STEP, "val" in the
+validation after STEP after its first batch, "valend" at the end of that validation before its metrics are gathered
+across processes; with RANK, only that process pauses (the others run on, into the gathering).
+RECORD_IMAGES=PREFIX writes PREFIX<rank>.json: per epoch, a digest of every training image as the model received
+it (after augmentation)."""
 
 import hashlib
 import json
@@ -14,18 +18,32 @@ import lightning as L
 import torch
 
 from dapm_lightning.training.lightning_cli import run_lightning_cli
+from dapm_lightning.training.signals import sigterm_received
 
 
 class PauseAt(L.Callback):
-    def __init__(self, step: int, marker: str) -> None:
-        self.step, self.marker = step, Path(marker)
+    def __init__(self, step: int, marker: str, where: str = "train", rank: int | None = None) -> None:
+        self.step, self.marker, self.where, self.rank = step, Path(marker), where, rank
+
+    def pause(self, trainer, where):
+        if where != self.where or trainer.global_step != self.step or trainer.sanity_checking:
+            return
+        if self.rank is not None and trainer.global_rank != self.rank:
+            return
+        self.marker.write_text(str(trainer.global_step))
+        deadline, agreement = time.time() + 120, getattr(trainer.lightning_module, "sigterm", None)
+        while not sigterm_received(trainer, agreement) and time.time() < deadline:
+            time.sleep(0.05)
 
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
-        if trainer.global_step == self.step:
-            self.marker.write_text(str(trainer.global_step))
-            deadline = time.time() + 120
-            while not trainer.received_sigterm and time.time() < deadline:
-                time.sleep(0.05)
+        self.pause(trainer, "train")
+
+    def on_validation_batch_end(self, trainer, pl_module, outputs, batch, batch_idx, dataloader_idx=0):
+        if batch_idx == 0:
+            self.pause(trainer, "val")
+
+    def on_validation_epoch_end(self, trainer, pl_module):  # callbacks' hook runs before the module's metric sync
+        self.pause(trainer, "valend")
 
 
 class RecordImages(L.Callback):
@@ -50,8 +68,9 @@ if __name__ == "__main__":
         del args[i:i + 2]
     cli = run_lightning_cli(args, run=False)
     if os.environ.get("PAUSE_AT"):
-        step, marker = os.environ["PAUSE_AT"].split(",")
-        cli.trainer.callbacks.append(PauseAt(int(step), marker))
+        step, marker, *where = os.environ["PAUSE_AT"].split(",")
+        rank = int(where[1]) if len(where) > 1 else None
+        cli.trainer.callbacks.append(PauseAt(int(step), marker, where[0] if where else "train", rank))
     if os.environ.get("RECORD_IMAGES"):
         cli.trainer.callbacks.append(RecordImages(os.environ["RECORD_IMAGES"]))
     cli.trainer.fit(cli.model, datamodule=cli.datamodule, ckpt_path=ckpt)
