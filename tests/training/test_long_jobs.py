@@ -2,6 +2,7 @@
 
 import json
 import os
+import random
 import signal
 import subprocess
 import sys
@@ -9,6 +10,7 @@ import time
 from pathlib import Path
 
 import cv2
+import lightning as L
 import numpy as np
 import pytest
 import torch
@@ -18,6 +20,7 @@ from dapm_lightning.data import DatasetError, UAPDDataset
 from dapm_lightning.data.synthetic import generate_uapd
 from dapm_lightning.training.checkpointing import EXIT_SIGINT, EXIT_SIGTERM, SafeCheckpointIO
 from dapm_lightning.training.lightning_cli import run_lightning_cli
+from dapm_lightning.training.resume import resume_after_last_batch
 
 HERE = Path(__file__).resolve().parent
 QUICKSTART = HERE.parents[1] / "dapm_lightning" / "configs" / "quickstart.yaml"
@@ -35,23 +38,41 @@ def data8(tmp_path_factory):
     return generate_uapd(tmp_path_factory.mktemp("rel") / "d", train=8, val=2, size=(24, 32), seed=5, workers=1)
 
 
-def job_config(tmp_path, name):
-    """Callbacks of a resumable job: save on SIGTERM, a checkpoint every step (last.ckpt)."""
+VALIDATE = ["--trainer.limit_val_batches", "1.0", "--trainer.val_check_interval", "2",
+            "--data.init_args.eval_batch_size", "1"]
+"""Every resume test validates (every 2 steps; one image a batch, so that a SIGTERM can stop a validation midway):
+a resumed run must train as the uninterrupted one, which validated in between."""
+SCHEDULE = ["--model.optimizer.schedule_steps", "8"]  # no step depends on where a job stopped (docs/long_jobs.md)
+
+
+def job_config(tmp_path, name, every_step=True):
+    """Callbacks of a resumable job: save on SIGTERM, last.ckpt every step (or as the configs: at every validation
+    and when training ends)."""
     path = tmp_path / f"{name}.yaml"
+    last = {"dirpath": str(tmp_path / name), **({"every_n_train_steps": 1} if every_step else {})}
     path.write_text(yaml.safe_dump({"trainer": {"logger": False, "callbacks": [
         {"class_path": "dapm_lightning.training.checkpointing.CheckpointOnSigterm"},
-        {"class_path": "dapm_lightning.training.checkpointing.LastCheckpoint",
-         "init_args": {"dirpath": str(tmp_path / name), "every_n_train_steps": 1}}]}}))
+        {"class_path": "dapm_lightning.training.checkpointing.LastCheckpoint", "init_args": last}]}}))
     return ["--config", str(QUICKSTART), "--config", str(path)]
 
 
-def start(tmp_path, name, data, extra=(), pause=None):
-    env = dict(os.environ, PAUSE_AT=f"{pause},{tmp_path / (name + '.marker')}" if pause else "",
-               RECORD_IMAGES=str(tmp_path / f"{name}_images_rank"))
-    cmd = [sys.executable, str(HERE / "resume_run.py"), str(tmp_path / f"{name}.pt"), *job_config(tmp_path, name),
+def start(tmp_path, name, data, extra=(), pause=None, every_step=True):
+    """A run of resume_run.py in a process group of its own; ``pause``: a step, or "STEP,WHERE[,RANK]" (resume_run.py).
+    """
+    step, _, where = str(pause).partition(",")
+    marker = f"{step},{tmp_path / (name + '.marker')}" + (f",{where}" if where else "")
+    env = dict(os.environ, PAUSE_AT=marker if pause else "", RECORD_IMAGES=str(tmp_path / f"{name}_images_rank"))
+    cmd = [sys.executable, str(HERE / "resume_run.py"), str(tmp_path / f"{name}.pt"),
+           *job_config(tmp_path, name, every_step),
            "--data.class_path", "dapm_lightning.data.datamodules.UAPDDataModule", "--data.init_args.root", str(data),
-           *TINY, *extra]
-    return subprocess.Popen(cmd, cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+           *TINY, *VALIDATE, *extra]
+    return subprocess.Popen(cmd, cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            start_new_session=True)
+
+
+def terminate_job(process):
+    """SIGTERM to every process of the run, loader workers and DDP processes included, as SLURM sends it."""
+    os.killpg(process.pid, signal.SIGTERM)
 
 
 def finish(process, timeout=240):
@@ -74,35 +95,61 @@ def weights(path):
 
 @pytest.mark.slow
 def test_killed_and_terminated_runs_resume_to_the_uninterrupted_weights(data8, tmp_path):
-    code, out = finish(start(tmp_path, "straight", data8))
+    """One process, validating every 2 steps (4 batches an epoch): killed after step 3, terminated after step 5 (the
+    whole job, a persistent loader worker included, as SLURM does), interrupted by Ctrl-C after step 6 (stopped in
+    the validation that follows), terminated in the validation after step 4 (the end of epoch 0) and stopped by
+    max_steps after step 3 (last.ckpt written when training ends, as the configs do); each, resumed to step 8,
+    equals the uninterrupted run."""
+    code, out = finish(start(tmp_path, "straight", data8, extra=SCHEDULE))
     assert code == 0, out[-3000:]
     reference = weights(tmp_path / "straight.pt")
     assert reference["global_step"] == 8
 
-    killed = start(tmp_path, "killed", data8, pause=3)  # mid-epoch 0 (4 batches per epoch)
+    killed = start(tmp_path, "killed", data8, extra=SCHEDULE, pause=3)  # mid-epoch 0 (4 batches per epoch)
     wait_for(tmp_path / "killed.marker", killed)
     killed.send_signal(signal.SIGKILL)
     finish(killed)
     assert (tmp_path / "killed" / "last.ckpt").is_file()  # never half-written: the last complete step's
 
-    terminated = start(tmp_path, "termed", data8, pause=5)  # mid-epoch 1
+    workers = ["--data.init_args.num_workers", "1", "--data.init_args.persistent_workers", "true"]
+    terminated = start(tmp_path, "termed", data8, extra=[*SCHEDULE, *workers], pause=5)  # mid-epoch 1
     wait_for(tmp_path / "termed.marker", terminated)
-    terminated.send_signal(signal.SIGTERM)
+    terminate_job(terminated)  # the worker ignores it: the run saves and stops it, no DataLoader error
     code, out = finish(terminated)
     assert "Received SIGTERM" in out and (tmp_path / "termed" / "last.ckpt").is_file(), out[-2000:]
     assert code == EXIT_SIGTERM == 143, out[-2000:]  # pre-empted, not finished: a job script can requeue
     saved = torch.load(tmp_path / "termed" / "last.ckpt", weights_only=True)
     assert saved["global_step"] == 5
 
-    interrupted = start(tmp_path, "ctrl_c", data8, pause=6)  # Ctrl-C: saved like SIGTERM, status 130
+    interrupted = start(tmp_path, "ctrl_c", data8, extra=SCHEDULE, pause=6)  # Ctrl-C: saved like SIGTERM, status 130
     wait_for(tmp_path / "ctrl_c.marker", interrupted)
     interrupted.send_signal(signal.SIGINT)
     code, out = finish(interrupted)
     assert code == EXIT_SIGINT == 130 and "Received SIGINT (Ctrl-C)" in out, out[-2000:]
     assert torch.load(tmp_path / "ctrl_c" / "last.ckpt", weights_only=True)["global_step"] == 6
 
-    for name in ("killed", "termed", "ctrl_c"):
-        code, out = finish(start(tmp_path, name, data8, extra=["--ckpt_path", str(tmp_path / name / "last.ckpt")]))
+    in_validation = start(tmp_path, "termed_val", data8, extra=SCHEDULE, pause="4,val")  # after 1 of 2 val batches
+    wait_for(tmp_path / "termed_val.marker", in_validation)
+    in_validation.send_signal(signal.SIGTERM)
+    code, out = finish(in_validation)
+    assert code == EXIT_SIGTERM, out[-2000:]
+    saved = torch.load(tmp_path / "termed_val" / "last.ckpt", weights_only=True)
+    assert saved["global_step"] == 4
+    position = next(v for k, v in saved.items() if k.endswith("DataModule"))
+    assert position == {"epoch": 1, "samples_seen": 0}  # epoch 0 trained through: epoch 1 from its start
+
+    stopped = start(tmp_path, "stopped", data8, extra=[*SCHEDULE, "--trainer.max_steps", "3"], every_step=False)
+    code, out = finish(stopped)
+    assert code == 0, out[-3000:]
+    saved = torch.load(tmp_path / "stopped" / "last.ckpt", weights_only=True)
+    assert saved["global_step"] == 3  # written when training ended (the last validation's save was at step 2)
+    position = next(v for k, v in saved.items() if k.endswith("DataModule"))
+    assert position == {"epoch": 0, "samples_seen": 6}
+
+    for name in ("killed", "termed", "ctrl_c", "termed_val", "stopped"):
+        code, out = finish(start(tmp_path, name, data8, every_step=name != "stopped",
+                                 extra=[*SCHEDULE, *(workers if name == "termed" else []),
+                                        "--ckpt_path", str(tmp_path / name / "last.ckpt")]))
         assert code == 0, out[-3000:]
         resumed = weights(tmp_path / f"{name}.pt")
         assert resumed["global_step"] == 8
@@ -120,6 +167,105 @@ def test_two_seeded_runs_are_bit_identical(data8, tmp_path, monkeypatch):
                                  "--trainer.callbacks", "[]", "--trainer.enable_checkpointing", "false"])
         states.append({k: v.clone() for k, v in cli.model.state_dict().items()})
     assert all(torch.equal(states[0][k], states[1][k]) for k in states[0])
+
+
+def fit_in_process(tmp_path, name, data, max_steps, extra=(), ckpt=None):
+    """Fit in this process as a resumable job validating every 2 steps (last.ckpt as the configs write it: at every
+    validation and when training ends); returns the weights and the (step, epoch, first image) of every batch."""
+    seen = []
+
+    class Record(L.Callback):
+        def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+            seen.append((trainer.global_step, trainer.current_epoch, batch["name"][0]))
+
+    cli = run_lightning_cli([*job_config(tmp_path, name, every_step=False), "--data.class_path",
+                             "dapm_lightning.data.datamodules.UAPDDataModule", "--data.init_args.root", str(data),
+                             *TINY, *VALIDATE, *SCHEDULE, "--trainer.enable_model_summary", "false",
+                             "--trainer.max_steps", str(max_steps), *extra], run=False)
+    cli.trainer.callbacks.append(Record())
+    cli.trainer.fit(cli.model, datamodule=cli.datamodule, ckpt_path=ckpt)
+    return {k: v.clone() for k, v in cli.model.state_dict().items()}, seen
+
+
+def assert_resumes_exactly(tmp_path, data, stops, extra=()):
+    """Stopped by max_steps at each of ``stops`` and resumed from its last.ckpt to step 8: the batches and the
+    weights of the uninterrupted run."""
+    reference, order = fit_in_process(tmp_path, "straight", data, 8, extra)
+    for stop in stops:
+        fit_in_process(tmp_path, f"stop{stop}", data, stop, extra)
+        last = tmp_path / f"stop{stop}" / "last.ckpt"
+        assert torch.load(last, weights_only=True)["global_step"] == stop
+        resumed, seen = fit_in_process(tmp_path, f"stop{stop}", data, 8, extra, ckpt=str(last))
+        assert seen == [s for s in order if s[0] >= stop], f"stopped at {stop}: other batches"
+        differ = [k for k in reference if not torch.equal(reference[k], resumed[k])]
+        assert not differ, f"stopped at {stop}: {len(differ)} of {len(reference)} tensors differ"
+
+
+def test_stopped_by_max_steps_at_or_after_a_validation_resumes_exactly(data8, tmp_path, monkeypatch):
+    """The recipe of docs/long_jobs.md with validation: last.ckpt written by the validation at step 2, and when
+    training ended at step 3 (Lightning counts that epoch as done: it would resume in the next one)."""
+    monkeypatch.chdir(tmp_path)
+    assert_resumes_exactly(tmp_path, data8, stops=(2, 3))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("every", [2, 3])
+def test_stopped_by_max_steps_anywhere_resumes_exactly_with_persistent_workers(data8, tmp_path, monkeypatch, every):
+    """Every stop of two epochs: before, at and after a validation, at an epoch's end; with a persistent loader
+    worker (it draws its first batches before Lightning tells the sampler the epoch)."""
+    monkeypatch.chdir(tmp_path)
+    assert_resumes_exactly(tmp_path, data8, stops=range(1, 8), extra=[
+        "--trainer.val_check_interval", str(every), "--data.init_args.num_workers", "1",
+        "--data.init_args.persistent_workers", "true"])
+
+
+def test_validation_leaves_training_alone_even_when_it_draws_random_numbers(data8, tmp_path, monkeypatch):
+    """Training draws (dropout) the same numbers whether validations ran in between or not, whatever they draw: the
+    RNG states of training are put back after each validation, and a checkpoint written during one saves those."""
+    monkeypatch.chdir(tmp_path)
+    states = []
+    for validate in (False, True):
+        cli = run_lightning_cli(["--config", str(QUICKSTART), "--data.class_path",
+                                 "dapm_lightning.data.datamodules.UAPDDataModule", "--data.init_args.root", str(data8),
+                                 *TINY, "--trainer.max_steps", "4", "--trainer.logger", "false",
+                                 "--trainer.callbacks", "[]", "--trainer.enable_checkpointing", "false",
+                                 *(["--trainer.limit_val_batches", "1.0", "--trainer.val_check_interval", "1"]
+                                   if validate else [])], run=False)
+        model, real = cli.model, cli.model.validation_step
+
+        def drawing_validation_step(batch, batch_idx, real=real):
+            torch.rand(3), np.random.rand(3), random.random()  # a metric or callback that samples
+            return real(batch, batch_idx)
+
+        model.validation_step = drawing_validation_step
+        cli.trainer.fit(model, datamodule=cli.datamodule)
+        assert cli.trainer.global_step == 4
+        states.append({k: v.clone() for k, v in model.state_dict().items()})
+    assert model.net_config.dropout > 0  # training does draw random numbers
+    assert all(torch.equal(states[0][k], states[1][k]) for k in states[0])
+
+
+def test_closed_epoch_counters_become_those_after_the_last_batch():
+    """Lightning's counters when training ended by max_steps after 3 of 4 batches, rewritten to those of a save
+    right after batch 3; those of a save after a batch, and of an open epoch, stay as they are."""
+    def progress(**counts):
+        return {"total": dict(counts), "current": dict(counts)}
+
+    ended = {"epoch_progress": progress(ready=1, started=1, processed=1, completed=1),
+             "epoch_loop.batch_progress": {**progress(ready=3, started=3, processed=3, completed=3),
+                                           "is_last_batch": False},
+             "epoch_loop.state_dict": {"_batches_that_stepped": 3}}
+    assert resume_after_last_batch(ended)
+    assert ended == {"epoch_progress": progress(ready=1, started=1, processed=0, completed=0),
+                     "epoch_loop.batch_progress": {**progress(ready=3, started=3, processed=3, completed=2),
+                                                   "is_last_batch": False},
+                     "epoch_loop.state_dict": {"_batches_that_stepped": 2}}
+    assert not resume_after_last_batch(ended)  # now the state of a save after a batch: Lightning resumes it well
+    epoch_end = {"epoch_progress": progress(ready=1, started=1, processed=1, completed=0),  # on_train_epoch_end
+                 "epoch_loop.batch_progress": progress(ready=4, started=4, processed=4, completed=4)}
+    assert resume_after_last_batch(epoch_end)
+    assert epoch_end["epoch_progress"]["current"] == {"ready": 1, "started": 1, "processed": 0, "completed": 0}
+    assert epoch_end["epoch_loop.batch_progress"]["current"]["completed"] == 3
 
 
 def test_truncated_and_foreign_checkpoints_are_clear(checkpoint, tmp_path, tiny_uapd, monkeypatch):
@@ -200,8 +346,11 @@ def data16(tmp_path_factory):
 
 @pytest.mark.slow
 def test_two_process_ddp_resumes_mid_epoch_exactly(data16, tmp_path):
-    """2 processes, persistent workers, 4 steps per epoch: stopped by max_steps (step 6) and by SIGTERM (step 3),
-    each resumed from last.ckpt to step 10, equal the uninterrupted run bit for bit; Ctrl-C (step 3) saves too."""
+    """2 processes, persistent workers, 4 steps per epoch, validating every 2 steps: stopped by max_steps at step 6
+    (last.ckpt written by the validation there, as the configs do), by SIGTERM to rank 0 (step 3), and by SIGTERM to
+    the whole job while rank 1 gathers the metrics of the validation after step 4 and rank 0 has not started to (it
+    runs on to step 5: no collective in a signal handler), each resumed from last.ckpt to step 10, equal the
+    uninterrupted run bit for bit; Ctrl-C (step 3) saves too."""
     code, out = finish(start(tmp_path, "straight", data16, extra=DDP), timeout=400)
     assert code == 0, out[-3000:]
     reference = weights(tmp_path / "straight.pt")
@@ -214,7 +363,8 @@ def test_two_process_ddp_resumes_mid_epoch_exactly(data16, tmp_path):
     renewed = sum(seen["0"][name] != seen["1"][name] for name in seen["0"])
     assert renewed >= 12, f"{16 - renewed} of 16 images augmented identically in epochs 0 and 1"  # frozen: 0
 
-    code, out = finish(start(tmp_path, "stopped", data16, extra=[*DDP, "--trainer.max_steps", "6"]), timeout=400)
+    code, out = finish(start(tmp_path, "stopped", data16, extra=[*DDP, "--trainer.max_steps", "6"], every_step=False),
+                       timeout=400)
     assert code == 0, out[-3000:]
     assert torch.load(tmp_path / "stopped" / "last.ckpt", weights_only=True)["global_step"] == 6
 
@@ -235,8 +385,16 @@ def test_two_process_ddp_resumes_mid_epoch_exactly(data16, tmp_path):
     assert code == EXIT_SIGINT, out[-3000:]
     assert torch.load(tmp_path / "ctrl_c" / "last.ckpt", weights_only=True)["global_step"] == 3, out[-3000:]
 
-    for name in ("stopped", "termed"):
-        code, out = finish(start(tmp_path, name, data16,
+    between = start(tmp_path, "termed_valend", data16, extra=DDP, pause="4,valend,0")
+    wait_for(tmp_path / "termed_valend.marker", between)
+    terminate_job(between)
+    code, out = finish(between, timeout=400)
+    assert code == EXIT_SIGTERM, out[-3000:]
+    saved = torch.load(tmp_path / "termed_valend" / "last.ckpt", weights_only=True)
+    assert saved["global_step"] == 5, out[-3000:]  # the validation finished, then one more step on both
+
+    for name in ("stopped", "termed", "termed_valend"):
+        code, out = finish(start(tmp_path, name, data16, every_step=name != "stopped",
                                  extra=[*DDP, "--ckpt_path", str(tmp_path / name / "last.ckpt")]), timeout=400)
         assert code == 0, out[-3000:]
         resumed = weights(tmp_path / f"{name}.pt")
