@@ -244,6 +244,10 @@ class LastCheckpoint(ModelCheckpoint):
     ``last.ckpt`` every ``every_n_train_steps`` steps (or every ``every_n_epochs`` epochs, the default:
     each epoch) and once more when training ends, if the final step was not saved yet. Keep a
     ``ModelCheckpoint`` with a monitor (without ``save_last``) for the best model.
+
+    A step save that a validation follows is taken after that validation (and after the other callbacks
+    have seen it), so the checkpoint holds the validation's results and the best-model state: a run resumed
+    from it neither repeats nor skips that validation (from a save before it, Lightning would skip it).
     """
 
     def __init__(self, dirpath: str | Path | None = None, every_n_train_steps: int | None = None,
@@ -253,9 +257,30 @@ class LastCheckpoint(ModelCheckpoint):
                          enable_version_counter=False)
 
     def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
-        """Lightning's setup, and a safe, atomic checkpoint I/O on the trainer (:func:`enforce_safe_checkpoint_io`)."""
+        """Lightning's setup, and a safe, atomic checkpoint I/O on the trainer (:func:`enforce_safe_checkpoint_io`).
+
+        Moves itself behind every other callback: its saves come after theirs (a best-model checkpoint's state).
+        """
         enforce_safe_checkpoint_io(trainer)
         super().setup(trainer, pl_module, stage)
+        self._save_after_validation: int | None = None
+        if self in trainer.callbacks:
+            trainer.callbacks.remove(self)
+            trainer.callbacks.append(self)
+
+    def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any,
+                           batch_idx: int) -> None:
+        step_save = self._every_n_train_steps >= 1 and trainer.global_step % self._every_n_train_steps == 0
+        if step_save and _validation_follows(trainer):
+            self._save_after_validation = trainer.global_step
+            return
+        super().on_train_batch_end(trainer, pl_module, outputs, batch, batch_idx)
+
+    def on_validation_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        super().on_validation_end(trainer, pl_module)
+        if self._save_after_validation == trainer.global_step and not self._should_skip_saving_checkpoint(trainer):
+            self._save_topk_checkpoint(trainer, self._monitor_candidates(trainer))
+        self._save_after_validation = None
 
     def on_train_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         super().on_train_end(trainer, pl_module)
@@ -265,6 +290,15 @@ class LastCheckpoint(ModelCheckpoint):
             self.best_model_path = self.format_checkpoint_name({})
             trainer.save_checkpoint(self.best_model_path)
             self._last_global_step_saved = trainer.global_step
+
+
+def _validation_follows(trainer: L.Trainer) -> bool:
+    """Whether Lightning validates right after the current training batch (asked in ``on_train_batch_end``)."""
+    loop = trainer.fit_loop.epoch_loop
+    try:
+        return bool(loop._should_check_val_fx(trainer.fit_loop._data_fetcher))  # type: ignore[arg-type]
+    except (AttributeError, TypeError):  # another Lightning version: save before the validation, as Lightning does
+        return False
 
 
 def best_or_last_checkpoint(trainer: L.Trainer) -> str:
