@@ -264,9 +264,10 @@ class LastCheckpoint(ModelCheckpoint):
         enforce_safe_checkpoint_io(trainer)
         super().setup(trainer, pl_module, stage)
         self._save_after_validation: int | None = None
-        if self in trainer.callbacks:
-            trainer.callbacks.remove(self)
-            trainer.callbacks.append(self)
+        callbacks: list[L.Callback] = trainer.callbacks  # type: ignore[attr-defined]
+        if self in callbacks:
+            callbacks.remove(self)
+            callbacks.append(self)
 
     def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any,
                            batch_idx: int) -> None:

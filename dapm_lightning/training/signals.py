@@ -24,7 +24,7 @@ import lightning as L
 import torch
 import torch.distributed as dist
 from lightning.pytorch.utilities.exceptions import SIGTERMException
-from lightning.pytorch.utilities.rank_zero import rank_prefixed_message
+from lightning_utilities.core.rank_zero import rank_prefixed_message
 
 log = logging.getLogger("lightning.pytorch.trainer.connectors.signal_connector")
 

@@ -443,7 +443,8 @@ def test_sigkill_during_a_save_on_another_filesystem_keeps_last_and_the_requeued
         env = dict(os.environ, PYTHONPATH=str(REPO), TMPDIR=str(tmp_path / "tmpdir"))
         command = [sys.executable, "-m", "dapm_lightning", "fit", "--config", str(QUICKSTART), "--config",
                    str(tmp_path / "job.yaml"), *UAPD, "--data.init_args.root", str(data),
-                   "--trainer.limit_val_batches", "0", "--trainer.default_root_dir", str(tmp_path / "run")]
+                   "--trainer.limit_val_batches", "1", "--trainer.val_check_interval", "2",  # validating, as jobs do
+                   "--trainer.check_val_every_n_epoch", "null", "--trainer.default_root_dir", str(tmp_path / "run")]
         job = subprocess.Popen([*command, "--trainer.max_steps", "40"], cwd=tmp_path, env=env,
                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         deadline, complete = time.time() + 240, 0

@@ -151,3 +151,41 @@ def test_quickstart_resumes_from_the_latest_state_when_validation_stopped_improv
     resumed = run_lightning_cli(["fit", *common, "--trainer.max_epochs", "4", "--ckpt_path", "last"])
     assert Path(resumed.trainer.ckpt_path).resolve() == last.resolve() and resumed.trainer.global_step == 8
     assert resumed.trainer.log_dir != first.trainer.log_dir
+
+
+class Validated(Linear):
+    """Logs ``val_loss`` = 10 / (validation number) and records the step of every validation."""
+
+    def __init__(self):
+        super().__init__()
+        self.validated_at = []
+
+    def validation_step(self, batch, batch_idx):
+        self.log("val_loss", 10.0 / (len(self.validated_at) + 1))
+
+    def on_validation_end(self):
+        self.validated_at.append(self.global_step)
+
+
+def test_a_step_save_that_a_validation_follows_holds_that_validation(tmp_path):
+    """last.ckpt at step 2, where a validation runs: written after it (and after the best-model checkpoint, although
+    listed first), so it holds that validation's best score, and the resumed run neither repeats nor skips it."""
+    data = torch.utils.data.TensorDataset(torch.randn(8, 2))
+    loader = torch.utils.data.DataLoader(data, batch_size=2)
+
+    def fit(max_steps, ckpt_path=None):
+        model = Validated()
+        callbacks = [LastCheckpoint(dirpath=tmp_path, every_n_train_steps=1),
+                     L.pytorch.callbacks.ModelCheckpoint(dirpath=tmp_path, monitor="val_loss", filename="best")]
+        trainer = L.Trainer(max_steps=max_steps, val_check_interval=2, check_val_every_n_epoch=None, logger=False,
+                            enable_progress_bar=False, enable_model_summary=False, num_sanity_val_steps=0,
+                            callbacks=callbacks)
+        trainer.fit(model, loader, loader, ckpt_path=ckpt_path)
+        return model
+
+    assert fit(2).validated_at == [2]
+    saved = torch.load(tmp_path / "last.ckpt", weights_only=True)
+    assert saved["global_step"] == 2
+    best = next(state for name, state in saved["callbacks"].items() if name.startswith("ModelCheckpoint"))
+    assert float(best["best_model_score"]) == 10.0  # the validation of step 2, run before the save
+    assert fit(6, ckpt_path=str(tmp_path / "last.ckpt")).validated_at == [4, 6]  # step 2 not repeated
