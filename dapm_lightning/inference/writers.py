@@ -29,6 +29,7 @@ import cv2
 import lightning as L
 import numpy as np
 import torch
+import torch.distributed as dist
 from lightning.pytorch.callbacks import BasePredictionWriter
 from lightning.pytorch.utilities import rank_zero_info
 
@@ -281,6 +282,22 @@ class PredictionFiles:
             raise raised from error
         return summary_line(self.images, [k for k in self.outputs if k in self.kinds], self.output_dir, extra)
 
+    def gather_to_first_process(self, is_first: bool) -> None:
+        """Under ``torch.distributed``: the poses rows, contact-sheet rows, image count and kinds of every process
+        gathered into the first one's (whose :meth:`finish` then writes the one table and sheet); the others keep none.
+        """
+        if not (dist.is_available() and dist.is_initialized()) or dist.get_world_size() == 1:
+            return
+        parts: list[Any] = [None] * dist.get_world_size()
+        dist.all_gather_object(parts, (self.rows, self.contact_rows, self.images, sorted(self.kinds)))
+        if is_first:
+            self.rows = [row for part in parts for row in part[0]]
+            self.contact_rows = [row for part in parts for row in part[1]][:self.contact_images]
+            self.images = sum(part[2] for part in parts)
+            self.kinds = {kind for part in parts for kind in part[3]}
+        else:
+            self.rows, self.contact_rows = [], []
+
     def close(self) -> None:
         """The end of a run, done or failed: the folders this run created go again if nothing was written there."""
         remove_empty_folders(self.created)
@@ -308,7 +325,8 @@ class PredictionWriter(BasePredictionWriter):
         compile: torch.compile the network before the first batch (each new input size compiles
             again: worth it for long runs of one size, e.g. a video).
 
-    Under DDP every process writes its own images and poses_rank<k>.{csv,json}.
+    Under DDP every process writes the files of its own images; the first process writes the one poses table
+    and contact sheet of all (every image exactly once) and the summary line.
     """
 
     OPTION = "--trainer.callbacks.output_dir"
@@ -348,13 +366,13 @@ class PredictionWriter(BasePredictionWriter):
             self.files.add(result)
 
     def on_predict_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        suffix = f"_rank{trainer.global_rank}" if trainer.world_size > 1 else ""
-        message = self.files.finish(suffix)
+        """The run's tables and sheet: under DDP every process's rows gathered, written once by the first process."""
+        self.files.gather_to_first_process(trainer.is_global_zero)
+        message = self.files.finish()
         self.files.close()
         if trainer.world_size > 1:
-            print(f"{message} (process {trainer.global_rank} of {trainer.world_size})", flush=True)
-        else:
-            rank_zero_info(message)
+            message += f" ({trainer.world_size} processes)"
+        rank_zero_info(message)
 
     def on_exception(self, trainer: L.Trainer, pl_module: L.LightningModule, exception: BaseException) -> None:
         self.files.close()  # a run that failed before writing anything leaves no folder
