@@ -283,8 +283,9 @@ class PredictionFiles:
         return summary_line(self.images, [k for k in self.outputs if k in self.kinds], self.output_dir, extra)
 
     def gather_to_first_process(self, is_first: bool) -> None:
-        """Under ``torch.distributed``: the poses rows, contact-sheet rows, image count and kinds of every process
-        gathered into the first one's (whose :meth:`finish` then writes the one table and sheet); the others keep none.
+        """Under ``torch.distributed``, gather every process's rows, sheet rows, image count and kinds into the first.
+
+        The first process's :meth:`finish` then writes the one poses table and contact sheet; the others keep none.
         """
         if not (dist.is_available() and dist.is_initialized()) or dist.get_world_size() == 1:
             return
