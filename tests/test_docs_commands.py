@@ -23,7 +23,7 @@ PLACEHOLDERS = {"/data/UAPD": "DATA", "/data/Potsdam": "DATA", "PATH": "CKPT", "
 
 
 def documented_commands() -> list[tuple[str, list[str]]]:
-    """``(where, argv)`` of every documented fit/validate/test command (``--help`` ones and ``...`` elisions left out)."""
+    """``(where, argv)`` of each documented fit/validate/test command (not ``--help`` ones, nor ``...`` elisions)."""
     found = []
     for document in DOCUMENTS:
         lines = document.read_text(encoding="utf-8").splitlines()
