@@ -338,4 +338,7 @@ def doctor_main(argv: Sequence[str]) -> int:
     """Entry point of ``dapm-lightning doctor``; returns the exit status."""
     from jsonargparse import auto_cli
 
-    return int(auto_cli(doctor, args=list(argv), prog="dapm-lightning doctor", description=__doc__))
+    from dapm_lightning.tools.argv import list_options
+
+    return int(auto_cli(doctor, args=list_options(argv, ["--splits"]), prog="dapm-lightning doctor",
+                        description=__doc__))

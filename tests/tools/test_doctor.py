@@ -1,4 +1,5 @@
 import json
+import re
 import shutil
 from collections import Counter
 
@@ -12,6 +13,7 @@ from dapm_lightning.data import parse_uapd_filename
 from dapm_lightning.data.synthetic import FAMILIES, generate_uapd, render_sample
 from dapm_lightning.data.uapd import read_depth_grey
 from dapm_lightning.geometry import POSE_RANGES
+from dapm_lightning.tools.argv import list_options
 from dapm_lightning.tools.doctor import check_sample, doctor_main
 from tests.conftest import QUICKSTART
 from tests.data.test_bad_files import damage
@@ -210,3 +212,21 @@ def test_every_unreadable_file_is_listed_rgb_and_depth_alike(synthetic, tmp_path
     for error in train["errors"]:
         assert f"ERROR   {error}" in out
     assert "3 problem(s)" in out and "no problems found" not in out
+
+
+def test_splits_as_users_type_them(synthetic, capsys):
+    """`--splits val`, `--splits train val`, `--splits train,val`, `--splits=val` all work, as `[val]` does."""
+    for argv, checked in ((["--splits", "val"], ["val"]), (["--splits", "train", "val"], ["train", "val"]),
+                          (["--splits", "train,val"], ["train", "val"]), (["--splits=val"], ["val"]),
+                          (["--splits", "[val]"], ["val"]), (["--splits+", "val"], ["val"])):
+        assert doctor_main([str(synthetic), *argv]) in (0, 1), argv
+        said = capsys.readouterr().out
+        assert re.findall(r"^== (\w+):", said, re.MULTILINE) == checked, (argv, said[-500:])
+
+
+def test_list_options_rewrites_only_plain_lists():
+    assert list_options(["R", "--splits", "a", "b", "--json", "x"], ["--splits"]) == ["R", "--splits=[a,b]", "--json",
+                                                                                       "x"]
+    assert list_options(["--splits=a,b"], ["--splits"]) == ["--splits=[a,b]"]
+    assert list_options(["--splits", "[a]", "--other", "c"], ["--splits"]) == ["--splits", "[a]", "--other", "c"]
+    assert list_options(["--splits+", "a", "--other", "a,b"], ["--splits"]) == ["--splits+", "a", "--other", "a,b"]
