@@ -17,8 +17,6 @@ import sys
 from collections.abc import Callable, Sequence
 from typing import Any, TextIO
 
-from dapm_lightning.data.errors import DatasetError
-
 DEBUG_FLAG = "--debug"
 DEBUG_ENV = "DAPM_DEBUG"
 EXIT_ERROR = 1
@@ -45,10 +43,20 @@ def _unwrap(error: BaseException) -> tuple[str, str]:
     return type(error).__name__, message
 
 
+def _is_dataset_error(error: BaseException, name: str) -> bool:
+    """A :class:`~dapm_lightning.data.errors.DatasetError` (or one re-raised by a loader worker, by its name).
+
+    Looked up where it was raised, so that this module (imported by every command) imports no data code: the
+    top-level ``--help`` stays instant.
+    """
+    errors = sys.modules.get("dapm_lightning.data.errors")
+    return name == "DatasetError" or (errors is not None and isinstance(error, errors.DatasetError))
+
+
 def describe(error: BaseException) -> tuple[str, bool]:
     """``(message, expected)`` for an exception: ``expected`` is False for what looks like a bug."""
     name, message = _unwrap(error)
-    if isinstance(error, DatasetError) or name == "DatasetError":
+    if _is_dataset_error(error, name):
         fix = ("Fix: correct or remove the files listed (`dapm-lightning doctor ROOT` reports on a whole data "
                "set), or leave them out with --data.init_args.on_bad_file skip.")
         return f"{message}\n{fix}", True
@@ -60,7 +68,7 @@ def describe(error: BaseException) -> tuple[str, bool]:
     if "not a readable checkpoint" in message:
         return (f"{message}\nFix: copy the checkpoint again (a file cut short by a full disk or an interrupted "
                 "transfer cannot be read) or pick another one, e.g. the run's last.ckpt."), True
-    if isinstance(error, (ValueError, KeyError)) or name in ("ValueError", "DatasetError"):
+    if isinstance(error, (ValueError, KeyError)) or name == "ValueError":
         return message, True
     if isinstance(error, (RuntimeError, ImportError, OSError)) or name == "MisconfigurationException":
         return f"{name}: {message}", True  # Lightning's MisconfigurationException: settings it refuses

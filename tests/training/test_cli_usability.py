@@ -1,6 +1,8 @@
 """The command line's user errors and defaults: foreign checkpoints, unknown options, unknown backbones,
 no logger, GPU configs on a CPU machine, logs under default_root_dir."""
 
+import subprocess
+import sys
 from pathlib import Path
 
 import lightning as L
@@ -169,3 +171,12 @@ def test_quickstart_logs_and_checkpoints_follow_default_root_dir(tiny_uapd, tmp_
                                   "--trainer.default_root_dir", str(root), "--trainer.logger+=CSVLogger",
                                   "--trainer.logger.save_dir", str(tmp_path / "elsewhere")], run=False)
     assert Path(explicit.trainer.loggers[-1].save_dir) == tmp_path / "elsewhere"  # an explicit save_dir is kept
+
+
+def test_the_top_level_help_imports_no_torch():
+    """`dapm-lightning --help` answers at once: nothing heavy is imported for it (PyTorch alone takes seconds)."""
+    code = ("import sys; from dapm_lightning.cli import main; main(['--help']); "
+            "heavy = [m for m in ('torch', 'lightning', 'cv2') if m in sys.modules]; assert not heavy, heavy")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert "subcommands:" in result.stdout
