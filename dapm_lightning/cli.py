@@ -34,6 +34,14 @@ def usage() -> str:
     return "\n".join(lines)
 
 
+def closest_subcommand(word: str) -> str:
+    """``"; did you mean 'predict'?"`` for a mistyped subcommand, or "" when none is close."""
+    import difflib
+
+    close = difflib.get_close_matches(word, [*LIGHTNING_SUBCOMMANDS, *TOOLS], n=1, cutoff=0.6)
+    return f"; did you mean {close[0]!r}?" if close else ""
+
+
 def packaged_configs(args: Sequence[str]) -> list[str]:
     """``--config configs/NAME.yaml`` that is not there reads the package's own config of that name.
 
@@ -74,7 +82,7 @@ def main(argv: Sequence[str] | None = None) -> None:
             raise SystemExit(result)
         return
     if args[0] not in LIGHTNING_SUBCOMMANDS and not args[0].startswith("-"):
-        print(f"error: unknown subcommand {args[0]!r}\n\n{usage()}", file=sys.stderr)
+        print(f"error: unknown subcommand {args[0]!r}{closest_subcommand(args[0])}\n\n{usage()}", file=sys.stderr)
         raise SystemExit(2)
     if args[0] == "predict":
         from dapm_lightning.tools.predict import is_lightning_form, predict_main

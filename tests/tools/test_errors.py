@@ -95,6 +95,13 @@ def test_unknown_subcommand(capsys):
         main(["trian"])
     err = capsys.readouterr().err
     assert info.value.code == 2 and "unknown subcommand 'trian'" in err and "fit" in err
+    for typed, meant in (("predikt", "predict"), ("tset", "test"), ("exprt", "export"), ("docter", "doctor")):
+        with pytest.raises(SystemExit):
+            main([typed])
+        assert f"unknown subcommand '{typed}'; did you mean '{meant}'?" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["zzz"])
+    assert "did you mean" not in capsys.readouterr().err
 
 
 @pytest.mark.slow
