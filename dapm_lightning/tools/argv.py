@@ -1,7 +1,8 @@
-"""Command-line list options as users type them: ``--splits train val``, ``--splits train,val``, ``--splits=train``.
+"""Options as users type them, for the ``jsonargparse`` commands: lists and boolean flags.
 
-``jsonargparse`` reads a list option only as ``[train,val]`` (or one value per ``--splits+``); these forms are
-rewritten to it before parsing.
+``jsonargparse`` reads a list option only as ``[train,val]`` (or one value per ``--splits+``), and a boolean only
+with its value (``--quiet true``); ``--splits train val``, ``--splits train,val``, ``--splits=train``, ``--quiet``
+and ``--no_quiet`` are rewritten to those forms before parsing.
 """
 
 from __future__ import annotations
@@ -37,4 +38,23 @@ def list_options(argv: Sequence[str], names: Iterable[str]) -> list[str]:
     return result
 
 
-__all__ = ["list_options"]
+def flag_options(argv: Sequence[str], names: Iterable[str]) -> list[str]:
+    """``argv`` with each boolean of ``names`` given bare (``--quiet``, ``--no_quiet``) as ``--quiet=true|false``.
+
+    ``--quiet true`` / ``--quiet=false`` pass through unchanged.
+    """
+    names = set(names)
+    values = ("true", "false", "yes", "no", "1", "0", "on", "off")
+    result: list[str] = []
+    for k, word in enumerate(argv):
+        following = argv[k + 1].lower() if k + 1 < len(argv) else ""
+        if word in names and following not in values:
+            result.append(f"{word}=true")
+        elif word.startswith("--no_") and f"--{word[5:]}" in names:
+            result.append(f"--{word[5:]}=false")
+        else:
+            result.append(word)
+    return result
+
+
+__all__ = ["flag_options", "list_options"]

@@ -31,6 +31,7 @@ from dapm_lightning.data.uapd import UAPDDataset, read_depth_grey, read_rgb
 from dapm_lightning.geometry.constants import MAX_DEPTH_M, POSE_KEYS, POSE_RANGES, SKY_GREY
 from dapm_lightning.geometry.depth_codec import depth_to_grey, grey_to_depth
 from dapm_lightning.geometry.igd import DepthKind, ideal_ground_depth
+from dapm_lightning.tools.progress import progress_bar
 
 EXIT_CLEAN, EXIT_PROBLEMS, EXIT_NOT_A_DATA_SET = 0, 1, 2
 """Exit statuses: no problem; a broken file or a flagged sample; ROOT (or a split asked for) is not a data set."""
@@ -204,8 +205,8 @@ def one_torch_thread() -> Iterator[None]:
         torch.set_num_threads(threads)
 
 
-def diagnose_split(root: Path, split: str, depth_kind: DepthKind) -> dict[str, Any]:
-    """The report of one split."""
+def diagnose_split(root: Path, split: str, depth_kind: DepthKind, quiet: bool = True) -> dict[str, Any]:
+    """The report of one split (with a progress bar on a terminal unless ``quiet``)."""
     try:
         dataset = UAPDDataset(root, split, on_bad_file="skip")
     except DatasetError as error:
@@ -223,8 +224,9 @@ def diagnose_split(root: Path, split: str, depth_kind: DepthKind) -> dict[str, A
     containers = dict(zip(dataset.names, dataset.depth_containers))
     sky_fractions, agreements, ratios, flagged, unchecked = [], [], [], [], []
     depth_min, depth_max = math.inf, 0.0
-    with one_torch_thread():
+    with one_torch_thread(), progress_bar(len(dataset.names), f"checking {split}", quiet=quiet) as bar:
         for index, name in enumerate(dataset.names):
+            bar.update()
             grey = None
             try:  # both files are decoded: every one that fails is listed (the scan checks structure and CRCs only)
                 grey = read_depth_grey(root / split / dataset.depth_dir / name)
@@ -291,7 +293,7 @@ def format_report(reports: list[dict[str, Any]]) -> str:
 
 
 def doctor(root: Path, splits: list[str] | None = None, depth_kind: DepthKind = "range",
-           json: Path | None = None) -> int:
+           json: Path | None = None, quiet: bool = False) -> int:
     """Check a UAPD-format data set (ROOT/SPLIT/rgb, ROOT/SPLIT/depth) and print a report per split.
 
     Args:
@@ -300,6 +302,7 @@ def doctor(root: Path, splits: list[str] | None = None, depth_kind: DepthKind = 
         depth_kind: what the depth maps hold: range (lens to point) or planar (along the optical axis;
             CARLA's depth camera).
         json: also write the report as JSON to this file (nothing is written otherwise).
+        quiet: no progress bar (there is none off a terminal).
 
     Returns:
         the exit status: 0 clean, 1 a broken file or a flagged sample, 2 no data set at ROOT (ROOT is not a
@@ -322,7 +325,7 @@ def doctor(root: Path, splits: list[str] | None = None, depth_kind: DepthKind = 
     if problem is not None:
         print(f"error: {problem}", file=sys.stderr)
         return EXIT_NOT_A_DATA_SET
-    reports = [diagnose_split(root, split, depth_kind) for split in splits]
+    reports = [diagnose_split(root, split, depth_kind, quiet) for split in splits]
     print(format_report(reports))
     bad = sum(len(r["errors"]) + len(r["flagged"]) for r in reports)
     where = ""
@@ -338,7 +341,7 @@ def doctor_main(argv: Sequence[str]) -> int:
     """Entry point of ``dapm-lightning doctor``; returns the exit status."""
     from jsonargparse import auto_cli
 
-    from dapm_lightning.tools.argv import list_options
+    from dapm_lightning.tools.argv import flag_options, list_options
 
-    return int(auto_cli(doctor, args=list_options(argv, ["--splits"]), prog="dapm-lightning doctor",
-                        description=__doc__))
+    args = flag_options(list_options(argv, ["--splits"]), ["--quiet"])
+    return int(auto_cli(doctor, args=args, prog="dapm-lightning doctor", description=__doc__))

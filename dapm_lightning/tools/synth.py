@@ -10,6 +10,7 @@ from pathlib import Path
 
 from dapm_lightning.data.synthetic import FAMILIES, generate_uapd, normalize_families, shard_range
 from dapm_lightning.geometry.constants import MAX_DEPTH_M
+from dapm_lightning.tools.progress import progress_bar
 
 
 def parse_shard(text: str) -> tuple[int, int]:
@@ -58,6 +59,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--max_depth", type=float, default=MAX_DEPTH_M, metavar="M",
                         help=f"depth limit of the log encoding, grey 255 (default {MAX_DEPTH_M:g}, UAPD's); train "
                              "with the same model.net.igd.max_depth and data.init_args.max_depth")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar (there is none off a terminal)")
     parser.add_argument("--no-effects", dest="effects", action="store_false",
                         help="no camera processing (exposure, white balance, blur, noise, JPEG artefacts)")
     return parser
@@ -77,9 +79,10 @@ def synth_main(argv: Sequence[str]) -> None:
     part = shard_range(args.train + args.val, args.shard)
     start = time.perf_counter()
     try:
-        out = generate_uapd(args.out, train=args.train, val=args.val, size=size, seed=args.seed,
-                            workers=args.workers, families=args.families, effects=args.effects, shard=args.shard,
-                            distortion=args.distortion, max_depth=args.max_depth)
+        with progress_bar(len(part), "rendering", quiet=args.quiet) as bar:
+            out = generate_uapd(args.out, train=args.train, val=args.val, size=size, seed=args.seed,
+                                workers=args.workers, families=args.families, effects=args.effects, shard=args.shard,
+                                distortion=args.distortion, max_depth=args.max_depth, progress=bar.update)
     except ValueError as error:
         parser.error(str(error))
     seconds = time.perf_counter() - start

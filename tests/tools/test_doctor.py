@@ -13,7 +13,7 @@ from dapm_lightning.data import parse_uapd_filename
 from dapm_lightning.data.synthetic import FAMILIES, generate_uapd, render_sample
 from dapm_lightning.data.uapd import read_depth_grey
 from dapm_lightning.geometry import POSE_RANGES
-from dapm_lightning.tools.argv import list_options
+from dapm_lightning.tools.argv import flag_options, list_options
 from dapm_lightning.tools.doctor import check_sample, doctor_main
 from tests.conftest import QUICKSTART
 from tests.data.test_bad_files import damage
@@ -230,3 +230,11 @@ def test_list_options_rewrites_only_plain_lists():
     assert list_options(["--splits=a,b"], ["--splits"]) == ["--splits=[a,b]"]
     assert list_options(["--splits", "[a]", "--other", "c"], ["--splits"]) == ["--splits", "[a]", "--other", "c"]
     assert list_options(["--splits+", "a", "--other", "a,b"], ["--splits"]) == ["--splits+", "a", "--other", "a,b"]
+
+
+def test_flag_options_take_bare_booleans():
+    assert flag_options(["R", "--quiet"], ["--quiet"]) == ["R", "--quiet=true"]
+    assert flag_options(["--quiet", "--json", "x"], ["--quiet"]) == ["--quiet=true", "--json", "x"]
+    assert flag_options(["--quiet", "false"], ["--quiet"]) == ["--quiet", "false"]
+    assert flag_options(["--no_quiet", "--other"], ["--quiet"]) == ["--quiet=false", "--other"]
+    assert flag_options(["--no_other"], ["--quiet"]) == ["--no_other"]

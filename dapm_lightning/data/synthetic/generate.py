@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import multiprocessing
 import os
+from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -115,7 +116,7 @@ def shard_range(count: int, shard: tuple[int, int]) -> range:
 def generate_uapd(out: str | Path, *, train: int = 200, val: int = 50, size: int | tuple[int, int] = 128,
                   seed: int = 0, workers: int | None = None, families: dict[str, float] | str | None = None,
                   effects: bool = True, shard: tuple[int, int] = (0, 1), distortion: bool = False,
-                  max_depth: float = MAX_DEPTH_M) -> Path:
+                  max_depth: float = MAX_DEPTH_M, progress: Callable[[int], object] | None = None) -> Path:
     """Write a synthetic UAPD-format data set ``out/{train,val}/{rgb,depth}/NAME.png``.
 
     Args:
@@ -132,6 +133,7 @@ def generate_uapd(out: str | Path, *, train: int = 200, val: int = 50, size: int
         shard: ``(k, n)``: render only the k-th (0-based) of n contiguous parts of the image list, for
             array jobs; the union of all shards is byte-identical to one run.
         max_depth: the depth limit of the log encoding (grey 255); the model's ``igd.max_depth`` must match.
+        progress: called with the number of images rendered since its last call (a progress bar's ``update``).
 
     Returns:
         ``out``; it also holds ``synth.json`` with the settings (:func:`settings`). A folder holding a
@@ -164,7 +166,9 @@ def generate_uapd(out: str | Path, *, train: int = 200, val: int = 50, size: int
         os.environ.update({k: "1" for k in _THREAD_VARS})  # one thread per worker process: no oversubscription
         try:
             with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
-                list(pool.map(_render_one, jobs, chunksize=max(1, min(16, len(jobs) // (workers * 4)))))
+                for _ in pool.map(_render_one, jobs, chunksize=max(1, min(16, len(jobs) // (workers * 4)))):
+                    if progress is not None:
+                        progress(1)
         finally:
             for key, value in saved.items():
                 if value is None:
@@ -174,6 +178,8 @@ def generate_uapd(out: str | Path, *, train: int = 200, val: int = 50, size: int
     else:
         for job in jobs:
             _render_one(job)
+            if progress is not None:
+                progress(1)
     # last, so that a crashed run is not "current"; atomically, as shards of an array job finish side by side
     partial = out / f".synth.json.{os.getpid()}"
     partial.write_text(json.dumps(info, indent=2) + "\n")
