@@ -40,8 +40,10 @@ _SCOPE = re.compile(r"(?:^|/)(net(?:\.[\w]+)*): ")
 
 @dataclass(frozen=True)
 class Render:
-    """One synthetic render: ``image [1, 3, H, W]`` float32 in [0, 1], ``depth_m [1, 1, H, W]`` (the depth
-    limit where the render is sky, as the data sets store it), ``pose [4]`` (height m, pitch, roll, fov deg).
+    """One synthetic render.
+
+    ``image [1, 3, H, W]`` float32 in [0, 1], ``depth_m [1, 1, H, W]`` (the depth limit where the render is sky,
+    as the data sets store it), ``pose [4]`` (height m, pitch, roll, fov deg).
     """
 
     image: np.ndarray
@@ -74,8 +76,10 @@ def synthetic_calibration(size: tuple[int, int], count: int, seed: int = CALIBRA
 
 def calibration_images(train_size: tuple[int, int], export_size: tuple[int, int], *, at_train: int = 64,
                        at_export: int = 16) -> list[np.ndarray]:
-    """The calibration set: ``at_train`` renders at the checkpoint's training size (the activation ranges it
-    learnt), and ``at_export`` more at the export size when that differs (those of larger inputs).
+    """The calibration set: renders at the training size, and some at the export size.
+
+    ``at_train`` at the checkpoint's training size (the activation ranges it learnt), and ``at_export`` more at the
+    export size when that differs (those of larger inputs).
     """
     images = synthetic_calibration(train_size, at_train)
     if tuple(export_size) != tuple(train_size):
