@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import statistics
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -51,6 +51,7 @@ class Int8Verdict:
     images: int
     float32: Scores
     int8: Scores
+    threads: int | None = None
 
     @property
     def d1_change(self) -> float | None:
@@ -97,7 +98,8 @@ class Int8Verdict:
             out.append(f"  {key} median {self.float32.pose_median[key]:.2f} -> {self.int8.pose_median[key]:.2f} "
                        f"{POSE_UNITS[key]} ({growth:+.2f}; allowed +{POSE_TOLERANCE})")
         out.append(f"  speed: {self.float32.median_ms:.1f} ms -> {self.int8.median_ms:.1f} ms per image "
-                   f"({self.speedup:.2f}x float32, batch 1)")
+                   f"({self.speedup:.2f}x float32, batch 1, "
+                   f"{self.threads or 'default'} thread{'s' if self.threads != 1 else ''})")
         out.append("  verdict: PASS" if self.passed else "  verdict: FAIL: " + "; ".join(self.failures))
         return out
 
@@ -143,24 +145,33 @@ def score(outputs: Sequence[dict[str, np.ndarray]], renders: Sequence[Render]) -
     return d1, {k: medians[f"{k}_median"] for k in POSE_KEYS if f"{k}_median" in medians}
 
 
-def compare_sessions(sessions: dict[str, Any], renders: Sequence[Render]) -> dict[str, Scores]:
-    """Every session on every render, alternating per image after one warm-up pass each: their scores."""
-    outputs: dict[str, list[dict[str, np.ndarray]]] = {name: [] for name in sessions}
-    seconds: dict[str, list[float]] = {name: [] for name in sessions}
-    for session in sessions.values():
-        run_session(session, renders[0].image)
+Runner = Callable[[np.ndarray], dict[str, np.ndarray]]
+"""One forward pass: ``[1, 3, H, W]`` float32 image -> outputs by name (``depth_m``, ``pose``, ...)."""
+
+
+def compare_runners(runners: dict[str, Runner], renders: Sequence[Render]) -> dict[str, Scores]:
+    """Every runner on every render, alternating per image after one warm-up pass each: their scores."""
+    outputs: dict[str, list[dict[str, np.ndarray]]] = {name: [] for name in runners}
+    seconds: dict[str, list[float]] = {name: [] for name in runners}
+    for run in runners.values():
+        run(renders[0].image)
     for render in renders:
-        for name, session in sessions.items():
+        for name, run in runners.items():
             start = time.perf_counter()
-            outputs[name].append(run_session(session, render.image))
+            outputs[name].append(run(render.image))
             seconds[name].append(time.perf_counter() - start)
-    return {name: Scores(*score(outputs[name], renders), seconds=seconds[name]) for name in sessions}
+    return {name: Scores(*score(outputs[name], renders), seconds=seconds[name]) for name in runners}
+
+
+def session_runner(session: Any) -> Runner:
+    """:func:`run_session` of ``session``."""
+    return lambda image: run_session(session, image)
 
 
 def compare_int8(float_path: str | Path, int8_path: str | Path, renders: Sequence[Render],
                  threads: int | None = None) -> Int8Verdict:
     """The int8 model against the float32 model on ``renders`` (:func:`~.quantize.render_set`)."""
-    scores = compare_sessions({"float32": ort_session(float_path, threads), "int8": ort_session(int8_path, threads)},
-                              renders)
+    scores = compare_runners({"float32": session_runner(ort_session(float_path, threads)),
+                              "int8": session_runner(ort_session(int8_path, threads))}, renders)
     size = (int(renders[0].image.shape[-2]), int(renders[0].image.shape[-1]))
-    return Int8Verdict(size, len(renders), scores["float32"], scores["int8"])
+    return Int8Verdict(size, len(renders), scores["float32"], scores["int8"], threads)
