@@ -239,8 +239,8 @@ def format_int8(rows: Sequence[dict[str, Any]], title: str) -> str:
     return title + "\n" + format_table(rows, [
         ("size", "size", 8, ""), ("variant", "variant", 11, ""), ("median_ms", "median ms", 10, ".1f"),
         ("x_eager", "x eager", 8, ".2f"), ("x_ort_fp32", "x ORT fp32", 11, ".2f"), ("d1", "d1", 7, ".3f"),
-        ("d1_change", "d1 change", 10, "+.3f"),
-        *((f"{k}_median", f"{k} med", 9 if k != "fov" else 8, ".2f") for k in POSE_KEYS),
+        ("d1_change", "d1 change", 11, "+.3f"),
+        *((f"{k}_median", f"{k} med", 12, ".2f") for k in POSE_KEYS),
         ("worst_median_growth", "worst med growth", 17, "+.2f")])
 
 
@@ -323,7 +323,7 @@ def main(argv: Sequence[str] | None = None) -> None:
                                     f"(+{max(1, calibration_images // 4)} at each other size), "
                                     f"torch {torch.__version__}"))
 
-        auto_cli(run_int8, args=args[1:], prog="bench_predict int8")
+        auto_cli(run_int8, args=args[1:], prog="bench_predict int8", as_positional=False)
     elif args and args[0] == "memory":
         def run_memory(frames: int = 2000, every: int = 200, batch_size: int = 16, ckpt_path: str | None = None,
                        image_width: int = 64, num_workers: int = 1, out: str | None = None) -> None:
