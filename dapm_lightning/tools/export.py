@@ -80,7 +80,7 @@ def export(ckpt_path: Path, out: Path | None = None, height: int | None = None, 
     print(f"wrote {float_out} ({precision}{weights}) in {time.perf_counter() - start:.0f} s: input 'image' {shape} "
           f"float RGB in [0, 1]; outputs {', '.join(names)}")
     for row in rows:
-        print(f"  check {tuple(row['shape'])}: max |this model in onnxruntime - PyTorch fp32|: "
+        print(f"  check {tuple(row['shape'])}: max |onnxruntime - PyTorch fp32|: "
               + ", ".join(f"{n} {row[n]:.3g}" for n in names))
     if int8:
         _int8(float_out, out, trained, (height, width), calibration_images, verdict_images, force, threads,

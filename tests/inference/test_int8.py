@@ -135,7 +135,7 @@ def test_cli_keeps_an_int8_model_that_passes_and_says_what_each_file_is(trained,
     after = printed.split(wrote[1])[1]  # the int8 model's own checks follow its line
     assert "int8 vs float32 on 16 held-out renders at 32x32" in after and "verdict: PASS" in after
     assert "depth d1" in after and all(f"{k} median" in after for k in ("height", "pitch", "roll", "fov"))
-    assert "max |this model in onnxruntime - PyTorch fp32|" not in after and "out-of-range" not in printed
+    assert "max |onnxruntime - PyTorch fp32|" not in after and "out-of-range" not in printed
     metadata = {p.key: p.value for p in onnx.load(str(out), load_external_data=False).metadata_props}
     assert metadata["dapm.precision"] == "int8" and "dapm.net" in metadata
     with pytest.raises(SystemExit):
@@ -161,3 +161,17 @@ def test_cli_refuses_an_int8_model_that_loses_accuracy_unless_forced(trained, tm
     export_int8(trained[0], out, "--force", "true")
     printed = capsys.readouterr().out
     assert out.is_file() and "verdict: FAIL" in printed and "kept anyway (--force true)" in printed
+
+
+@pytest.mark.slow
+def test_int8_benchmark_runs_the_three_side_by_side_at_each_size(trained):
+    from benchmarks.bench_predict import format_int8, int8_compare
+
+    rows = int8_compare(trained[0], sizes=[TRAIN_SIZE, 64], images=2, calibration_images=4)
+    assert [(r["size"], r["variant"]) for r in rows] == [
+        (size, variant) for size in ("32x32", "64x64") for variant in ("eager fp32", "ORT fp32", "ORT int8")]
+    eager, ort_float = rows[0], rows[1]
+    assert eager["x_eager"] == 1.0 and eager["d1_change"] == 0.0 and eager["worst_median_growth"] == 0.0
+    assert ort_float["x_ort_fp32"] == 1.0 and ort_float["d1_change"] == pytest.approx(0.0, abs=1e-6)
+    assert all(r["median_ms"] > 0 and 0 <= r["d1"] <= 1 and "fov_median" in r for r in rows)
+    assert "ORT int8" in format_int8(rows, "title")
