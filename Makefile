@@ -5,6 +5,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 OUT ?= outputs/quickstart
 WHEELS ?= wheels
+INT8_CKPT ?= $(lastword $(wildcard $(OUT)/tensorboard/version_*/checkpoints/best-*.ckpt))
 
 .PHONY: install demo test test-all bench bench-gpu wheels install-offline lint clean
 
@@ -30,6 +31,8 @@ bench: $(STAMP)
 	$(BIN)/python -m benchmarks.bench
 	$(BIN)/python -m benchmarks.bench_synth speed
 	$(BIN)/python -m benchmarks.bench_predict speed --rounds 3
+	@if [ -n "$(INT8_CKPT)" ]; then $(BIN)/python -m benchmarks.bench_predict int8 --ckpt_path "$(INT8_CKPT)"; \
+	else echo "bench_predict int8: no trained checkpoint in $(OUT) (make demo, or INT8_CKPT=FILE)"; fi
 
 # the GPU kit (docs/gpu.md): one command, <= 9 minutes on one GPU; BENCH_GPU_ARGS="--device cpu --tiny" checks it
 bench-gpu: $(STAMP)

@@ -5,9 +5,10 @@ channels-last, ``torch.compile`` and the exported ONNX model in onnxruntime, mea
 rounds in one process; each row is a ratio to eager with the largest depth (metres) and pose difference
 to eager on the same input.
 
-``python -m benchmarks.bench_predict int8``: eager PyTorch, the float32 ONNX model and its int8
-quantisation (``export --int8``) side by side in one process, batch 1: median latency, and the toolbox d1 and
-pose medians on a fixed synthetic split, with each one's change against eager.
+``python -m benchmarks.bench_predict int8 --ckpt_path CKPT``: a trained checkpoint as eager PyTorch, the float32
+ONNX model and its int8 quantisation (``export --int8``) side by side in one process, batch 1, at the checkpoint's
+network size, 256² and 512²: median latency, speed-ups, and the toolbox d1 and pose medians on held-out renders,
+with their changes against eager.
 
 ``python -m benchmarks.bench_predict memory``: ``dapm-lightning predict`` (the Lightning form) on a 2,000-frame
 video (tiny untrained model or ``--ckpt_path``, 64x64 frames, every output written), printing the process's
@@ -35,6 +36,7 @@ import dapm_lightning
 from benchmarks.bench import format_table
 from benchmarks.callbacks import MemoryProbe
 from dapm_lightning.geometry.constants import POSE_KEYS
+from dapm_lightning.inference.int8_check import Runner, compare_runners, ort_session, session_runner
 from dapm_lightning.inference.onnx import onnx_feed
 from dapm_lightning.models.config import DAPMConfig
 from dapm_lightning.models.dapm import DAPMNet
@@ -172,83 +174,73 @@ def format_speed(rows: Sequence[dict[str, Any]], title: str) -> str:
         ("setup_s", "setup s", 9, ".0f")])
 
 
-def int8_compare(ckpt_path: str | None = None, backbone: str = "resnet50", size: int = 512, images: int = 16,
-                 calibration_images: int = 32, threads: int | None = None) -> list[dict[str, Any]]:
-    """Eager, float32 ONNX and int8 ONNX on the same ``images`` synthetic val images at ``size``², batch 1.
+def eager_runner(net: torch.nn.Module) -> Runner:
+    """The network in PyTorch as an :data:`~dapm_lightning.inference.int8_check.Runner` (depth_m, pose)."""
+    def run(image: np.ndarray) -> dict[str, np.ndarray]:
+        with torch.inference_mode():
+            out = net(torch.from_numpy(image))
+        result = {"depth_m": out.depth_m, "pose": out.pose_physical}
+        return {k: v.float().numpy() for k, v in result.items() if v is not None}
 
-    The variants alternate image by image (a noisy machine slows them alike); the median latency counts.
-    Accuracy: toolbox d1 (metres) and the pose medians against the rendered truth; the int8 model is calibrated
-    on other rendered images (``dapm-lightning export --int8 true``).
+    return run
+
+
+def int8_compare(ckpt_path: str | Path, sizes: Sequence[int] | None = None, images: int = 64,
+                 calibration_images: int = 64, threads: int = 1) -> list[dict[str, Any]]:
+    """Eager fp32, ORT fp32 and ORT int8 of a checkpoint at each size, on the same held-out renders, batch 1.
+
+    At each size (default: the checkpoint's network size, 256² and 512²) the int8 model is the one
+    ``dapm-lightning export --int8 true --height S --width S`` writes: calibrated on ``calibration_images``
+    renders at the training size plus a quarter as many at ``S``. The three run ``images`` renders of the
+    held-out split, alternating image by image on ``threads`` threads; the median latency counts, and
+    accuracy is the toolbox d1 and the pose medians against the rendered truth.
     """
-    import onnxruntime
+    from dapm_lightning.inference.inputs import checkpoint_network_size
+    from dapm_lightning.inference.onnx import export_metadata
+    from dapm_lightning.inference.onnx import export_onnx as export_model
+    from dapm_lightning.inference.quantize import calibration_images as calibration_set
+    from dapm_lightning.inference.quantize import quantize_int8, render_set
 
-    from dapm_lightning.data.synthetic import generate_uapd
-    from dapm_lightning.data.uapd import UAPDDataset
-    from dapm_lightning.metrics import DepthMetrics, PoseMetrics
-
-    if threads:
-        torch.set_num_threads(threads)
-    module, own_threads = _module(ckpt_path, backbone), torch.get_num_threads()
-    net = module.net
+    module = load_dapm_module(ckpt_path, map_location="cpu").eval()
+    trained = checkpoint_network_size(module)
+    shapes = [trained] + [(s, s) for s in (256, 512) if (s, s) != trained] if sizes is None else \
+        [(s, s) for s in sizes]
+    rows: list[dict[str, Any]] = []
     with tempfile.TemporaryDirectory() as folder:
-        root = generate_uapd(Path(folder) / "split", train=0, val=images, size=size, seed=1, workers=1)
-        torch.set_num_threads(own_threads)  # rendering in this process leaves one thread
-        ckpt = ckpt_path or write_checkpoint(module, Path(folder) / "bench.ckpt")
-        int8_path = export_onnx(ckpt, Path(folder) / "model_int8.onnx", (size, size), int8=True,
-                                calibration_images=calibration_images)
         float_path = Path(folder) / "model.onnx"
-        torch.set_num_threads(own_threads)  # and so may the export's calibration images
-        options = onnxruntime.SessionOptions()
-        if threads:
-            options.intra_op_num_threads = threads
-        sessions = {name: onnxruntime.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
-                    for name, path in (("onnx float32", float_path), ("onnx int8", int8_path))}
-        samples = [UAPDDataset(root, "val")[k] for k in range(images)]
-
-    def run_session(session: Any) -> Callable[[Tensor], tuple[Tensor, Tensor]]:
-        names = [o.name for o in session.get_outputs()]
-
-        def run(image: Tensor) -> tuple[Tensor, Tensor]:
-            feed = onnx_feed(image.numpy(), [i.name for i in session.get_inputs()])
-            result = dict(zip(names, session.run(None, feed)))
-            return torch.from_numpy(result["depth_m"]), torch.from_numpy(result["pose"])
-
-        return run
-
-    variants: dict[str, Callable[[Tensor], tuple[Tensor, Tensor]]] = {"eager": lambda x: _outputs(net(x))}
-    variants.update({name: run_session(session) for name, session in sessions.items()})
-    times: dict[str, list[float]] = {name: [] for name in variants}
-    depth = {name: DepthMetrics() for name in variants}
-    pose = {name: PoseMetrics() for name in variants}
-    with torch.inference_mode():
-        for run in variants.values():  # warm-up
-            run(samples[0]["image"][None])
-        for sample in samples:
-            for name, run in variants.items():
-                start = time.perf_counter()
-                depth_m, pose_physical = run(sample["image"][None])
-                times[name].append(time.perf_counter() - start)
-                depth[name].update(depth_m, sample["depth"][None])
-                pose[name].update(pose_physical, sample["pose"][None])
-    rows = []
-    for name in variants:
-        d, p = depth[name].compute(), pose[name].compute()
-        rows.append({"variant": name, "median_ms": 1000 * statistics.median(times[name]), "d1": float(d["d1"]),
-                     **{f"{k}_median": float(p[f"{k}_median"]) for k in POSE_KEYS}})
-    for row in rows:
-        row["speedup"] = rows[0]["median_ms"] / row["median_ms"]
-        row["d1_change"] = row["d1"] - rows[0]["d1"]
-        row["worst_median_growth"] = max(row[f"{k}_median"] - rows[0][f"{k}_median"]
-                                         for k in POSE_KEYS)
+        export_model(module.net, float_path, trained, checks=1,
+                     metadata=export_metadata(module.net, module.train_image_size, ckpt_path))
+        for shape in shapes:
+            int8_path = Path(folder) / f"model_{shape[0]}x{shape[1]}_int8.onnx"
+            extra = max(1, calibration_images // 4) if shape != trained else 0
+            quantize_int8(float_path, int8_path, calibration_set(trained, shape, at_train=calibration_images,
+                                                                 at_export=extra))
+            renders = render_set(shape, images)
+            torch.set_num_threads(threads)  # rendering may have changed it
+            scores = compare_runners({"eager fp32": eager_runner(module.net),
+                                      "ORT fp32": session_runner(ort_session(float_path, threads)),
+                                      "ORT int8": session_runner(ort_session(int8_path, threads))}, renders)
+            eager, ort_float = scores["eager fp32"], scores["ORT fp32"]
+            for name, score in scores.items():
+                rows.append({"size": f"{shape[0]}x{shape[1]}", "variant": name, "median_ms": score.median_ms,
+                             "x_eager": eager.median_ms / score.median_ms,
+                             "x_ort_fp32": ort_float.median_ms / score.median_ms,
+                             "d1": score.d1 if score.d1 is not None else float("nan"),
+                             "d1_change": (score.d1 - eager.d1) if score.d1 is not None and eager.d1 is not None
+                             else float("nan"),
+                             **{f"{k}_median": v for k, v in score.pose_median.items()},
+                             "worst_median_growth": max((v - eager.pose_median[k]
+                                                         for k, v in score.pose_median.items()), default=0.0)})
     return rows
 
 
 def format_int8(rows: Sequence[dict[str, Any]], title: str) -> str:
     """The int8 rows as a table."""
     return title + "\n" + format_table(rows, [
-        ("variant", "variant", 14, ""), ("median_ms", "median ms", 10, ".1f"), ("speedup", "x eager", 8, ".2f"),
-        ("d1", "d1", 7, ".3f"), ("d1_change", "d1 change", 10, "+.3f"),
-        *((f"{k}_median", f"{k[0]} med", 7, ".2f") for k in POSE_KEYS),
+        ("size", "size", 8, ""), ("variant", "variant", 11, ""), ("median_ms", "median ms", 10, ".1f"),
+        ("x_eager", "x eager", 8, ".2f"), ("x_ort_fp32", "x ORT fp32", 11, ".2f"), ("d1", "d1", 7, ".3f"),
+        ("d1_change", "d1 change", 11, "+.3f"),
+        *((f"{k}_median", f"{k} med", 12, ".2f") for k in POSE_KEYS),
         ("worst_median_growth", "worst med growth", 17, "+.2f")])
 
 
@@ -322,15 +314,16 @@ def main(argv: Sequence[str] | None = None) -> None:
 
         auto_cli(run_speed, args=args[1:], prog="bench_predict speed")
     elif args and args[0] == "int8":
-        def run_int8(ckpt_path: str | None = None, backbone: str = "resnet50", size: int = 512, images: int = 16,
-                     calibration_images: int = 32, threads: int | None = None) -> None:
-            """Eager vs float32 ONNX vs int8 ONNX: latency, d1 and pose medians on a fixed synthetic split."""
-            rows = int8_compare(ckpt_path, backbone, size, images, calibration_images, threads)
-            what = ckpt_path or f"DAPM ({backbone}, random weights: accuracy shows fidelity only)"
-            print(format_int8(rows, f"{what}, {size}x{size}, batch 1, {torch.get_num_threads()} threads, "
-                                    f"{images} synthetic images, torch {torch.__version__}"))
+        def run_int8(ckpt_path: str, sizes: list[int] | None = None, images: int = 64, calibration_images: int = 64,
+                     threads: int = 1) -> None:
+            """Eager fp32 vs ORT fp32 vs ORT int8 of a trained checkpoint: latency, held-out d1 and pose medians."""
+            rows = int8_compare(ckpt_path, sizes, images, calibration_images, threads)
+            print(format_int8(rows, f"{ckpt_path}: batch 1, {threads} thread(s), {images} held-out renders per size, "
+                                    f"int8 calibrated on {calibration_images} renders at the training size "
+                                    f"(+{max(1, calibration_images // 4)} at each other size), "
+                                    f"torch {torch.__version__}"))
 
-        auto_cli(run_int8, args=args[1:], prog="bench_predict int8")
+        auto_cli(run_int8, args=args[1:], prog="bench_predict int8", as_positional=False)
     elif args and args[0] == "memory":
         def run_memory(frames: int = 2000, every: int = 200, batch_size: int = 16, ckpt_path: str | None = None,
                        image_width: int = 64, num_workers: int = 1, out: str | None = None) -> None:

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import warnings
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -187,7 +188,9 @@ def export_onnx(net: nn.Module, path: str | Path, size: tuple[int, int], *, chec
         width = torch.export.Dim("width", min=SIZE_MULTIPLE, max=8192)
         dynamic_shapes = {"image": {0: batch, 2: height, 3: width}}
         dynamic_shapes.update({name: {0: batch} for name in model.input_names[1:]})
-    with torch.no_grad():  # the network's export-time ops: models.blocks.adaptive_avg_pool2d
+    with torch.no_grad(), warnings.catch_warnings():  # the network's export-time ops: models.blocks
+        # the image's batch and each prior's are one dimension: the exporter's note that it merged their names
+        warnings.filterwarnings("ignore", message=".*will not be used, since it shares the same shape constraints")
         torch.onnx.export(model, example, str(path), input_names=list(model.input_names),
                           output_names=list(model.names), dynamo=True, dynamic_shapes=dynamic_shapes, verbose=False)
     write_metadata(path, metadata if metadata is not None else export_metadata(net))

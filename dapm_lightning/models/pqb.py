@@ -8,7 +8,7 @@ import torch
 from torch import Tensor, nn
 
 from dapm_lightning.geometry.bins import bin_centers
-from dapm_lightning.models.blocks import ResidualConvBlock, ResidualLinear, conv_bn_relu
+from dapm_lightning.models.blocks import ResidualConvBlock, ResidualLinear, conv_bn_relu, softmax
 
 SKY_STAGE_BINS = 2
 """A depth stage of 2 bins is the binary "beyond d_max" (sky) map: one logit, trained with BCE."""
@@ -16,7 +16,7 @@ SKY_STAGE_BINS = 2
 
 def stage_probabilities(logits: Tensor, dim: int = 1) -> Tensor:
     """Sigmoid for a one-logit (binary) stage, softmax otherwise."""
-    return torch.sigmoid(logits) if logits.shape[dim] == 1 else torch.softmax(logits, dim=dim)
+    return torch.sigmoid(logits) if logits.shape[dim] == 1 else softmax(logits, dim=dim)
 
 
 def expected_value(logits: Tensor, dim: int = 1) -> Tensor:
@@ -24,7 +24,7 @@ def expected_value(logits: Tensor, dim: int = 1) -> Tensor:
     centres = bin_centers(logits.shape[dim], logits)
     shape = [1] * logits.ndim
     shape[dim] = -1
-    return (torch.softmax(logits, dim=dim) * centres.view(shape)).sum(dim=dim, keepdim=True)
+    return (softmax(logits, dim=dim) * centres.view(shape)).sum(dim=dim, keepdim=True)
 
 
 class BinsBlock(nn.Module):

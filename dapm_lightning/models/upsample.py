@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
-import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
+
+from dapm_lightning.models.blocks import softmax
 
 
 class ConvexUpsample(nn.Module):
@@ -24,7 +25,7 @@ class ConvexUpsample(nn.Module):
         """``values [B, 1, h, w]``, ``feature [B, C, h, w]`` -> ``[B, 1, H, W]`` (cropped/resized to ``size``)."""
         batch, _, height, width = values.shape
         f = self.factor
-        weights = torch.softmax(self.mask(feature).view(batch, 9, f, f, height, width), dim=1)
+        weights = softmax(self.mask(feature).view(batch, 9, f, f, height, width), dim=1)
         neighbours = F.unfold(F.pad(values, (1, 1, 1, 1), mode="replicate"), 3).view(batch, 9, 1, 1, height, width)
         up = (weights * neighbours).sum(dim=1)  # [B, f, f, h, w]
         up = up.permute(0, 3, 1, 4, 2).reshape(batch, 1, height * f, width * f)

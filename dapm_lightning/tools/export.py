@@ -4,12 +4,15 @@ Any DAPM checkpoint exports: the full model (depth_m, sky_prob, pose, with the t
 prior_sigma), DAPM(D) (depth_m, sky_prob) and DAPM(P) (pose). Batch, height and width are dynamic by default
 (any size: the predict path feeds the same network size as PyTorch). The file carries the network's settings
 and training size as metadata, so `dapm-lightning predict SOURCE --ckpt_path MODEL.onnx` needs nothing else.
---fp16 true stores the weights and runs the network in half precision with
-float32 input and outputs; --int8 true quantises it for CPUs and edge boards (onnxruntime static QDQ
-quantisation, calibrated on images the synthetic generator renders; same input and outputs). After writing,
-onnxruntime and PyTorch run the same random inputs at two sizes and the largest difference of each output is
-printed. A large model's weights go beside the graph in NAME.onnx.data (keep both files together). Settings
-can come from a YAML file (--config FILE; --print_config shows one).
+After writing, onnxruntime and PyTorch run the same random inputs at two sizes and the largest difference of
+each output is printed. --fp16 true stores the weights and runs the network in half precision with float32
+input and outputs. --int8 true also writes an int8 model for CPUs and edge boards (onnxruntime static QDQ
+quantisation of the encoder, depth decoder and depth heads, per-channel weights; the pose branch and the
+metric decoding stay float32), calibrated on synthetic renders at the training size (and some at the export
+size), then measured against the float32 model on held-out renders: when its depth d1 drops by more than
+0.01 or a pose median grows by more than 0.5 (m or deg), the export fails and keeps no int8 file unless
+--force true. A large model's weights go beside the graph in NAME.onnx.data (keep both files together).
+Settings can come from a YAML file (--config FILE; --print_config shows one).
 """
 
 from __future__ import annotations
@@ -22,22 +25,33 @@ from dapm_lightning.inference.inputs import checkpoint_network_size, network_siz
 from dapm_lightning.inference.onnx import export_metadata, export_onnx, write_metadata
 
 
+class Int8Refused(RuntimeError):
+    """The int8 model loses too much accuracy against the float32 one (no int8 file kept)."""
+
+    explained = True  # the message says what it is and the fix: printed as it is (tools/errors.py)
+
+
 def export(ckpt_path: Path, out: Path | None = None, height: int | None = None, width: int | None = None,
            dynamic: bool = True, fp16: bool = False, checks: int = 2, int8: bool = False,
-           calibration_images: int = 32) -> Path:
+           calibration_images: int = 64, verdict_images: int = 256, force: bool = False,
+           threads: int | None = 1) -> Path:
     """Export a DAPM checkpoint to ONNX and check it with onnxruntime against PyTorch.
 
     Args:
         ckpt_path: the checkpoint (any DAPM: full, DAPM(D), DAPM(P)); loaded with weights_only=True.
-        out: the ONNX file (default: the checkpoint's path with .onnx, or _fp16.onnx).
+        out: the ONNX file (default: the checkpoint's path with .onnx, or _fp16.onnx, _int8.onnx).
         height: example input height (and the checked size). Default: the checkpoint's training size.
         width: example input width. Default: the checkpoint's training size.
         dynamic: dynamic batch, height and width (any size); false: fixed [1, 3, height, width].
         fp16: half-precision weights and arithmetic (float32 input and outputs); for GPUs and Jetsons.
         checks: random inputs compared with PyTorch at each checked size.
-        int8: static int8 quantisation (QDQ, per-channel weights) of the float32 model; written as
-            NAME_int8.onnx; the float32 model is written too (NAME.onnx).
-        calibration_images: synthetic images rendered at the example size to calibrate the int8 ranges.
+        int8: static int8 quantisation (QDQ, per-channel weights) of the float32 model, written as
+            NAME_int8.onnx beside the float32 model NAME.onnx, if it keeps the float model's accuracy.
+        calibration_images: synthetic renders at the training size that calibrate the int8 ranges (a quarter
+            as many more at the export size when it differs).
+        verdict_images: held-out renders at the export size on which int8 is measured against float32.
+        force: keep the int8 model even when it fails the verdict.
+        threads: onnxruntime threads for the verdict's timing (default 1: steady on a busy machine; 0: onnxruntime's).
     """
     from dapm_lightning.training.checkpointing import load_dapm_module
 
@@ -58,39 +72,55 @@ def export(ckpt_path: Path, out: Path | None = None, height: int | None = None, 
                 "dapm.precision": "float16" if fp16 else "float32"}
     rows = export_onnx(module.net.eval(), float_out, (height, width), checks=checks, dynamic=dynamic, fp16=fp16,
                        metadata=metadata)
-    if int8:
-        _quantize(float_out, out, (height, width), calibration_images)
-        write_metadata(out, {**metadata, "dapm.precision": "int8"})  # the int8 file runs on its own too
     names = [k for k in rows[0] if k != "shape"]
     shape = "[batch, 3, height, width]" if dynamic else f"[1, 3, {height}, {width}]"
-    data = out.with_name(out.name + ".data")
-    weights = f" (weights in {data.name}: keep it beside the .onnx file)" if data.is_file() else ""
-    print(f"wrote {out}{weights} in {time.perf_counter() - start:.0f} s: input 'image' {shape} float RGB in [0, 1]; "
-          f"outputs {', '.join(names)}{'; float16 inside' if fp16 else ''}")
+    data = float_out.with_name(float_out.name + ".data")
+    weights = f"; weights in {data.name}: keep it beside the .onnx file" if data.is_file() else ""
+    precision = "float16 inside, float32 input and outputs" if fp16 else "float32"
+    print(f"wrote {float_out} ({precision}{weights}) in {time.perf_counter() - start:.0f} s: input 'image' {shape} "
+          f"float RGB in [0, 1]; outputs {', '.join(names)}")
     for row in rows:
-        print(f"check {tuple(row['shape'])}: max |onnxruntime - PyTorch fp32|: "
+        print(f"  check {tuple(row['shape'])}: max |onnxruntime - PyTorch fp32|: "
               + ", ".join(f"{n} {row[n]:.3g}" for n in names))
-    return out
+    if int8:
+        _int8(float_out, out, trained, (height, width), calibration_images, verdict_images, force, threads,
+              {**metadata, "dapm.precision": "int8"})
+    return out if int8 else float_out
 
 
-def _quantize(float_out: Path, out: Path, size: tuple[int, int], images: int) -> None:
-    import numpy as np
-    import onnxruntime
-
-    from dapm_lightning.inference.onnx import onnx_feed
-    from dapm_lightning.inference.quantize import quantize_int8, synthetic_calibration
+def _int8(float_out: Path, out: Path, trained: tuple[int, int], size: tuple[int, int], calibration: int,
+          verdict_images: int, force: bool, threads: int | None, metadata: dict[str, str]) -> None:
+    """Quantise ``float_out`` into ``out``, measure it against float32, and keep it if it passes (or ``force``)."""
+    from dapm_lightning.inference.int8_check import compare_int8
+    from dapm_lightning.inference.quantize import calibration_images, quantize_int8, render_set
 
     start = time.perf_counter()
-    quantize_int8(float_out, out, synthetic_calibration(size, images))
-    sessions = [onnxruntime.InferenceSession(str(p), providers=["CPUExecutionProvider"]) for p in (float_out, out)]
-    names = [o.name for o in sessions[0].get_outputs()]
-    gaps = dict.fromkeys(names, 0.0)
-    for image in synthetic_calibration(size, 4, seed=1):  # images the calibration did not see
-        reference, got = (s.run(None, onnx_feed(image, [i.name for i in s.get_inputs()])) for s in sessions)
-        gaps = {n: max(gaps[n], float(np.abs(g - r).max())) for n, g, r in zip(names, got, reference)}
-    print(f"wrote {out} in {time.perf_counter() - start:.0f} s: int8 (QDQ), calibrated on {images} synthetic images; "
-          f"float32 model {float_out}; max |int8 - float32| on 4 other synthetic images: "
-          + ", ".join(f"{n} {v:.3g}" for n, v in gaps.items()))
+    extra = max(1, calibration // 4) if tuple(size) != tuple(trained) else 0
+    out.unlink(missing_ok=True)  # an int8 file from an earlier export is not this model's
+    partial = out.with_name(out.stem + ".partial.onnx")
+    try:
+        quantize_int8(float_out, partial, calibration_images(trained, size, at_train=calibration, at_export=extra))
+        write_metadata(partial, metadata)  # the int8 file runs on its own too
+        verdict = compare_int8(float_out, partial, render_set(size, verdict_images), threads=threads)
+        if verdict.passed or force:
+            partial.replace(out)
+    finally:
+        partial.unlink(missing_ok=True)
+    seconds = time.perf_counter() - start
+    calibrated = f"{calibration} renders at {trained[0]}x{trained[1]}" + (
+        f" + {extra} at {size[0]}x{size[1]}" if extra else "")
+    if not out.is_file():
+        print("\n".join(verdict.lines()))
+        raise Int8Refused(
+            f"int8 model not kept ({'; '.join(verdict.failures)}): {out} was not written.\n"
+            f"Fix: use the float32 model {float_out} (written, exact), or export it with --fp16 true for GPUs; "
+            "calibrating at the size you predict at (--height, --width) or a longer-trained checkpoint may "
+            "quantise better; --force true keeps the int8 model anyway.")
+    print(f"wrote {out} (int8: QDQ, int8 weights per output channel, uint8 activations; pose branch and metric "
+          f"decoding float32; calibrated on {calibrated}) in {seconds:.0f} s; this model's own checks:")
+    print("\n".join(verdict.lines()))
+    if not verdict.passed:
+        print(f"kept anyway (--force true): {out} is less accurate than {float_out}")
 
 
 def export_main(argv: Sequence[str]) -> None:
