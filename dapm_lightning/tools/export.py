@@ -124,7 +124,18 @@ def _int8(float_out: Path, out: Path, trained: tuple[int, int], size: tuple[int,
 
 
 def export_main(argv: Sequence[str]) -> None:
-    """``dapm-lightning export --ckpt_path CKPT [--out FILE] [--height H --width W] [--fp16 true]``."""
+    """``dapm-lightning export CKPT [--out FILE] [--height H --width W] [--fp16 | --int8 [--force]]``.
+
+    The checkpoint positional or ``--ckpt_path CKPT``; booleans as flags (``--int8``, ``--no_dynamic``) or with
+    their value (``--int8 true``).
+    """
     from jsonargparse import auto_cli
 
-    auto_cli(export, args=list(argv), as_positional=False, prog="dapm-lightning export", description=__doc__)
+    from dapm_lightning.tools.argv import flag_options
+
+    args = list(argv)
+    if args and not args[0].startswith("-") and "--ckpt_path" not in args and not any(
+            a.startswith("--ckpt_path=") for a in args):
+        args = ["--ckpt_path", *args]
+    args = flag_options(args, ["--int8", "--fp16", "--force", "--dynamic"])
+    auto_cli(export, args=args, as_positional=False, prog="dapm-lightning export", description=__doc__)

@@ -77,6 +77,13 @@ def test_cli_export_settings_from_a_config_file(tmp_path, capsys):
     assert info.value.code == 0
     printed = yaml.safe_load(capsys.readouterr().out)
     assert printed["height"] == 64 and printed["width"] == 96 and printed["fp16"] is True
+    for argv in (["CKPT", "--fp16"], ["--ckpt_path", "CKPT", "--fp16", "true"], ["CKPT", "--int8", "--no_dynamic"]):
+        with pytest.raises(SystemExit) as info:  # the checkpoint positional, booleans as flags
+            main(["export", *[str(tmp_path / "x.ckpt") if a == "CKPT" else a for a in argv], "--print_config"])
+        printed = yaml.safe_load(capsys.readouterr().out)
+        assert info.value.code == 0 and printed["ckpt_path"] == str(tmp_path / "x.ckpt"), argv
+        assert printed["fp16"] is ("--fp16" in argv) and printed["int8"] is ("--int8" in argv), argv
+        assert printed["dynamic"] is ("--no_dynamic" not in argv), argv
     with pytest.raises(SystemExit) as info:  # a missing checkpoint: a short message, exit 1
         main(["export", "--config", str(config)])
     assert info.value.code == 1 and "model.ckpt: no such checkpoint file" in capsys.readouterr().err
