@@ -10,13 +10,13 @@ from typing import Any
 import numpy as np
 import torch
 from torch import Tensor
-from torch.utils.data import DataLoader
 
 from dapm_lightning.data.unlabelled import PredictBatch, PredictInput
 from dapm_lightning.geometry.igd import IGDSpec
 from dapm_lightning.inference.inputs import (
     DEFAULT_BATCH_SIZE,
     NetworkSize,
+    PredictLoader,
     PredictSource,
     checkpoint_network_size,
     network_size,
@@ -30,6 +30,7 @@ from dapm_lightning.inference.onnx import ensure_exported
 from dapm_lightning.inference.postprocess import Prediction, batch_predictions
 from dapm_lightning.inference.prior import prior_rows
 from dapm_lightning.inference.runtime import OnnxRuntime, Precision, Runtime, TorchRuntime
+from dapm_lightning.inference.sources import Sources
 from dapm_lightning.models.prior import EXACT_SIGMA, PriorMode, PriorSettings
 from dapm_lightning.training.checkpointing import load_dapm_module
 
@@ -178,9 +179,8 @@ class DAPMPredictor:
         flush()
         return results[0] if single else results
 
-    def loader(self, source: str | Path | PredictSource, keep_rgb: bool = False,
-               num_workers: int = 0) -> DataLoader[PredictInput]:
-        """Batches of a folder, glob pattern, image or video at the network size, with their telemetry.
+    def loader(self, source: Sources | PredictSource, keep_rgb: bool = False, num_workers: int = 0) -> PredictLoader:
+        """Batches of folders, glob patterns, images, videos or lists at the network size, with their telemetry.
 
         ``source``: a path, or a :class:`~dapm_lightning.inference.inputs.PredictSource` saying also which frames
         and where the telemetry comes from. Mixed sizes are batched by size (:func:`predict_loader`).
@@ -189,11 +189,11 @@ class DAPMPredictor:
         return predict_loader(source, self.target, self.prior_settings, batch_size=self.batch_size,
                               num_workers=num_workers, keep_rgb=keep_rgb)
 
-    def predict_source(self, source: str | Path | PredictSource, frame_step: int = 1, max_frames: int | None = None,
+    def predict_source(self, source: Sources | PredictSource, frame_step: int = 1, max_frames: int | None = None,
                        keep_rgb: bool = False, num_workers: int = 0, telemetry: str | Path | None = None,
                        read_metadata: bool = True, sensor_width_mm: float | None = None,
                        strict_telemetry: bool = False) -> Iterator[Prediction]:
-        """Predictions for a folder, glob pattern, image or video file, one at a time (constant memory).
+        """Predictions for folders, glob patterns, images, videos or ``.txt`` lists, one at a time (constant memory).
 
         With ``keep_rgb`` each prediction's ``rgb`` holds the input pixels (for coloured points).
         ``frame_step``, ``max_frames``, ``telemetry``, ``read_metadata``, ``sensor_width_mm``,

@@ -49,6 +49,7 @@ from dapm_lightning.inference.inputs import PredictSource
 from dapm_lightning.inference.poses_table import pose_row, write_poses
 from dapm_lightning.inference.postprocess import Prediction, batch_predictions
 from dapm_lightning.inference.runtime import apply_inference_options
+from dapm_lightning.inference.sources import Sources, as_list
 from dapm_lightning.models.dapm import DAPMOutput
 
 Output = Literal["depth_npy", "depth_tiff", "depth16", "depth_color", "sky", "camera", "points", "npz"]
@@ -172,14 +173,15 @@ def source_holding(out: str | Path, source: str | Path) -> Path | None:
     return None
 
 
-def check_output_outside_source(out: str | Path, source: str | Path, option: str = "--out") -> None:
-    """Refuse an output folder whose files the source would read back as images (one line).
+def check_output_outside_source(out: str | Path, source: Sources, option: str = "--out") -> None:
+    """Refuse an output folder whose files a source would read back as images (one line).
 
     Raises:
-        ValueError: ``out`` is the source folder or lies inside it (:func:`source_holding`).
+        ValueError: ``out`` is a source folder or lies inside one (:func:`source_holding`).
     """
-    root = source_holding(out, source)
-    if root is not None:
+    for root in (source_holding(out, one) for one in as_list(source)):
+        if root is None:
+            continue
         where = "is" if Path(out).expanduser().resolve() == root.resolve() else "lies inside"
         raise ValueError(f"{option} {out} {where} the source {root}, so its files would be read back as images: "
                          "give an output folder outside the source")

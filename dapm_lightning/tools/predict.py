@@ -1,9 +1,10 @@
 """dapm-lightning predict SOURCE --ckpt_path CKPT: depth, sky, camera and metric 3D for images, folders or videos.
 
-SOURCE is a folder of images, a quoted glob pattern ('flight/**/*.jpg'), one image or a video file; images of
-any sizes and aspects. The network runs at the checkpoint's training size (the same pixel count in each
-image's aspect) unless --image_width says otherwise. The Lightning form (``--config configs/predict.yaml``,
-every trainer setting, several GPUs) is the same command with a config instead of SOURCE.
+SOURCE is one or more of: a folder of images (sub-folders included), a glob pattern ('flight/**/*.jpg'; .JPG
+matches too), an image, a video file, a .txt list of paths (one a line); images of any sizes and aspects. The
+network runs at the checkpoint's training size (the same pixel count in each image's aspect) unless
+--image_width says otherwise. The Lightning form (``--config configs/predict.yaml``, every trainer setting,
+several GPUs) is the same command with a config instead of SOURCE.
 """
 
 from __future__ import annotations
@@ -15,8 +16,9 @@ import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
-from dapm_lightning.inference.inputs import DEFAULT_BATCH_SIZE, PredictSource, resolve_source
+from dapm_lightning.inference.inputs import DEFAULT_BATCH_SIZE, PredictSource
 from dapm_lightning.inference.runtime import PRECISIONS
+from dapm_lightning.inference.sources import resolve_sources
 from dapm_lightning.inference.writers import (
     DEFAULT_OUTPUTS,
     OUTPUT_KINDS,
@@ -44,12 +46,13 @@ class _Parser(argparse.ArgumentParser):
 def build_parser() -> argparse.ArgumentParser:
     """The one-line form's options."""
     parser = _Parser(prog="dapm-lightning predict", allow_abbrev=False, description=__doc__,
-                     usage="%(prog)s SOURCE --ckpt_path CKPT [--out DIR] [--device cpu|cuda|auto] "
+                     usage="%(prog)s SOURCE [SOURCE ...] --ckpt_path CKPT [--out DIR] [--device cpu|cuda|auto] "
                            "[--outputs KIND ...] [--telemetry FILE] [options]",
                      formatter_class=argparse.RawDescriptionHelpFormatter,
                      epilog="Every Lightning setting (devices, precision, DDP): "
                             "dapm-lightning predict --config configs/predict.yaml --help")
-    parser.add_argument("source", help="folder of images, quoted glob pattern, image or video file")
+    parser.add_argument("source", nargs="+", metavar="SOURCE",
+                        help="folder of images (sub-folders included), glob pattern, image, video or .txt list")
     parser.add_argument("--ckpt_path", "--ckpt", required=True,
                         help="a dapm-lightning checkpoint (.ckpt), or a model exported from one (.onnx: float32, fp16 "
                              "or int8; runs in onnxruntime on the CPU)")
@@ -90,7 +93,7 @@ def build_parser() -> argparse.ArgumentParser:
 def parse(argv: Sequence[str]) -> argparse.Namespace:
     """Parse the one-line form; an unknown option is named with the closest valid one."""
     parser = build_parser()
-    args, unknown = parser.parse_known_args(list(argv))
+    args, unknown = parser.parse_known_intermixed_args(list(argv))  # SOURCE ... before, between or after options
     if unknown:
         options = [o for action in parser._actions for o in action.option_strings]
         flag = unknown[0].split("=")[0]
@@ -118,7 +121,7 @@ def predict_main(argv: Sequence[str]) -> None:
     warnings.formatwarning = _short_warning  # "warning: MESSAGE", not the source line that raised it
     # what can be found wrong without the model is found before it loads (seconds): a missing source, an
     # output folder inside it (its files would be read back as images) or one that cannot be written
-    resolve_source(args.source)
+    resolve_sources(args.source)
     check_output_outside_source(args.out, args.source, "--out")
     files = PredictionFiles(Path(args.out), args.outputs, args.points_stride, contact_sheet=args.contact_sheet,
                             option="--out")
@@ -126,7 +129,7 @@ def predict_main(argv: Sequence[str]) -> None:
                                               precision=args.precision, batch_size=args.batch_size,
                                               telemetry_mode=args.telemetry_mode,
                                               telemetry_sigma=args.telemetry_sigma)
-    source = PredictSource(args.source, args.frame_step, args.max_frames, args.telemetry, not args.no_metadata,
+    source = PredictSource(tuple(args.source), args.frame_step, args.max_frames, args.telemetry, not args.no_metadata,
                            args.sensor_width_mm, args.strict_telemetry)
     keep_rgb = "points" in files.outputs or files.contact_images > 0
     with files:  # the output folder is made with the first file, and goes again if the run fails before it

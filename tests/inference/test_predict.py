@@ -89,11 +89,11 @@ def test_sources_folder_glob_image_video_and_mistakes(image_folder, tmp_path):
     assert resolve_source(video) == ("video", [video])
     with pytest.raises(FileNotFoundError, match="no such file or folder.*glob pattern"):
         resolve_source(tmp_path / "missing")
-    with pytest.raises(FileNotFoundError, match="matches no image.*quote"):
+    with pytest.raises(FileNotFoundError, match="matches no image or video"):
         resolve_source(f"{tmp_path}/*.jpg")
-    (tmp_path / "notes.txt").write_text("x")
+    (tmp_path / "notes.md").write_text("x")
     with pytest.raises(ValueError, match="neither an image"):
-        resolve_source(tmp_path / "notes.txt")
+        resolve_source(tmp_path / "notes.md")
     (tmp_path / "damaged.png").write_bytes(b"not a png")
     with pytest.raises(ValueError, match="damaged.png: cannot be decoded"):
         ImageFilesDataset([tmp_path / "damaged.png"])[0]
@@ -383,7 +383,7 @@ def test_one_line_predict_errors_and_help(checkpoint, image_folder, tmp_path, ca
     with pytest.raises(SystemExit) as info:
         main(["predict", "--help"])
     head = capsys.readouterr().out.splitlines()[:12]
-    assert info.value.code == 0 and any("source" in line for line in head) and any("--out" in line for line in head)
+    assert info.value.code == 0 and any("SOURCE" in line for line in head) and any("--out" in line for line in head)
 
 
 def test_lightning_form_finds_the_packaged_config_and_short_class_names(tmp_path, monkeypatch, capsys):
