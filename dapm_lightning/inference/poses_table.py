@@ -51,7 +51,7 @@ def table_columns(rows: Iterable[dict[str, Any]]) -> list[str]:
 def write_poses(out: Path, rows: list[dict[str, Any]], suffix: str = "") -> Path:
     """``poses{suffix}.csv`` and ``.json``, merged with the folder's earlier ones.
 
-    A row of the same name is replaced, the others are kept (a second run into one folder adds to its table).
+    A row of the same name is replaced, the others are kept (a run added with ``--exist_ok`` adds to the table).
     The read, merge and rewrite hold a lock (:func:`~dapm_lightning.data.files.exclusive_lock`), so runs into
     one folder at once keep every row; both tables are written whole from the same merged rows, so a reader
     never sees half a table and a failed write leaves the earlier tables as they were.

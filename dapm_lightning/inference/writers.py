@@ -5,9 +5,9 @@ Per image (``OUT/NAME_*``, each kind selectable, :data:`Output`): ``depth.npy`` 
 limit), ``depth_color.png`` for people, ``sky.png`` (probability x 255), ``camera.json`` (K, camera-to-world,
 the pose per component with its source and the network's own estimate), ``points.ply`` (metric point cloud in
 the gravity-aligned world frame of docs/conventions.md, ground at z = 0, coloured, sky left out) and, on request,
-``npz`` (all of it in one ``NAME.npz``). Per run: ``poses.csv`` / ``poses.json`` (merged with those of earlier
-runs into the same folder, under a lock: runs into one folder at once keep every row) and ``contact_sheet.png``
-(tiles bounded for any aspect).
+``npz`` (all of it in one ``NAME.npz``); an image's files all come from one run (the others of its name are
+removed). Per run: ``poses.csv`` / ``poses.json`` (merged with those of earlier runs into the same folder, under a
+lock: runs into one folder at once keep every row) and ``contact_sheet.png`` (tiles bounded for any aspect).
 
 Every file is written whole or not at all and checked (:mod:`dapm_lightning.data.files`): a failed write raises
 :class:`~dapm_lightning.data.files.WriteError` naming the file and the fix. The output folder is checked before
@@ -48,6 +48,7 @@ from dapm_lightning.inference.contact_sheet import CONTACT_MAX_IMAGES, contact_r
 from dapm_lightning.inference.inputs import PredictSource
 from dapm_lightning.inference.poses_table import pose_row, write_poses
 from dapm_lightning.inference.postprocess import Prediction, batch_predictions
+from dapm_lightning.inference.run_folder import remove_stale_files, run_folder
 from dapm_lightning.inference.runtime import apply_inference_options
 from dapm_lightning.inference.sources import Sources, as_list
 from dapm_lightning.models.dapm import DAPMOutput
@@ -113,6 +114,7 @@ def prediction_files(out: Path, prediction: Prediction, outputs: Iterable[str] =
         arrays: dict[str, Any] = npz_arrays(prediction)
         with open_atomic(written["npz"]) as handle:
             np.savez_compressed(handle, **arrays)
+    remove_stale_files(out, name, written.values())  # an image's files all come from one run
     return written
 
 
@@ -198,7 +200,8 @@ class PredictionFiles:
     :class:`~dapm_lightning.data.files.WriteError` naming the file and the fix.
 
     Args:
-        output_dir: where the files go (created with the first file).
+        output_dir: where the files go (created with the first file); None: a new ``runs/predict<N>``
+            (:func:`~dapm_lightning.inference.run_folder.run_folder`).
         outputs: which per-image files to write, any of depth_npy, depth_tiff, depth16, depth_color, sky, camera,
             points, npz (default: all but npz).
         points_stride: point clouds keep every points_stride-th row and column.
@@ -206,12 +209,14 @@ class PredictionFiles:
         contact_sheet: ``contact_sheet.png`` with the first this many images (image and horizon | depth | sky |
             pose), at most :data:`CONTACT_MAX_IMAGES`; 0: none.
         option: the setting that named ``output_dir`` (e.g. ``--out``), named in error messages.
+        exist_ok: add to an ``output_dir`` that already holds files (each image's files rewritten together); False
+            refuses it in one line. exist_ok_option: the setting that says so, named in that line.
     """
 
-    def __init__(self, output_dir: str | Path = "predictions", outputs: Iterable[str] | None = None,
+    def __init__(self, output_dir: str | Path | None = None, outputs: Iterable[str] | None = None,
                  points_stride: int = 2, points_max_depth: float | None = None, contact_sheet: int = 8,
-                 option: str | None = None) -> None:
-        self.output_dir = Path(output_dir)
+                 option: str | None = None, exist_ok: bool = True, exist_ok_option: str = "--exist_ok") -> None:
+        self.output_dir = run_folder(output_dir, exist_ok, option or "output_dir", exist_ok_option)
         self.outputs = check_outputs(outputs)
         if points_stride < 1:
             raise ValueError(f"points_stride must be >= 1, got {points_stride}")
@@ -310,19 +315,21 @@ class PredictionWriter(BasePredictionWriter):
         compile: torch.compile the network before the first batch (each new input size compiles
             again: worth it for long runs of one size, e.g. a video).
 
-    Under DDP every process writes its own images and poses_rank<k>.{csv,json}.
+    Under DDP every process writes its own images and poses_rank<k>.{csv,json}, into rank 0's folder.
+    ``output_dir`` None: a new ``runs/predict<N>`` per run; one that holds files is refused unless ``exist_ok``.
     """
 
     OPTION = "--trainer.callbacks.output_dir"
     """The setting that names the output folder, in messages."""
 
-    def __init__(self, output_dir: str = "predictions", outputs: list[Output] | None = None, points_stride: int = 2,
+    def __init__(self, output_dir: str | None = None, outputs: list[Output] | None = None, points_stride: int = 2,
                  points_max_depth: float | None = None, contact_sheet: int = 8, channels_last: bool = False,
-                 compile: bool = False) -> None:
+                 compile: bool = False, exist_ok: bool = False) -> None:
         super().__init__(write_interval="batch")
         self.channels_last, self.compile = channels_last, compile
         self.files = PredictionFiles(output_dir, outputs, points_stride, points_max_depth, contact_sheet,
                                      option=self.OPTION)
+        self.named, self.exist_ok = output_dir is not None, exist_ok
         self.spec = IGDSpec()
 
     @property
@@ -334,6 +341,10 @@ class PredictionWriter(BasePredictionWriter):
         source = getattr(getattr(trainer, "datamodule", None), "source", None)
         if isinstance(source, PredictSource):  # before the first batch; a missing checkpoint is named first
             check_output_outside_source(self.output_dir, source.path, self.OPTION)
+        if self.named:  # a folder that holds files: refused unless exist_ok
+            run_folder(self.output_dir, self.exist_ok, self.OPTION, "--trainer.callbacks.exist_ok")
+        if trainer.world_size > 1:  # one folder for every process: rank 0's (a new runs/predict<N> is per process)
+            self.files.output_dir = Path(trainer.strategy.broadcast(str(self.files.output_dir)))
         trainer.predict_loop.return_predictions = False  # the files are the result: keep nothing in memory
         apply_inference_options(pl_module, self.channels_last, self.compile)
         config = getattr(pl_module, "net_config", None)

@@ -14,9 +14,9 @@ import difflib
 import sys
 import warnings
 from collections.abc import Sequence
-from pathlib import Path
 
 from dapm_lightning.inference.inputs import DEFAULT_BATCH_SIZE, PredictSource
+from dapm_lightning.inference.run_folder import run_folder
 from dapm_lightning.inference.runtime import PRECISIONS
 from dapm_lightning.inference.sources import resolve_sources
 from dapm_lightning.inference.writers import (
@@ -56,7 +56,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--ckpt_path", "--ckpt", required=True,
                         help="a dapm-lightning checkpoint (.ckpt), or a model exported from one (.onnx: float32, fp16 "
                              "or int8; runs in onnxruntime on the CPU)")
-    parser.add_argument("--out", default="predictions", help="output folder (default: %(default)s)")
+    parser.add_argument("--out", default=None,
+                        help="output folder (default: a new one per run: runs/predict, runs/predict2, ...)")
+    parser.add_argument("--exist_ok", action="store_true",
+                        help="add to an --out that holds files (its images' files are rewritten together)")
     parser.add_argument("--device", default="auto", help="cpu, cuda, cuda:N or auto (default: %(default)s)")
     parser.add_argument("--outputs", nargs="+", default=list(DEFAULT_OUTPUTS), metavar="KIND",
                         help=f"per-image files, any of {', '.join(OUTPUT_KINDS)} (default: all but npz)")
@@ -122,9 +125,9 @@ def predict_main(argv: Sequence[str]) -> None:
     # what can be found wrong without the model is found before it loads (seconds): a missing source, an
     # output folder inside it (its files would be read back as images) or one that cannot be written
     resolve_sources(args.source)
-    check_output_outside_source(args.out, args.source, "--out")
-    files = PredictionFiles(Path(args.out), args.outputs, args.points_stride, contact_sheet=args.contact_sheet,
-                            option="--out")
+    check_output_outside_source(run_folder(None) if args.out is None else args.out, args.source, "--out")
+    out = run_folder(args.out, args.exist_ok)
+    files = PredictionFiles(out, args.outputs, args.points_stride, contact_sheet=args.contact_sheet, option="--out")
     predictor = DAPMPredictor.from_checkpoint(args.ckpt_path, args.image_width, args.device,
                                               precision=args.precision, batch_size=args.batch_size,
                                               telemetry_mode=args.telemetry_mode,

@@ -200,7 +200,7 @@ def test_a_full_disk_fails_the_run_naming_the_file_and_keeps_the_table(checkpoin
     earlier = "name,height_m,pitch_deg,roll_deg,fov_deg\n" + "".join(f"old{k},50,-40,1,70\n" for k in range(100))
     (out / "poses.csv").write_text(earlier)
     code, err = run_main(["predict", str(flight), "--ckpt_path", str(checkpoint), "--out", str(out),
-                          "--device", "cpu", "--batch_size", "8"], capsys)
+                          "--device", "cpu", "--batch_size", "8", "--exist_ok"], capsys)
     message = err.splitlines()
     assert code == 1 and message[0].startswith(f"error: {out}/im") and ": cannot be written (" in message[0]
     assert message[1].startswith("Fix: ") and "--out" in message[1]

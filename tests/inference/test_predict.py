@@ -361,7 +361,7 @@ def test_one_line_predict_on_a_folder_of_mixed_sizes(checkpoint, image_folder, t
     cv2.imwrite(str(other / "new.png"), np.full((40, 60, 3), 90, np.uint8))
     cv2.imwrite(str(other / "grey.png"), np.full((30, 30), 10, np.uint8))
     main(["predict", str(other), "--ckpt", str(checkpoint), "--out", str(out), "--device", "cpu",
-          "--outputs", "depth_npy", "--contact_sheet", "0"])
+          "--outputs", "depth_npy", "--contact_sheet", "0", "--exist_ok"])
     rows = (out / "poses.csv").read_text().splitlines()
     assert [r.split(",")[0] for r in rows] == ["name", "colour", "grey", "rgba16", "new"]
     assert [p["name"] for p in json.loads((out / "poses.json").read_text())] == ["colour", "grey", "rgba16", "new"]
