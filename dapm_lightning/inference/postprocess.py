@@ -127,6 +127,7 @@ class Prediction:
         scale_from: how the telemetry scale fit found its factor: ``ground``, ``height`` or ``none``.
         rgb: the input's ``[H, W, 3]`` uint8 pixels, when the loader was asked to keep them.
         time_s: a video frame's time in the video (seconds); None for an image.
+        network_size: ``(h, w)`` the network saw the image at; None where not known.
     """
 
     depth_m: np.ndarray | None
@@ -145,6 +146,14 @@ class Prediction:
     scale_from: str = "none"
     rgb: np.ndarray | None = None
     time_s: float | None = None
+    network_size: tuple[int, int] | None = None
+
+    def auto_stride(self) -> int:
+        """The point-cloud stride that gives about the network's resolution (1 where not known or larger)."""
+        if self.network_size is None:
+            return 1
+        ratio = (self.size[0] * self.size[1]) / max(1, self.network_size[0] * self.network_size[1])
+        return max(1, round(math.sqrt(ratio)))
 
     def points(self, stride: int = 1, max_depth: float | None = None, rgb: np.ndarray | None = None) -> PointCloud:
         """Metric point cloud of the non-sky pixels, every ``stride``-th row and column, in the world frame.
@@ -279,4 +288,5 @@ def batch_predictions(output: InferenceOutput, batch: PredictBatch, spec: IGDSpe
     for prediction, scale_from, rgb, time_s in zip(predictions, applied.scale_from, batch.rgb or [None] * len(batch),
                                                    batch.times or [None] * len(batch)):
         prediction.scale_from, prediction.rgb, prediction.time_s = scale_from, rgb, time_s
+        prediction.network_size = (int(batch.images.shape[-2]), int(batch.images.shape[-1]))
     return predictions

@@ -16,6 +16,7 @@ any work and made with the first file; one inside the source is refused (:func:`
 
 from __future__ import annotations
 
+import difflib
 import fnmatch
 import json
 import re
@@ -56,25 +57,39 @@ from dapm_lightning.models.dapm import DAPMOutput
 Output = Literal["depth_npy", "depth_tiff", "depth16", "depth_color", "sky", "camera", "points", "npz"]
 """A per-image file kind."""
 OUTPUT_KINDS: tuple[str, ...] = get_args(Output)
-DEFAULT_OUTPUTS: tuple[str, ...] = tuple(k for k in OUTPUT_KINDS if k != "npz")
-"""What is written when nothing is chosen: every kind but the compact ``npz``."""
+DEFAULT_OUTPUTS: tuple[str, ...] = ("depth_color", "sky", "camera")
+"""What is written per image when nothing is chosen: light files to look at and the camera; raw depth and the
+point cloud on request (``all``: every kind)."""
 DEPTH16_SCALE = 64.0
 """``depth16.png`` stores ``round(depth_m * 64)``: 1/64 m steps, 1000 m = 64000."""
-def check_outputs(outputs: Iterable[str] | None) -> list[str]:
-    """The chosen output kinds (default :data:`DEFAULT_OUTPUTS`); unknown ones are refused with the valid list."""
-    chosen = list(DEFAULT_OUTPUTS if outputs is None else outputs)
-    unknown = sorted(set(chosen) - set(OUTPUT_KINDS))
-    if unknown:
-        raise ValueError(f"unknown output(s) {unknown}; choose from {list(OUTPUT_KINDS)}")
-    return chosen
+def check_outputs(outputs: Iterable[str] | str | None) -> list[str]:
+    """The chosen output kinds, in their order (default :data:`DEFAULT_OUTPUTS`).
+
+    Names may come one by one or comma-separated (``depth_npy,camera``); ``all`` is every kind. An unknown one
+    is refused in one line with the closest kind and the valid list.
+    """
+    given = DEFAULT_OUTPUTS if outputs is None else [outputs] if isinstance(outputs, str) else outputs
+    chosen: list[str] = []
+    for item in given:
+        for kind in (k.strip() for k in str(item).split(",")):
+            if kind == "all":
+                chosen += OUTPUT_KINDS
+            elif kind not in OUTPUT_KINDS:
+                close = difflib.get_close_matches(kind, OUTPUT_KINDS, n=1)
+                raise ValueError(f"unknown output {kind!r}{f' (did you mean {close[0]}?)' if close else ''}; "
+                                 f"choose from {', '.join(OUTPUT_KINDS)} or all")
+            elif kind:
+                chosen.append(kind)
+    return list(dict.fromkeys(chosen))
 
 
 def write_prediction(out: Path, prediction: Prediction, outputs: Iterable[str] = DEFAULT_OUTPUTS,
-                     points_stride: int = 2, points_max_depth: float | None = None) -> list[Path]:
+                     points_stride: int | None = None, points_max_depth: float | None = None) -> list[Path]:
     """Write the selected per-image files of one prediction (``OUT/NAME_*``); returns the paths written.
 
     Each file is written whole or not at all and checked (:mod:`dapm_lightning.data.files`). The point cloud is
-    coloured with the prediction's ``rgb`` when it carries the input's pixels.
+    coloured with the prediction's ``rgb`` when it carries the input's pixels; ``points_stride`` None keeps
+    about as many points as the network saw pixels (:meth:`Prediction.auto_stride`).
 
     Raises:
         WriteError: a file could not be written (a full disk, a read-only folder, an image too large to encode).
@@ -83,7 +98,7 @@ def write_prediction(out: Path, prediction: Prediction, outputs: Iterable[str] =
 
 
 def prediction_files(out: Path, prediction: Prediction, outputs: Iterable[str] = DEFAULT_OUTPUTS,
-                     points_stride: int = 2, points_max_depth: float | None = None) -> dict[str, Path]:
+                     points_stride: int | None = None, points_max_depth: float | None = None) -> dict[str, Path]:
     """:func:`write_prediction`, returning each kind written with its path (what the model could give of it)."""
     outputs, written, name = set(outputs), {}, prediction.name
     if prediction.depth_m is not None:
@@ -107,7 +122,8 @@ def prediction_files(out: Path, prediction: Prediction, outputs: Iterable[str] =
     if "camera" in outputs and prediction.pose is not None:
         written["camera"] = write_text(out / f"{name}_camera.json", _json_rows(prediction.camera_dict()))
     if "points" in outputs and prediction.depth_m is not None and prediction.pose is not None:
-        written["points"] = prediction.points(points_stride, points_max_depth, prediction.rgb).write_ply(
+        stride = points_stride or prediction.auto_stride()  # None: about the network's resolution
+        written["points"] = prediction.points(stride, points_max_depth, prediction.rgb).write_ply(
             out / f"{name}_points.ply")
     if "npz" in outputs:
         written["npz"] = out / f"{name}.npz"
@@ -203,8 +219,9 @@ class PredictionFiles:
         output_dir: where the files go (created with the first file); None: a new ``runs/predict<N>``
             (:func:`~dapm_lightning.inference.run_folder.run_folder`).
         outputs: which per-image files to write, any of depth_npy, depth_tiff, depth16, depth_color, sky, camera,
-            points, npz (default: all but npz).
-        points_stride: point clouds keep every points_stride-th row and column.
+            points, npz, or all; a list or comma-separated (default: depth_color, sky, camera).
+        points_stride: point clouds keep every points_stride-th row and column; None: about the network's
+            resolution.
         points_max_depth: point clouds drop points farther than this (metres; sky is always dropped).
         contact_sheet: ``contact_sheet.png`` with the first this many images (image and horizon | depth | sky |
             pose), at most :data:`CONTACT_MAX_IMAGES`; 0: none.
@@ -213,12 +230,12 @@ class PredictionFiles:
             refuses it in one line. exist_ok_option: the setting that says so, named in that line.
     """
 
-    def __init__(self, output_dir: str | Path | None = None, outputs: Iterable[str] | None = None,
-                 points_stride: int = 2, points_max_depth: float | None = None, contact_sheet: int = 8,
+    def __init__(self, output_dir: str | Path | None = None, outputs: Iterable[str] | str | None = None,
+                 points_stride: int | None = None, points_max_depth: float | None = None, contact_sheet: int = 8,
                  option: str | None = None, exist_ok: bool = True, exist_ok_option: str = "--exist_ok") -> None:
         self.output_dir = run_folder(output_dir, exist_ok, option or "output_dir", exist_ok_option)
         self.outputs = check_outputs(outputs)
-        if points_stride < 1:
+        if points_stride is not None and points_stride < 1:
             raise ValueError(f"points_stride must be >= 1, got {points_stride}")
         self.points_stride, self.points_max_depth = points_stride, points_max_depth
         if contact_sheet > CONTACT_MAX_IMAGES:
@@ -322,7 +339,8 @@ class PredictionWriter(BasePredictionWriter):
     OPTION = "--trainer.callbacks.output_dir"
     """The setting that names the output folder, in messages."""
 
-    def __init__(self, output_dir: str | None = None, outputs: list[Output] | None = None, points_stride: int = 2,
+    def __init__(self, output_dir: str | None = None, outputs: list[str] | str | None = None,
+                 points_stride: int | None = None,
                  points_max_depth: float | None = None, contact_sheet: int = 8, channels_last: bool = False,
                  compile: bool = False, exist_ok: bool = False) -> None:
         super().__init__(write_interval="batch")

@@ -24,6 +24,7 @@ from dapm_lightning.inference.writers import (
     OUTPUT_KINDS,
     PredictionFiles,
     check_output_outside_source,
+    check_outputs,
 )
 from dapm_lightning.models.prior import EXACT_SIGMA, PRIOR_MODES
 
@@ -62,7 +63,8 @@ def build_parser() -> argparse.ArgumentParser:
                         help="add to an --out that holds files (its images' files are rewritten together)")
     parser.add_argument("--device", default="auto", help="cpu, cuda, cuda:N or auto (default: %(default)s)")
     parser.add_argument("--outputs", nargs="+", default=list(DEFAULT_OUTPUTS), metavar="KIND",
-                        help=f"per-image files, any of {', '.join(OUTPUT_KINDS)} (default: all but npz)")
+                        help=f"per-image files, any of {', '.join(OUTPUT_KINDS)}, or all; spaces or commas "
+                             f"(default: {','.join(DEFAULT_OUTPUTS)}; poses.csv/json and contact_sheet.png per run)")
     parser.add_argument("--image_width", type=int, default=None,
                         help="network input width (default: the checkpoint's training size)")
     parser.add_argument("--batch_size", type=int, default=DEFAULT_BATCH_SIZE,
@@ -72,7 +74,13 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--max_frames", type=int, default=None, help="videos: stop after this many frames")
     parser.add_argument("--contact_sheet", type=int, default=8,
                         help="contact_sheet.png of the first N images (at most 64); 0: none (default: %(default)s)")
-    parser.add_argument("--points_stride", type=int, default=2, help="point clouds: every N-th row and column")
+    parser.add_argument("--points_stride", type=int, default=None,
+                        help="point clouds: every N-th row and column (default: about the network's resolution)")
+    parser.add_argument("--points_max_depth", type=float, default=None,
+                        help="point clouds: drop points farther than this (metres; sky is always dropped)")
+    parser.add_argument("--channels_last", action="store_true", help="channels-last memory (NHWC convolutions)")
+    parser.add_argument("--compile", action="store_true",
+                        help="torch.compile the network (minutes to start; pays off on long videos)")
     parser.add_argument("--num_workers", type=int, default=0, help="decoding processes (default: 0)")
     flight = parser.add_argument_group("telemetry (docs/predict.md): the pose the drone knows, for metric depth")
     flight.add_argument("--telemetry", default=None, metavar="FILE",
@@ -103,11 +111,10 @@ def parse(argv: Sequence[str]) -> argparse.Namespace:
         close = difflib.get_close_matches(flag, options, n=2)
         hint = f" (did you mean {' or '.join(close)}?)" if close else ""
         parser.error(f"unknown option {unknown[0]!r}{hint}")
-    for kind in args.outputs:
-        if kind not in OUTPUT_KINDS:
-            close = difflib.get_close_matches(kind, OUTPUT_KINDS, n=1)
-            parser.error(f"unknown output {kind!r}{f' (did you mean {close[0]}?)' if close else ''}; "
-                         f"choose from {', '.join(OUTPUT_KINDS)}")
+    try:
+        args.outputs = check_outputs(args.outputs)
+    except ValueError as error:
+        parser.error(str(error))
     return args
 
 
@@ -127,9 +134,11 @@ def predict_main(argv: Sequence[str]) -> None:
     resolve_sources(args.source)
     check_output_outside_source(run_folder(None) if args.out is None else args.out, args.source, "--out")
     out = run_folder(args.out, args.exist_ok)
-    files = PredictionFiles(out, args.outputs, args.points_stride, contact_sheet=args.contact_sheet, option="--out")
+    files = PredictionFiles(out, args.outputs, args.points_stride, args.points_max_depth,
+                            contact_sheet=args.contact_sheet, option="--out")
     predictor = DAPMPredictor.from_checkpoint(args.ckpt_path, args.image_width, args.device,
                                               precision=args.precision, batch_size=args.batch_size,
+                                              channels_last=args.channels_last, compile=args.compile,
                                               telemetry_mode=args.telemetry_mode,
                                               telemetry_sigma=args.telemetry_sigma)
     source = PredictSource(tuple(args.source), args.frame_step, args.max_frames, args.telemetry, not args.no_metadata,

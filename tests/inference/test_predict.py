@@ -18,7 +18,7 @@ from dapm_lightning.inference.inputs import (
 )
 from dapm_lightning.inference.postprocess import make_prediction
 from dapm_lightning.inference.predictor import DAPMPredictor
-from dapm_lightning.inference.writers import DEPTH16_SCALE, PredictionWriter, write_prediction
+from dapm_lightning.inference.writers import DEPTH16_SCALE, OUTPUT_KINDS, PredictionWriter, write_prediction
 from dapm_lightning.models import DAPMConfig, InferenceOutput
 from dapm_lightning.training.lightning_cli import run_lightning_cli
 from dapm_lightning.training.module import DAPMModule
@@ -119,7 +119,8 @@ def test_cli_predict_writes_every_output(checkpoint, image_folder, tmp_path, mon
     cli = run_lightning_cli(["predict", "--config", str(CONFIGS / "predict.yaml"), "--ckpt_path", str(checkpoint),
                              "--data.init_args.source", str(image_folder), "--data.init_args.image_width", "64",
                              "--data.init_args.batch_size", "4", "--data.init_args.num_workers", "0",
-                             "--trainer.callbacks.output_dir", str(out), "--trainer.callbacks.points_stride", "3"])
+                             "--trainer.callbacks.output_dir", str(out), "--trainer.callbacks.points_stride", "3",
+                             "--trainer.callbacks.outputs", "all"])
     assert cli.trainer.predict_loop.predictions == []  # return_predictions off: nothing kept in memory
     poses = json.loads((out / "poses.json").read_text())
     assert [p["name"] for p in poses] == ["colour", "grey", "rgba16"]
@@ -217,9 +218,11 @@ def test_python_api_video_and_single_branch_models(tmp_path):
     assert r.depth_m.shape == (36, 48) and r.pose is None and r.K is None and r.rgb.shape == (36, 48, 3)
     with pytest.raises(ValueError, match="needs depth and pose"):
         r.points()
-    written = write_prediction(tmp_path, r)
+    assert {p.name for p in write_prediction(tmp_path, r)} == {f"{r.name}_{s}" for s in ("depth_color.png",
+                                                                                         "sky.png")}  # default
+    written = write_prediction(tmp_path, r, OUTPUT_KINDS)
     assert {p.name for p in written} == {f"{r.name}_{s}" for s in ("depth.npy", "depth.tif", "depth16.png",
-                                                                    "depth_color.png", "sky.png")}
+                                                                    "depth_color.png", "sky.png")} | {f"{r.name}.npz"}
     pose_only = DAPMPredictor(DAPMModule(net=DAPMConfig(**TINY, use_depth=False, use_igd_feature=False)),
                               image_width=32)
     p = pose_only(np.zeros((36, 48, 3), np.uint8))
@@ -290,7 +293,7 @@ def test_sky_is_sky_at_every_output_size(size, sky_rows, tmp_path):
     assert (result.depth_m[sky] == 1000.0).all() and (result.depth_m[~sky] < 1000.0).all()
     assert (result.depth_m >= 1000.0).sum() == sky.sum()  # `depth >= max_depth` finds exactly the sky
     assert (result.depth_m[~sky] <= 100.0 + 1e-3).all()  # resizing mixes no sky into the ground
-    written = {p.name: p for p in write_prediction(tmp_path, result, points_stride=1)}
+    written = {p.name: p for p in write_prediction(tmp_path, result, OUTPUT_KINDS, points_stride=1)}
     depth16 = cv2.imread(str(written["f_depth16.png"]), cv2.IMREAD_UNCHANGED)
     assert (depth16[sky] == 64000).all() and (depth16[~sky] < 64000).all()
     colour = cv2.imread(str(written["f_depth_color.png"]))
