@@ -29,7 +29,6 @@ from typing import Any, Literal, get_args
 import cv2
 import lightning as L
 import numpy as np
-import torch
 from lightning.pytorch.callbacks import BasePredictionWriter
 from lightning.pytorch.utilities import rank_zero_info
 
@@ -42,16 +41,17 @@ from dapm_lightning.data.files import (
     write_image,
     write_text,
 )
-from dapm_lightning.data.pictures import colorize_depth
+from dapm_lightning.data.pictures import depth_picture
 from dapm_lightning.geometry.constants import POSE_KEYS
 from dapm_lightning.geometry.igd import IGDSpec
-from dapm_lightning.inference.contact_sheet import CONTACT_MAX_IMAGES, contact_row, contact_sheet
+from dapm_lightning.inference.contact_sheet import CONTACT_MAX_IMAGES, contact_sheet, contact_tiles
 from dapm_lightning.inference.inputs import PredictSource
 from dapm_lightning.inference.poses_table import pose_row, write_poses
 from dapm_lightning.inference.postprocess import Prediction, batch_predictions
 from dapm_lightning.inference.run_folder import remove_stale_files, run_folder
 from dapm_lightning.inference.runtime import apply_inference_options
 from dapm_lightning.inference.sources import Sources, as_list
+from dapm_lightning.inference.video_preview import VideoPreviews
 from dapm_lightning.models.dapm import DAPMOutput
 
 Output = Literal["depth_npy", "depth_tiff", "depth16", "depth_color", "sky", "camera", "points", "npz"]
@@ -84,21 +84,25 @@ def check_outputs(outputs: Iterable[str] | str | None) -> list[str]:
 
 
 def write_prediction(out: Path, prediction: Prediction, outputs: Iterable[str] = DEFAULT_OUTPUTS,
-                     points_stride: int | None = None, points_max_depth: float | None = None) -> list[Path]:
+                     points_stride: int | None = None, points_max_depth: float | None = None,
+                     depth_range: tuple[float, float] | None = None) -> list[Path]:
     """Write the selected per-image files of one prediction (``OUT/NAME_*``); returns the paths written.
 
     Each file is written whole or not at all and checked (:mod:`dapm_lightning.data.files`). The point cloud is
     coloured with the prediction's ``rgb`` when it carries the input's pixels; ``points_stride`` None keeps
-    about as many points as the network saw pixels (:meth:`Prediction.auto_stride`).
+    about as many points as the network saw pixels (:meth:`Prediction.auto_stride`). The colour depth map is in
+    its own robust range with a colour bar in metres, or in ``depth_range`` (metres) for maps to compare
+    (:func:`~dapm_lightning.data.pictures.depth_picture`).
 
     Raises:
         WriteError: a file could not be written (a full disk, a read-only folder, an image too large to encode).
     """
-    return list(prediction_files(out, prediction, outputs, points_stride, points_max_depth).values())
+    return list(prediction_files(out, prediction, outputs, points_stride, points_max_depth, depth_range).values())
 
 
 def prediction_files(out: Path, prediction: Prediction, outputs: Iterable[str] = DEFAULT_OUTPUTS,
-                     points_stride: int | None = None, points_max_depth: float | None = None) -> dict[str, Path]:
+                     points_stride: int | None = None, points_max_depth: float | None = None,
+                     depth_range: tuple[float, float] | None = None) -> dict[str, Path]:
     """:func:`write_prediction`, returning each kind written with its path (what the model could give of it)."""
     outputs, written, name = set(outputs), {}, prediction.name
     if prediction.depth_m is not None:
@@ -113,7 +117,7 @@ def prediction_files(out: Path, prediction: Prediction, outputs: Iterable[str] =
             written["depth16"] = write_image(out / f"{name}_depth16.png",
                                              np.clip(np.round(depth * DEPTH16_SCALE), 0, 65535).astype(np.uint16))
         if "depth_color" in outputs:
-            color = colorize_depth(torch.from_numpy(depth), prediction.max_depth)
+            color = depth_picture(depth, prediction.sky, depth_range)
             written["depth_color"] = write_image(out / f"{name}_depth_color.png",
                                                  cv2.cvtColor(color, cv2.COLOR_RGB2BGR))
     if "sky" in outputs and prediction.sky_prob is not None:
@@ -226,13 +230,16 @@ class PredictionFiles:
         contact_sheet: ``contact_sheet.png`` with the first this many images (image and horizon | depth | sky |
             pose), at most :data:`CONTACT_MAX_IMAGES`; 0: none.
         option: the setting that named ``output_dir`` (e.g. ``--out``), named in error messages.
+        depth_range: the colour depth maps' range in metres (maps to compare); None: each map its own.
+        video_preview: a video's frames beside their depth as ``STEM_depth.mp4``.
         exist_ok: add to an ``output_dir`` that already holds files (each image's files rewritten together); False
             refuses it in one line. exist_ok_option: the setting that says so, named in that line.
     """
 
     def __init__(self, output_dir: str | Path | None = None, outputs: Iterable[str] | str | None = None,
                  points_stride: int | None = None, points_max_depth: float | None = None, contact_sheet: int = 8,
-                 option: str | None = None, exist_ok: bool = True, exist_ok_option: str = "--exist_ok") -> None:
+                 option: str | None = None, exist_ok: bool = True, exist_ok_option: str = "--exist_ok",
+                 depth_range: tuple[float, float] | None = None, video_preview: bool = True) -> None:
         self.output_dir = run_folder(output_dir, exist_ok, option or "output_dir", exist_ok_option)
         self.outputs = check_outputs(outputs)
         if points_stride is not None and points_stride < 1:
@@ -242,7 +249,10 @@ class PredictionFiles:
             warnings.warn(f"a contact sheet shows at most {CONTACT_MAX_IMAGES} images, not {contact_sheet}",
                           stacklevel=2)
         self.contact_images = min(max(0, contact_sheet), CONTACT_MAX_IMAGES)
-        self.option = option
+        self.option, self.video_preview = option, video_preview
+        if depth_range is not None and not 0 < depth_range[0] < depth_range[1]:
+            raise ValueError(f"depth_range must be two depths in metres, 0 < MIN < MAX, got {list(depth_range)}")
+        self.depth_range = None if depth_range is None else (float(depth_range[0]), float(depth_range[1]))
         check_folder_writable(self.output_dir, option)
         self.created: list[Path] = []
         """The folders this object created (outermost first)."""
@@ -251,7 +261,8 @@ class PredictionFiles:
     def start(self) -> None:
         """A new run: nothing counted yet (the folder is created with the first file)."""
         self.rows: list[dict[str, Any]] = []
-        self.contact_rows: list[np.ndarray] = []
+        self.contact_rows: list[list[np.ndarray]] = []
+        self.previews = VideoPreviews()
         self.images = 0
         self.kinds: set[str] = set()
         """The per-image kinds written for at least one image."""
@@ -272,7 +283,10 @@ class PredictionFiles:
         """Write one prediction's files (its ``rgb``, when kept, colours the points and the contact sheet)."""
         try:
             written = prediction_files(self._folder(), prediction, self.outputs, self.points_stride,
-                                       self.points_max_depth)
+                                       self.points_max_depth, self.depth_range)
+            if self.video_preview and prediction.time_s is not None and prediction.depth_m is not None:
+                self.previews.add(self.output_dir, prediction,
+                                  depth_picture(prediction.depth_m, prediction.sky, self.depth_range))
         except BaseException as error:
             raised = self._failed(error)
             if raised is error:
@@ -282,7 +296,7 @@ class PredictionFiles:
         if prediction.pose is not None:
             self.rows.append(pose_row(prediction))
         if len(self.contact_rows) < self.contact_images:
-            self.contact_rows.append(contact_row(prediction))
+            self.contact_rows.append(contact_tiles(prediction))
         self.images += 1
 
     def finish(self, suffix: str = "") -> str:
@@ -292,6 +306,7 @@ class PredictionFiles:
         """
         extra = []
         try:
+            extra += [p.name for p in self.previews.finish()]
             if self.rows:
                 extra.append(write_poses(self._folder(), self.rows, suffix).name)
             if self.contact_rows:
@@ -307,6 +322,7 @@ class PredictionFiles:
 
     def close(self) -> None:
         """The end of a run, done or failed: the folders this run created go again if nothing was written there."""
+        self.previews.abandon()
         remove_empty_folders(self.created)
         self.created = [folder for folder in self.created if folder.is_dir()]
 
@@ -342,11 +358,12 @@ class PredictionWriter(BasePredictionWriter):
     def __init__(self, output_dir: str | None = None, outputs: list[str] | str | None = None,
                  points_stride: int | None = None,
                  points_max_depth: float | None = None, contact_sheet: int = 8, channels_last: bool = False,
-                 compile: bool = False, exist_ok: bool = False) -> None:
+                 compile: bool = False, exist_ok: bool = False,
+                 depth_range: tuple[float, float] | None = None) -> None:
         super().__init__(write_interval="batch")
         self.channels_last, self.compile = channels_last, compile
         self.files = PredictionFiles(output_dir, outputs, points_stride, points_max_depth, contact_sheet,
-                                     option=self.OPTION)
+                                     option=self.OPTION, depth_range=depth_range)
         self.named, self.exist_ok = output_dir is not None, exist_ok
         self.spec = IGDSpec()
 
@@ -363,6 +380,7 @@ class PredictionWriter(BasePredictionWriter):
             run_folder(self.output_dir, self.exist_ok, self.OPTION, "--trainer.callbacks.exist_ok")
         if trainer.world_size > 1:  # one folder for every process: rank 0's (a new runs/predict<N> is per process)
             self.files.output_dir = Path(trainer.strategy.broadcast(str(self.files.output_dir)))
+        self.files.video_preview = trainer.world_size == 1  # a video's frames are shared between processes
         trainer.predict_loop.return_predictions = False  # the files are the result: keep nothing in memory
         apply_inference_options(pl_module, self.channels_last, self.compile)
         config = getattr(pl_module, "net_config", None)

@@ -74,6 +74,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--max_frames", type=int, default=None, help="videos: stop after this many frames")
     parser.add_argument("--contact_sheet", type=int, default=8,
                         help="contact_sheet.png of the first N images (at most 64); 0: none (default: %(default)s)")
+    parser.add_argument("--depth_range", type=float, nargs=2, default=None, metavar=("MIN_M", "MAX_M"),
+                        help="colour depth maps in this range of metres, the same for every image (maps to compare; "
+                             "default: each map its own 2nd-98th percentile)")
     parser.add_argument("--points_stride", type=int, default=None,
                         help="point clouds: every N-th row and column (default: about the network's resolution)")
     parser.add_argument("--points_max_depth", type=float, default=None,
@@ -135,7 +138,7 @@ def predict_main(argv: Sequence[str]) -> None:
     check_output_outside_source(run_folder(None) if args.out is None else args.out, args.source, "--out")
     out = run_folder(args.out, args.exist_ok)
     files = PredictionFiles(out, args.outputs, args.points_stride, args.points_max_depth,
-                            contact_sheet=args.contact_sheet, option="--out")
+                            contact_sheet=args.contact_sheet, option="--out", depth_range=args.depth_range)
     predictor = DAPMPredictor.from_checkpoint(args.ckpt_path, args.image_width, args.device,
                                               precision=args.precision, batch_size=args.batch_size,
                                               channels_last=args.channels_last, compile=args.compile,
@@ -143,7 +146,7 @@ def predict_main(argv: Sequence[str]) -> None:
                                               telemetry_sigma=args.telemetry_sigma)
     source = PredictSource(tuple(args.source), args.frame_step, args.max_frames, args.telemetry, not args.no_metadata,
                            args.sensor_width_mm, args.strict_telemetry)
-    keep_rgb = "points" in files.outputs or files.contact_images > 0
+    keep_rgb = True  # the points' colours, the contact sheet, a video's preview: one batch of pixels at a time
     with files:  # the output folder is made with the first file, and goes again if the run fails before it
         for prediction in predictor.predict_source(source, keep_rgb=keep_rgb, num_workers=args.num_workers):
             files.add(prediction)

@@ -246,7 +246,11 @@ def test_cli_predict_honours_precision_and_a_video_source(checkpoint, tmp_path, 
     assert names == ["clip_f000000", "clip_f000002", "clip_f000004"]
     assert sorted(p.name for p in out.iterdir()) == sorted(
         [f"{n}_{s}" for n in names for s in ("depth.npy", "camera.json")]
-        + ["poses.csv", "poses.json", "contact_sheet.png"])
+        + ["poses.csv", "poses.json", "contact_sheet.png", "clip_depth.mp4"])  # the frames beside their depth
+    preview = cv2.VideoCapture(str(out / "clip_depth.mp4"))
+    assert preview.get(cv2.CAP_PROP_FRAME_COUNT) == 3 and preview.get(cv2.CAP_PROP_FPS) == pytest.approx(5.0)
+    assert preview.get(cv2.CAP_PROP_FRAME_WIDTH) == 96 and preview.get(cv2.CAP_PROP_FRAME_HEIGHT) == 36
+    preview.release()
     fp32 = DAPMPredictor.from_checkpoint(checkpoint, image_width=64)(next(iter(
         VideoFramesDataset(video, None, keep_rgb=True))).rgb)
     bf16 = np.load(out / "clip_f000000_depth.npy")
@@ -296,7 +300,7 @@ def test_sky_is_sky_at_every_output_size(size, sky_rows, tmp_path):
     written = {p.name: p for p in write_prediction(tmp_path, result, OUTPUT_KINDS, points_stride=1)}
     depth16 = cv2.imread(str(written["f_depth16.png"]), cv2.IMREAD_UNCHANGED)
     assert (depth16[sky] == 64000).all() and (depth16[~sky] < 64000).all()
-    colour = cv2.imread(str(written["f_depth_color.png"]))
+    colour = cv2.imread(str(written["f_depth_color.png"]))[:, :size[1]]  # the picture, left of its colour bar
     sky_colour = colour[sky][0]
     assert (colour[sky] == sky_colour).all() and not (colour[~sky] == sky_colour).all(axis=1).any()
     assert len(read_ply_independently(written["f_points.ply"])) == (~sky).sum()  # no sky point in the cloud
