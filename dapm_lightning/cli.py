@@ -83,6 +83,10 @@ def main(argv: Sequence[str] | None = None) -> None:
             run_reporting_errors(lambda: predict_main(args[1:]), debug)
             return
         import dapm_lightning.inference.datamodule  # noqa: F401  (--data PredictDataModule by its short name)
+        from dapm_lightning.tools.progress import show_progress
+
+        if not show_progress() and not any(a.startswith("--trainer.enable_progress_bar") for a in args):
+            args = [args[0], "--trainer.enable_progress_bar=false", *args[1:]]  # no bar into a file or a pipe
     args = packaged_configs(args)
     from dapm_lightning.training.lightning_cli import run_lightning_cli
 

@@ -27,6 +27,7 @@ from dapm_lightning.inference.writers import (
     check_outputs,
 )
 from dapm_lightning.models.prior import EXACT_SIGMA, PRIOR_MODES
+from dapm_lightning.tools.progress import progress_bar, quiet_notes
 
 LIGHTNING_OPTIONS = ("--config", "--data", "--trainer", "--model", "--print_config", "--seed_everything")
 """Options that select the Lightning form of ``predict``."""
@@ -85,6 +86,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--compile", action="store_true",
                         help="torch.compile the network (minutes to start; pays off on long videos)")
     parser.add_argument("--num_workers", type=int, default=0, help="decoding processes (default: 0)")
+    parser.add_argument("--quiet", "-q", action="store_true",
+                        help="no progress bar and no notes (the bar shows only at a terminal anyway)")
     flight = parser.add_argument_group("telemetry (docs/predict.md): the pose the drone knows, for metric depth")
     flight.add_argument("--telemetry", default=None, metavar="FILE",
                         help="CSV name,height_m,pitch_deg,roll_deg,fov_deg (empty cell: unknown), or a video's SRT")
@@ -131,6 +134,7 @@ def predict_main(argv: Sequence[str]) -> None:
     from dapm_lightning.inference.predictor import DAPMPredictor
 
     args = parse(argv)
+    quiet_notes(args.quiet)
     warnings.formatwarning = _short_warning  # "warning: MESSAGE", not the source line that raised it
     # what can be found wrong without the model is found before it loads (seconds): a missing source, an
     # output folder inside it (its files would be read back as images) or one that cannot be written
@@ -146,8 +150,12 @@ def predict_main(argv: Sequence[str]) -> None:
                                               telemetry_sigma=args.telemetry_sigma)
     source = PredictSource(tuple(args.source), args.frame_step, args.max_frames, args.telemetry, not args.no_metadata,
                            args.sensor_width_mm, args.strict_telemetry)
-    keep_rgb = True  # the points' colours, the contact sheet, a video's preview: one batch of pixels at a time
-    with files:  # the output folder is made with the first file, and goes again if the run fails before it
-        for prediction in predictor.predict_source(source, keep_rgb=keep_rgb, num_workers=args.num_workers):
-            files.add(prediction)
+    # the pixels ride along (the points' colours, the contact sheet, a video's preview): one batch at a time
+    loader = predictor.loader(source, keep_rgb=True, num_workers=args.num_workers)
+    with files, progress_bar(loader.expected_images(), args.quiet) as bar:  # no folder if nothing was written
+        for batch in loader:
+            for prediction in predictor.predict_batch(batch):
+                files.add(prediction)
+                bar.update(1)
+        bar.close()
         print(files.finish(), file=sys.stdout, flush=True)

@@ -19,6 +19,7 @@ from lightning.pytorch.utilities import rank_zero_info, rank_zero_only
 
 from dapm_lightning.data.datamodules import DAPMDataModule
 from dapm_lightning.models.config import DAPMConfig
+from dapm_lightning.tools.progress import quiet_lightning
 from dapm_lightning.training.checkpoint_files import (
     CheckpointReadError,
     UnsafeCheckpointError,
@@ -378,7 +379,8 @@ def _as_list(value: Any) -> list[Any]:
 
 
 def run_lightning_cli(args: Sequence[str] | None = None, run: bool = True) -> DAPMCLI:
-    """Parse ``args`` (``fit --config FILE ...``) and run the subcommand."""
+    """Parse ``args`` (``fit --config FILE ...``) and run the subcommand, without Lightning's tips."""
+    quiet_lightning()
     return DAPMCLI(DAPMModule, DAPMDataModule, subclass_mode_data=True, seed_everything_default=0,
                    save_config_callback=SaveConfigOfRun, save_config_kwargs={"overwrite": True},
                    args=list(args) if args is not None else None, run=run, auto_configure_optimizers=False,
