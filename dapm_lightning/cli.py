@@ -26,7 +26,7 @@ LIGHTNING_SUBCOMMANDS = {"fit": "train (and validate) a model", "validate": "val
 def usage() -> str:
     """Top-level help: every subcommand with one line."""
     rows = [*LIGHTNING_SUBCOMMANDS.items(), *((name, tool[2]) for name, tool in TOOLS.items())]
-    lines = ["usage: dapm-lightning SUBCOMMAND [--help] ...", "",
+    lines = ["usage: dapm-lightning SUBCOMMAND [--help] ...   (dapm-lightning --version: the version)", "",
              "DAPM: metric depth and camera pose (height, pitch, roll, FoV) from one UAV image.", "",
              "subcommands:"] + [f"  {name:<15}{text}" for name, text in rows]
     lines += ["", "`dapm-lightning SUBCOMMAND --help` lists every setting of one subcommand; errors show a",
@@ -66,6 +66,11 @@ def main(argv: Sequence[str] | None = None) -> None:
     if not args or args[0] in ("-h", "--help"):
         print(usage())
         return
+    if args[0] in ("--version", "-V", "version"):
+        from dapm_lightning import __version__
+
+        print(f"dapm-lightning {__version__}")
+        return
     if args[0] in TOOLS:
         module_name, function, _ = TOOLS[args[0]]
         entry = getattr(importlib.import_module(module_name), function)
@@ -74,7 +79,11 @@ def main(argv: Sequence[str] | None = None) -> None:
             raise SystemExit(result)
         return
     if args[0] not in LIGHTNING_SUBCOMMANDS and not args[0].startswith("-"):
-        print(f"error: unknown subcommand {args[0]!r}\n\n{usage()}", file=sys.stderr)
+        import difflib
+
+        close = difflib.get_close_matches(args[0], [*LIGHTNING_SUBCOMMANDS, *TOOLS], n=1)
+        hint = f" (did you mean {close[0]}?)" if close else ""
+        print(f"error: unknown subcommand {args[0]!r}{hint}\n\n{usage()}", file=sys.stderr)
         raise SystemExit(2)
     if args[0] == "predict":
         from dapm_lightning.tools.predict import is_lightning_form, predict_main

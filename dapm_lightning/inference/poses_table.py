@@ -20,13 +20,16 @@ POSE_COLUMNS = ["name", *POSE_FIELDS]
 
 
 def pose_row(prediction: Prediction) -> dict[str, Any]:
-    """One poses-table row: the pose used; with a prior also each component's source and the network's value."""
+    """One poses-table row: the pose used; with telemetry also each component's source and the network's value.
+
+    A row of the network's pose alone gets those columns from :func:`write_poses` when others in the table have them.
+    """
     assert prediction.pose is not None
     row: dict[str, Any] = {"name": prediction.name,
                            **{pose_field(k): round(v, 4) for k, v in prediction.pose.items()}}
     if prediction.time_s is not None:  # a video frame: its time in the video
         row["time_s"] = round(prediction.time_s, 3)
-    if prediction.pose_source:
+    if prediction.pose_source and set(prediction.pose_source.values()) != {"network"}:
         network = prediction.pose_network or prediction.pose
         provenance = prediction.pose_provenance or {}
         for key in POSE_KEYS:

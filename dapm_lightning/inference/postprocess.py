@@ -120,7 +120,8 @@ class Prediction:
         name: what its files are called.
         size: ``(H, W)`` of the input image.
         pose_network: the network's own estimate per component (equal to ``pose`` without a prior).
-        pose_source: per component, where ``pose`` comes from: ``"network"``, ``"telemetry"`` or ``"fused"``.
+        pose_source: per component, where ``pose`` comes from: ``"network"``, ``"telemetry"`` or ``"fused"``
+            (all ``"network"`` without telemetry; None without a pose).
         pose_provenance: per component given by telemetry (``telemetry`` or ``fused``), the file and the place in it
             (``"flight.csv line 12"``, ``"DJI_0001.JPG XMP drone-dji:RelativeAltitude"``,
             ``"DJI_0005.SRT subtitle 215 rel_alt"``, ``"Python API prior"``).
@@ -244,8 +245,14 @@ def make_prediction(name: str, size: Sequence[int], depth_m: Tensor | None, sky_
         k = intrinsics_matrix(pose64[:, 3], size)[0].numpy()
         c2w = camera_to_world(pose64)[0].numpy()
     return Prediction(depth, sky, pose_used, prob, k, c2w, spec.depth_kind, spec.max_depth, name, size,
-                      _camera_pose(pose_network) or pose_used, dict(pose_source) if pose_source else None,
+                      _camera_pose(pose_network) or pose_used,
+                      dict(pose_source) if pose_source else _network_sources(pose_used),
                       dict(pose_provenance) if pose_provenance else None)
+
+
+def _network_sources(pose: CameraPose | None) -> dict[str, str] | None:
+    """Without telemetry every component is the network's (None without a pose)."""
+    return None if pose is None else {k: "network" for k in POSE_KEYS}
 
 
 def predictions_from_outputs(output: InferenceOutput, names: Sequence[str], sizes: Sequence[Sequence[int]],

@@ -22,6 +22,7 @@ from dapm_lightning.inference.inputs import (
     network_size,
     predict_input,
     predict_loader,
+    read_image,
     resize_images,
     to_rgb8,
     upscale_note,
@@ -115,8 +116,14 @@ class DAPMPredictor:
         return batch_predictions(self.runtime(batch.images, batch.network_prior), batch, self.spec)
 
     def _predict_input(self, image: Any, index: int, prior: Tensor, provenance: tuple[str, ...]) -> PredictInput:
-        """One image (numpy RGB, PIL, or tensor ``[3, H, W]``) at the network size, with its prior."""
-        if isinstance(image, Tensor) and image.dtype != torch.uint8:  # float RGB: resized as floats
+        """One image (a path, numpy RGB, PIL, or tensor ``[3, H, W]``) at the network size, with its prior."""
+        if isinstance(image, (str, Path)):  # an image file: named by its stem
+            path = Path(image).expanduser()
+            if not path.is_file():
+                raise FileNotFoundError(f"image {index}: {path}: no such file")
+            item = predict_input(read_image(path), path.stem, str(path), self.target, False, prior.numpy(),
+                                 provenance)
+        elif isinstance(image, Tensor) and image.dtype != torch.uint8:  # float RGB: resized as floats
             if image.ndim != 3 or image.shape[0] not in (1, 3):
                 raise ValueError(f"image {index}: a tensor must be [3, H, W] or [B, 3, H, W] RGB, got "
                                  f"{tuple(image.shape)}")
@@ -141,9 +148,10 @@ class DAPMPredictor:
         """Predict one image or several.
 
         Args:
-            images: one image: ``[H, W]`` / ``[H, W, 3|4]`` numpy array in RGB order (uint8 or uint16), a PIL
-                image, or a ``[3, H, W]`` tensor (uint8, or float RGB in [0, 1]); or several: a list of those,
-                a ``[B, H, W, 3]`` numpy array or a ``[B, 3, H, W]`` tensor.
+            images: one image: a path to an image file (named by its stem), an ``[H, W]`` / ``[H, W, 3|4]``
+                numpy array in RGB order (uint8 or uint16), a PIL image, or a ``[3, H, W]`` tensor (uint8, or float
+                RGB in [0, 1]); or several: a list of those, a ``[B, H, W, 3]`` numpy array or a ``[B, 3, H, W]``
+                tensor. (Folders, patterns and videos: :meth:`predict_source`.)
             prior: what is known of the pose (telemetry): for one image a dict (``height_m``, ``pitch_deg``,
                 ``roll_deg``, ``fov_deg``, any subset), a ``[4]`` array with NaN where unknown, or a
                 ``PoseTelemetry``; for several, a list of those (None for an image without). Checked as a

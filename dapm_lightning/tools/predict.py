@@ -17,7 +17,7 @@ from collections.abc import Sequence
 
 from dapm_lightning.inference.inputs import DEFAULT_BATCH_SIZE, PredictSource
 from dapm_lightning.inference.run_folder import run_folder
-from dapm_lightning.inference.runtime import PRECISIONS
+from dapm_lightning.inference.runtime import PRECISIONS, check_device
 from dapm_lightning.inference.sources import resolve_sources
 from dapm_lightning.inference.writers import (
     DEFAULT_OUTPUTS,
@@ -45,6 +45,28 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message}\nSee `{self.prog} --help`.\n")
 
 
+def positive(text: str) -> int:
+    """A whole number above zero (sizes, counts), or an argparse error saying so."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
+def not_negative(text: str) -> int:
+    """A whole number zero or above, or an argparse error saying so."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be 0 or more, got {value}")
+    return value
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The one-line form's options."""
     parser = _Parser(prog="dapm-lightning predict", allow_abbrev=False, description=__doc__,
@@ -66,26 +88,26 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--outputs", nargs="+", default=list(DEFAULT_OUTPUTS), metavar="KIND",
                         help=f"per-image files, any of {', '.join(OUTPUT_KINDS)}, or all; spaces or commas "
                              f"(default: {','.join(DEFAULT_OUTPUTS)}; poses.csv/json and contact_sheet.png per run)")
-    parser.add_argument("--image_width", type=int, default=None,
+    parser.add_argument("--image_width", type=positive, default=None,
                         help="network input width (default: the checkpoint's training size)")
-    parser.add_argument("--batch_size", type=int, default=DEFAULT_BATCH_SIZE,
+    parser.add_argument("--batch_size", type=positive, default=DEFAULT_BATCH_SIZE,
                         help="images per forward pass (default: %(default)s)")
     parser.add_argument("--precision", choices=PRECISIONS, default="32", help="(default: %(default)s)")
-    parser.add_argument("--frame_step", type=int, default=1, help="videos: every N-th frame (default: 1)")
-    parser.add_argument("--max_frames", type=int, default=None, help="videos: stop after this many frames")
-    parser.add_argument("--contact_sheet", type=int, default=8,
+    parser.add_argument("--frame_step", type=positive, default=1, help="videos: every N-th frame (default: 1)")
+    parser.add_argument("--max_frames", type=positive, default=None, help="videos: stop after this many frames")
+    parser.add_argument("--contact_sheet", type=not_negative, default=8,
                         help="contact_sheet.png of the first N images (at most 64); 0: none (default: %(default)s)")
     parser.add_argument("--depth_range", type=float, nargs=2, default=None, metavar=("MIN_M", "MAX_M"),
                         help="colour depth maps in this range of metres, the same for every image (maps to compare; "
                              "default: each map its own 2nd-98th percentile)")
-    parser.add_argument("--points_stride", type=int, default=None,
+    parser.add_argument("--points_stride", type=positive, default=None,
                         help="point clouds: every N-th row and column (default: about the network's resolution)")
     parser.add_argument("--points_max_depth", type=float, default=None,
                         help="point clouds: drop points farther than this (metres; sky is always dropped)")
     parser.add_argument("--channels_last", action="store_true", help="channels-last memory (NHWC convolutions)")
     parser.add_argument("--compile", action="store_true",
                         help="torch.compile the network (minutes to start; pays off on long videos)")
-    parser.add_argument("--num_workers", type=int, default=0, help="decoding processes (default: 0)")
+    parser.add_argument("--num_workers", type=not_negative, default=0, help="decoding processes (default: 0)")
     parser.add_argument("--quiet", "-q", action="store_true",
                         help="no progress bar and no notes (the bar shows only at a terminal anyway)")
     flight = parser.add_argument_group("telemetry (docs/predict.md): the pose the drone knows, for metric depth")
@@ -135,6 +157,7 @@ def predict_main(argv: Sequence[str]) -> None:
 
     args = parse(argv)
     quiet_notes(args.quiet)
+    check_device(args.device, args.precision)  # before the model loads: gpu for cuda, 16 on the CPU
     warnings.formatwarning = _short_warning  # "warning: MESSAGE", not the source line that raised it
     # what can be found wrong without the model is found before it loads (seconds): a missing source, an
     # output folder inside it (its files would be read back as images) or one that cannot be written
