@@ -42,7 +42,7 @@ from dapm_lightning.data.files import (
     write_text,
 )
 from dapm_lightning.data.pictures import depth_picture
-from dapm_lightning.geometry.constants import POSE_KEYS
+from dapm_lightning.geometry.constants import POSE_FIELDS, POSE_KEYS
 from dapm_lightning.geometry.igd import IGDSpec
 from dapm_lightning.inference.contact_sheet import CONTACT_MAX_IMAGES, contact_sheet, contact_tiles
 from dapm_lightning.inference.inputs import PredictSource
@@ -142,6 +142,7 @@ def npz_arrays(prediction: Prediction) -> dict[str, np.ndarray]:
     """What ``NAME.npz`` holds, of what the model predicts.
 
     ``depth`` (m), ``sky_prob``, ``K``, ``pose`` (height m, pitch, roll, fov deg), ``pose_network``,
+    ``pose_fields`` (the names of ``pose``'s entries, as the files name them: ``height_m``, ``pitch_deg``, ...),
     ``camera_to_world``.
     """
     arrays: dict[str, np.ndarray | None] = {
@@ -149,7 +150,8 @@ def npz_arrays(prediction: Prediction) -> dict[str, np.ndarray]:
         "camera_to_world": prediction.camera_to_world,
         "pose": None if prediction.pose is None else np.array([prediction.pose[k] for k in POSE_KEYS]),
         "pose_network": None if prediction.pose_network is None
-        else np.array([prediction.pose_network[k] for k in POSE_KEYS])}
+        else np.array([prediction.pose_network[k] for k in POSE_KEYS]),
+        "pose_fields": None if prediction.pose is None else np.array(POSE_FIELDS)}
     return {k: v for k, v in arrays.items() if v is not None}
 
 

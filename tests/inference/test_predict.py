@@ -357,7 +357,9 @@ def test_one_line_predict_on_a_folder_of_mixed_sizes(checkpoint, image_folder, t
                        f"in {out}/")
     for name, shape in (("colour", (45, 70)), ("grey", (30, 30)), ("rgba16", (40, 52))):
         packed = np.load(out / f"{name}.npz")
-        assert set(packed.files) == {"depth", "sky_prob", "K", "pose", "pose_network", "camera_to_world"}
+        assert set(packed.files) == {"depth", "sky_prob", "K", "pose", "pose_network", "pose_fields",
+                                     "camera_to_world"}
+        assert list(packed["pose_fields"]) == ["height_m", "pitch_deg", "roll_deg", "fov_deg"]  # as the files say
         np.testing.assert_array_equal(packed["depth"], np.load(out / f"{name}_depth.npy"))
         assert packed["depth"].shape == shape and packed["K"].shape == (3, 3) and packed["pose"].shape == (4,)
     sheet = cv2.imread(str(out / "contact_sheet.png"))
