@@ -94,3 +94,24 @@ def _number(value: Any) -> Any:
     return value
 
 
+
+
+def merge_rank_tables(out: Path, world_size: int) -> Path | None:
+    """The tables of ``world_size`` processes (``poses_rank<k>.csv``) merged into ``poses.csv`` / ``.json``.
+
+    Rows sorted by name (each process took every ``world_size``-th batch), merged with the folder's table as one
+    run's are (:func:`write_poses`); the per-process tables go. None when no process wrote a table.
+    """
+    rows: list[dict[str, Any]] = []
+    tables = [out / f"poses_rank{k}.csv" for k in range(world_size)]
+    for table in tables:
+        if table.is_file():
+            with table.open(newline="", encoding="utf-8") as handle:
+                rows += [{k: v for k, v in row.items() if k is not None and v != ""} for row in csv.DictReader(handle)]
+    if not rows:
+        return None
+    path = write_poses(out, sorted(rows, key=lambda row: row["name"]))
+    for table in tables:
+        table.unlink(missing_ok=True)
+        table.with_suffix(".json").unlink(missing_ok=True)
+    return path

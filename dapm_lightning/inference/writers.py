@@ -46,7 +46,7 @@ from dapm_lightning.geometry.constants import POSE_FIELDS, POSE_KEYS
 from dapm_lightning.geometry.igd import IGDSpec
 from dapm_lightning.inference.contact_sheet import CONTACT_MAX_IMAGES, contact_sheet, contact_tiles
 from dapm_lightning.inference.inputs import PredictSource
-from dapm_lightning.inference.poses_table import pose_row, write_poses
+from dapm_lightning.inference.poses_table import merge_rank_tables, pose_row, write_poses
 from dapm_lightning.inference.postprocess import Prediction, batch_predictions
 from dapm_lightning.inference.run_folder import remove_stale_files, run_folder
 from dapm_lightning.inference.runtime import apply_inference_options
@@ -350,7 +350,9 @@ class PredictionWriter(BasePredictionWriter):
         compile: torch.compile the network before the first batch (each new input size compiles
             again: worth it for long runs of one size, e.g. a video).
 
-    Under DDP every process writes its own images and poses_rank<k>.{csv,json}, into rank 0's folder.
+    Under DDP every process writes its own images into rank 0's folder, and rank 0 merges the processes' tables
+    into one ``poses.csv`` / ``poses.json`` at the end
+    (:func:`~dapm_lightning.inference.poses_table.merge_rank_tables`).
     ``output_dir`` None: a new ``runs/predict<N>`` per run; one that holds files is refused unless ``exist_ok``.
     """
 
@@ -403,6 +405,10 @@ class PredictionWriter(BasePredictionWriter):
         message = self.files.finish(suffix)
         self.files.close()
         if trainer.world_size > 1:
+            trainer.strategy.barrier()  # every process's table is written: rank 0 merges them into one
+            if trainer.is_global_zero:
+                merge_rank_tables(self.output_dir, trainer.world_size)
+            message = message.replace(f"poses{suffix}.csv", "poses.csv")
             print(f"{message} (process {trainer.global_rank} of {trainer.world_size})", flush=True)
         else:
             rank_zero_info(message)

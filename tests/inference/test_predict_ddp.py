@@ -1,4 +1,4 @@
-"""predict under 2-process DDP (gloo): every image once, each process its own files and poses table."""
+"""predict under 2-process DDP (gloo): every image once, each process its own files, one merged poses table."""
 
 import csv
 import subprocess
@@ -27,13 +27,11 @@ def test_two_processes_predict_every_image_once(checkpoint, tmp_path):
          "--trainer.callbacks.output_dir", str(out), "--trainer.callbacks.outputs", "[depth_npy]"],
         cwd=tmp_path, capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stderr[-3000:]
-    names = []
-    for rank in (0, 1):
-        with (out / f"poses_rank{rank}.csv").open() as handle:
-            rows = [row["name"] for row in csv.DictReader(handle)]
-        assert rows, f"process {rank} predicted nothing"
-        names += rows
-    assert sorted(names) == sorted(f"im{k}" for k in range(len(shapes)))  # each image exactly once
+    with (out / "poses.csv").open() as handle:  # one table, merged at the end
+        names = [row["name"] for row in csv.DictReader(handle)]
+    assert names == sorted(f"im{k}" for k in range(len(shapes)))  # each image exactly once
+    assert not list(out.glob("poses_rank*")) and (out / "poses.json").is_file()
     for k, shape in enumerate(shapes):
         assert np.load(out / f"im{k}_depth.npy").shape == shape
     assert result.stdout.count("predicted") == 2 and "(process 1 of 2)" in result.stdout
+    assert "poses_rank" not in result.stdout
