@@ -59,12 +59,17 @@ def resize_depth(depth_m: Tensor, size: Sequence[int], max_depth: float = MAX_DE
     return decode_log_depth(torch.where(weight > 1e-3, mixed, plain), max_depth)[0]
 
 
+_FIELD_KEYS = {pose_field(k): k for k in POSE_KEYS}
+"""The files' pose names (``height_m``, ...) -> the API's (``height``, ...)."""
+
+
 @dataclass(frozen=True, eq=False)  # eq from Mapping: equal to a dict of the same values
 class CameraPose(Mapping[str, float]):
     """A pose in physical units: ``height`` m, ``pitch``, ``roll``, ``fov`` deg (docs/conventions.md).
 
     Read as attributes (``pose.pitch``) or as a mapping in :data:`POSE_KEYS` order (``pose["pitch"]``,
-    ``dict(pose)``, ``pose.items()``).
+    ``dict(pose)``, ``pose.items()``); the files' names with units work too (``pose["pitch_deg"]``), and
+    :meth:`fields` gives the pose as the files and the telemetry CSV name it.
     """
 
     height: float
@@ -79,9 +84,14 @@ class CameraPose(Mapping[str, float]):
         return cls(height, pitch, roll, fov)
 
     def __getitem__(self, key: str) -> float:
+        key = _FIELD_KEYS.get(key, key)
         if key not in POSE_KEYS:
             raise KeyError(key)
         return float(getattr(self, key))
+
+    def fields(self) -> dict[str, float]:
+        """``{"height_m": ..., "pitch_deg": ..., "roll_deg": ..., "fov_deg": ...}``: the files' names and units."""
+        return {pose_field(k): self[k] for k in POSE_KEYS}
 
     def __iter__(self) -> Iterator[str]:
         return iter(POSE_KEYS)

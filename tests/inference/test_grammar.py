@@ -17,6 +17,8 @@ def test_the_api_says_network_without_telemetry_and_takes_paths(checkpoint, tmp_
     result = predictor(str(tmp_path / "frame.png"))
     assert result.pose_source == {"height": "network", "pitch": "network", "roll": "network", "fov": "network"}
     assert result.name == "frame" and result.depth_m.shape == (30, 40)
+    assert result.pose["height_m"] == result.pose["height"] == result.pose.height  # the files' names work too
+    assert list(result.pose.fields()) == ["height_m", "pitch_deg", "roll_deg", "fov_deg"]
     np.testing.assert_array_equal(result.depth_m, predictor(rgb).depth_m)  # the file's pixels, in RGB order
     both = predictor([tmp_path / "frame.png", rgb])
     assert [r.name for r in both] == ["frame", "1"]
