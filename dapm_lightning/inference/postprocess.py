@@ -179,7 +179,7 @@ class Prediction:
             raise ValueError(f"stride must be >= 1, got {stride}")
         depth = torch.from_numpy(np.ascontiguousarray(self.depth_m, np.float32))[None, None]
         pose = torch.tensor([[self.pose[k] for k in POSE_KEYS]], dtype=torch.float64)
-        xyz = depth_to_points(depth.double(), pose, depth_kind=self.depth_kind)[0, ::stride, ::stride]
+        xyz = depth_to_points(depth.double(), pose, depth_kind=self.depth_kind, stride=stride)[0]
         keep = valid_points(depth, min(self.max_depth, max_depth or math.inf))[0]
         if self.sky is not None:
             keep &= ~torch.from_numpy(self.sky)

@@ -63,3 +63,16 @@ def test_auto_stride_is_about_the_network_resolution():
     assert prediction.auto_stride() == 54
     assert Prediction(None, None, None, size=(30, 40), network_size=(48, 64)).auto_stride() == 1
     assert Prediction(None, None, None, size=(30, 40)).auto_stride() == 1
+
+
+@pytest.mark.parametrize("kind", ["range", "planar"])
+def test_strided_points_are_exactly_those_of_the_full_grid(kind):
+    import torch
+
+    from dapm_lightning.geometry import depth_to_points
+
+    depth = 20 + 80 * torch.rand(2, 47, 65, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    pose = torch.tensor([[40.0, -35.0, 4.0, 70.0], [12.0, -80.0, -10.0, 95.0]], dtype=torch.float64)
+    full = depth_to_points(depth, pose, depth_kind=kind)
+    for stride in (1, 3, 54):
+        assert torch.equal(depth_to_points(depth, pose, depth_kind=kind, stride=stride), full[:, ::stride, ::stride])
