@@ -1,9 +1,11 @@
-"""Prediction inputs: image files, folders, glob patterns and videos, and the one loader that batches them.
+"""Prediction inputs: the data sets of image files and videos, and the loaders that batch them.
 
-Each data set yields :class:`~dapm_lightning.data.unlabelled.PredictInput` (the image at the network size, its
-name, original size, source file, telemetry prior and, when asked for, its pixels); :func:`predict_loader`
-batches them by network size into :class:`~dapm_lightning.data.unlabelled.PredictBatch`, for the one-line
-command, the Lightning ``predict`` subcommand and the Python API alike.
+The files come from :mod:`~dapm_lightning.inference.sources` (folders, patterns, lists), the pixels' handling
+from :mod:`~dapm_lightning.inference.pixels`. Each data set yields
+:class:`~dapm_lightning.data.unlabelled.PredictInput` (the image at the network size, its name, original size,
+source file, telemetry prior and, when asked for, its pixels); :func:`predict_loaders` batch them by network size
+into :class:`~dapm_lightning.data.unlabelled.PredictBatch` (one loader for the images, one per video), for the
+one-line command, the Lightning ``predict`` subcommand and the Python API alike.
 """
 
 from __future__ import annotations

@@ -19,7 +19,6 @@ from lightning.pytorch.utilities import rank_zero_info, rank_zero_only
 
 from dapm_lightning.data.datamodules import DAPMDataModule
 from dapm_lightning.models.config import DAPMConfig
-from dapm_lightning.tools.progress import quiet_lightning
 from dapm_lightning.training.checkpoint_files import (
     CheckpointReadError,
     UnsafeCheckpointError,
@@ -36,6 +35,7 @@ from dapm_lightning.training.checkpointing import (
     resolve_last_checkpoint,
 )
 from dapm_lightning.training.module import DAPMModule
+from dapm_lightning.training.quiet import quiet_lightning
 
 TRAINER_DEFAULTS = {"plugins": [{"class_path": "dapm_lightning.training.checkpointing.SafeCheckpointIO"}]}
 """Checkpoints load with ``weights_only=True`` and save atomically. A ``--trainer.plugins`` value replaces this list:
