@@ -285,6 +285,7 @@ def memory(frames: int = 2000, every: int = 200, batch_size: int = 16, ckpt_path
             "--data.init_args.source", str(video), "--data.init_args.image_width", str(image_width),
             "--data.init_args.batch_size", str(batch_size), "--data.init_args.num_workers", str(num_workers),
             "--trainer.callbacks.output_dir", out or str(Path(folder) / "pred"),
+            "--trainer.callbacks.outputs", "depth_npy,depth_tiff,depth16,depth_color,sky,camera,points",
             "--trainer.callbacks+=benchmarks.callbacks.MemoryProbe", "--trainer.callbacks.every", str(every)])
         probe = next(c for c in cli.trainer.callbacks if isinstance(c, MemoryProbe))
         writer = next(c for c in cli.trainer.callbacks if isinstance(c, PredictionWriter))

@@ -26,20 +26,12 @@ LIGHTNING_SUBCOMMANDS = {"fit": "train (and validate) a model", "validate": "val
 def usage() -> str:
     """Top-level help: every subcommand with one line."""
     rows = [*LIGHTNING_SUBCOMMANDS.items(), *((name, tool[2]) for name, tool in TOOLS.items())]
-    lines = ["usage: dapm-lightning SUBCOMMAND [--help] ...", "",
+    lines = ["usage: dapm-lightning SUBCOMMAND [--help] ...   (dapm-lightning --version: the version)", "",
              "DAPM: metric depth and camera pose (height, pitch, roll, FoV) from one UAV image.", "",
              "subcommands:"] + [f"  {name:<15}{text}" for name, text in rows]
     lines += ["", "`dapm-lightning SUBCOMMAND --help` lists every setting of one subcommand; errors show a",
               "short message, and the Python traceback with --debug (or DAPM_DEBUG=1)."]
     return "\n".join(lines)
-
-
-def closest_subcommand(word: str) -> str:
-    """``"; did you mean 'predict'?"`` for a mistyped subcommand, or "" when none is close."""
-    import difflib
-
-    close = difflib.get_close_matches(word, [*LIGHTNING_SUBCOMMANDS, *TOOLS], n=1, cutoff=0.6)
-    return f"; did you mean {close[0]!r}?" if close else ""
 
 
 def packaged_configs(args: Sequence[str]) -> list[str]:
@@ -74,6 +66,11 @@ def main(argv: Sequence[str] | None = None) -> None:
     if not args or args[0] in ("-h", "--help"):
         print(usage())
         return
+    if args[0] in ("--version", "-V", "version"):
+        from dapm_lightning import __version__
+
+        print(f"dapm-lightning {__version__}")
+        return
     if args[0] in TOOLS:
         module_name, function, _ = TOOLS[args[0]]
         entry = getattr(importlib.import_module(module_name), function)
@@ -82,7 +79,11 @@ def main(argv: Sequence[str] | None = None) -> None:
             raise SystemExit(result)
         return
     if args[0] not in LIGHTNING_SUBCOMMANDS and not args[0].startswith("-"):
-        print(f"error: unknown subcommand {args[0]!r}{closest_subcommand(args[0])}\n\n{usage()}", file=sys.stderr)
+        import difflib
+
+        close = difflib.get_close_matches(args[0], [*LIGHTNING_SUBCOMMANDS, *TOOLS], n=1)
+        hint = f" (did you mean {close[0]}?)" if close else ""
+        print(f"error: unknown subcommand {args[0]!r}{hint}\n\n{usage()}", file=sys.stderr)
         raise SystemExit(2)
     if args[0] == "predict":
         from dapm_lightning.tools.predict import is_lightning_form, predict_main
@@ -91,6 +92,10 @@ def main(argv: Sequence[str] | None = None) -> None:
             run_reporting_errors(lambda: predict_main(args[1:]), debug)
             return
         import dapm_lightning.inference.datamodule  # noqa: F401  (--data PredictDataModule by its short name)
+        from dapm_lightning.tools.progress import show_progress
+
+        if not show_progress() and not any(a.startswith("--trainer.enable_progress_bar") for a in args):
+            args = [args[0], "--trainer.enable_progress_bar=false", *args[1:]]  # no bar into a file or a pipe
     args = packaged_configs(args)
     from dapm_lightning.training.lightning_cli import run_lightning_cli
 

@@ -95,9 +95,39 @@ def architecture() -> None:
     plt.close(fig)
 
 
+def predict_pictures() -> None:
+    """The predict writers' depth picture and contact sheet, drawn from synthetic frames' true depth and pose."""
+    import cv2
+
+    from dapm_lightning.data.pictures import depth_picture
+    from dapm_lightning.data.synthetic.generate import image_seed, sample_pose
+    from dapm_lightning.data.synthetic.render import render_scene
+    from dapm_lightning.data.synthetic.scene import sample_scene
+    from dapm_lightning.inference.contact_sheet import contact_sheet, contact_tiles
+    from dapm_lightning.inference.postprocess import make_prediction
+
+    rows, first = [], None
+    for index, size in ((3, (240, 320)), (11, (240, 320)), (5, (180, 320))):
+        rng = image_seed(77, "val", index)
+        pose = sample_pose(rng)
+        rgb, depth, _ = render_scene(pose, size, sample_scene(rng))
+        depth = np.where(np.isfinite(depth) & (depth < 1000), depth, 1000.0).astype(np.float32)
+        sky = torch.from_numpy((depth >= 1000).astype(np.float32))[None]
+        prediction = make_prediction(f"synth_{index:03d}", size, torch.from_numpy(depth)[None], sky,
+                                     torch.tensor(pose, dtype=torch.float32))
+        prediction.rgb = rgb
+        rows.append(contact_tiles(prediction))
+        if first is None:
+            first = depth_picture(prediction.depth_m, prediction.sky)
+    assert first is not None
+    cv2.imwrite(str(OUT / "predict_depth_color.png"), cv2.cvtColor(first, cv2.COLOR_RGB2BGR))
+    cv2.imwrite(str(OUT / "predict_contact_sheet.png"), cv2.cvtColor(contact_sheet(rows), cv2.COLOR_RGB2BGR))
+
+
 if __name__ == "__main__":
     OUT.mkdir(parents=True, exist_ok=True)
     igd_grid()
     pinhole_vs_paper()
     architecture()
+    predict_pictures()
     print(f"wrote figures to {OUT}; the synthetic samples figure: python -m benchmarks.bench_synth figure")

@@ -59,21 +59,21 @@ def intrinsics_matrix(fov_deg: Tensor, size: tuple[int, int]) -> Tensor:
 
 
 def camera_rays(pitch_deg: Tensor, roll_deg: Tensor, fov_deg: Tensor,
-                size: tuple[int, int]) -> Tensor:
+                size: tuple[int, int], stride: int = 1) -> Tensor:
     """Per-pixel ray directions ``d = (u/f) R' + (v/f) D' + F`` in the world frame (not unit length).
 
     Args:
         pitch_deg, roll_deg, fov_deg: ``[B]`` each.
-        size: ``(H, W)``.
+        size: ``(H, W)``. stride: only every ``stride``-th row and column (exactly those of the full grid).
 
     Returns:
-        ``[B, H, W, 3]`` world (X forward-horizontal, Y left, Z up); the component along the optical
-        axis is exactly 1, so ``|d| = sqrt(1 + (u/f)^2 + (v/f)^2)``.
+        ``[B, H, W, 3]`` (``[B, ceil(H/stride), ceil(W/stride), 3]``) world (X forward-horizontal, Y left,
+        Z up); the component along the optical axis is exactly 1, so ``|d| = sqrt(1 + (u/f)^2 + (v/f)^2)``.
 
     Convention:
         At pitch -90 (nadir) the centre ray is ``(0, 0, -1)``; positive roll tilts the horizon right end up.
     """
-    a, b = _plane_coords(fov_deg, size)  # [B, H, W] each: u/f, v/f
+    a, b = _plane_coords(fov_deg, size, stride)  # [B, H, W] each: u/f, v/f
     p, r = torch.deg2rad(pitch_deg)[:, None, None], torch.deg2rad(roll_deg)[:, None, None]
     sp, cp, sr, cr = torch.sin(p), torch.cos(p), torch.sin(r), torch.cos(r)
     # R' = (sr sp, -cr, -sr cp),  D' = (cr sp, sr, -cr cp),  F = (cp, 0, sp)
@@ -83,9 +83,10 @@ def camera_rays(pitch_deg: Tensor, roll_deg: Tensor, fov_deg: Tensor,
     return torch.stack((x, y, z), dim=-1)
 
 
-def _plane_coords(fov_deg: Tensor, size: tuple[int, int]) -> tuple[Tensor, Tensor]:
-    """``(u/f, v/f)`` as ``[B, H, W]`` each."""
+def _plane_coords(fov_deg: Tensor, size: tuple[int, int], stride: int = 1) -> tuple[Tensor, Tensor]:
+    """``(u/f, v/f)`` as ``[B, H, W]`` each (every ``stride``-th row and column)."""
     u, v = pixel_offsets(size, device=fov_deg.device, dtype=fov_deg.dtype)
+    u, v = u[::stride, ::stride], v[::stride, ::stride]
     inv_f = inverse_focal(fov_deg, size[1])[:, None, None]
     return u * inv_f, v * inv_f
 

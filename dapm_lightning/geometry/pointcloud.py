@@ -10,13 +10,15 @@ from dapm_lightning.geometry.constants import MAX_DEPTH_M
 from dapm_lightning.geometry.igd import DepthKind
 
 
-def depth_to_points(depth_m: Tensor, pose: Tensor, *, depth_kind: DepthKind = "range") -> Tensor:
+def depth_to_points(depth_m: Tensor, pose: Tensor, *, depth_kind: DepthKind = "range", stride: int = 1) -> Tensor:
     """World coordinates of every pixel's 3D point: origin on the ground under the camera, Z up.
 
     Args:
         depth_m: ``[B, 1, H, W]`` or ``[B, H, W]`` metres, of the kind ``depth_kind``.
         pose: ``[B, 4]`` (height m, pitch deg, roll deg, fov deg); the FoV spans the width ``W``.
         depth_kind: ``"range"`` (lens to point) or ``"planar"`` (along the optical axis).
+        stride: only every ``stride``-th row and column: exactly those points of the full grid, computed alone
+            (memory of the subsampled grid, not of the image).
 
     Returns:
         ``[B, H, W, 3]`` metres (X the horizontal direction of the optical axis, Y to its left, Z up).
@@ -39,7 +41,8 @@ def depth_to_points(depth_m: Tensor, pose: Tensor, *, depth_kind: DepthKind = "r
         raise ValueError(f"depth_kind must be 'range' or 'planar', got {depth_kind!r}")
     pose = pose.to(depth_m.dtype)
     size = (int(depth_m.shape[1]), int(depth_m.shape[2]))
-    rays = camera_rays(pose[:, 1], pose[:, 2], pose[:, 3], size)  # [B, H, W, 3], unit component along the axis
+    rays = camera_rays(pose[:, 1], pose[:, 2], pose[:, 3], size, stride)  # [B, H, W, 3], 1 along the axis
+    depth_m = depth_m[:, ::stride, ::stride]
     if depth_kind == "range":
         rays = rays / torch.linalg.vector_norm(rays, dim=-1, keepdim=True)
     camera = torch.zeros_like(pose[:, :3])

@@ -1,4 +1,7 @@
-"""The contact sheet: per image ``image and horizon | depth | sky | pose``, tiles bounded for any aspect."""
+"""The contact sheet: under column headings, per image ``image and horizon | depth | sky | pose``, columns aligned.
+
+Picture tiles are bounded for any aspect; each depth tile is in its image's own range, written on it in metres.
+"""
 
 from __future__ import annotations
 
@@ -6,9 +9,8 @@ from collections.abc import Sequence
 
 import cv2
 import numpy as np
-import torch
 
-from dapm_lightning.data.pictures import colorize_depth
+from dapm_lightning.data.pictures import depth_colours, depth_range
 from dapm_lightning.geometry.camera import horizon_segment
 from dapm_lightning.inference.postprocess import Prediction
 
@@ -19,8 +21,9 @@ CONTACT_MAX_ASPECT = 4
 height wide: images of other aspects are letter-boxed, so a 10 x 30000 image's tile is 640 x 160, not 480000 x 160."""
 CONTACT_MAX_IMAGES = 64
 """The most images a contact sheet shows (a sheet stays under about 25 Mpx, ~70 MB in memory)."""
-
-
+CONTACT_HEADING = 28
+"""Height in pixels of the column headings."""
+CONTACT_COLUMNS = ("image, horizon", "depth (own range)", "sky", "pose")
 
 def contact_tile(height: int, width: int, tile: int = CONTACT_TILE) -> tuple[int, int, int, int, int, int]:
     """Where an ``height x width`` picture goes in its contact-sheet tile.
@@ -38,11 +41,16 @@ def contact_tile(height: int, width: int, tile: int = CONTACT_TILE) -> tuple[int
     return tile_w, tile, w, h, (tile_w - w) // 2, (tile - h) // 2
 
 
-def contact_row(prediction: Prediction, tile: int = CONTACT_TILE) -> np.ndarray:
-    """``image | depth | sky | pose`` for one prediction (its ``rgb``, grey without), ``tile`` pixels high.
+def _text(picture: np.ndarray, line: str, at: tuple[int, int], colour: tuple[int, int, int] = (0, 0, 0)) -> None:
+    cv2.putText(picture, line, at, cv2.FONT_HERSHEY_SIMPLEX, 0.5, colour, 1, cv2.LINE_AA)
 
-    The horizon of the pose used is drawn on the image, the pose written on the last tile. Each picture tile is
-    at most :data:`CONTACT_MAX_ASPECT` times ``tile`` wide, whatever the image's aspect (:func:`contact_tile`).
+
+def contact_tiles(prediction: Prediction, tile: int = CONTACT_TILE) -> list[np.ndarray]:
+    """``[image, depth, sky, pose]`` tiles for one prediction (its ``rgb``, grey without), ``tile`` pixels high.
+
+    The horizon of the pose used is drawn on the image, the depth range written on the depth, the pose (with each
+    component's source other than the network) on the last tile. Each picture tile is at most
+    :data:`CONTACT_MAX_ASPECT` times ``tile`` wide, whatever the image's aspect (:func:`contact_tile`).
     """
     height, width = prediction.size
     tile_w, tile_h, w, h, left, top = contact_tile(height, width, tile)
@@ -67,8 +75,13 @@ def contact_row(prediction: Prediction, tile: int = CONTACT_TILE) -> np.ndarray:
                 sx = sy = tile / height
             cv2.line(image, (left + round(x0 * sx), top + round(y0 * sy)),
                      (left + round(x1 * sx), top + round(y1 * sy)), (255, 220, 0), 2, cv2.LINE_AA)
-    depth = (fit(colorize_depth(torch.from_numpy(prediction.depth_m), prediction.max_depth))
-             if prediction.depth_m is not None else grey)
+    depth = grey
+    if prediction.depth_m is not None:
+        low, high = depth_range(prediction.depth_m, prediction.sky)
+        depth = fit(depth_colours(prediction.depth_m, low, high, prediction.sky))
+        label = f"{low:.0f}-{high:.0f} m" if low >= 10 else f"{low:.1f}-{high:.1f} m"
+        cv2.rectangle(depth, (0, tile_h - 20), (min(tile_w, 8 * len(label) + 8), tile_h), (255, 255, 255), -1)
+        _text(depth, label, (4, tile_h - 6))
     sky = (fit(np.repeat((np.clip(prediction.sky_prob, 0, 1) * 255).astype(np.uint8)[..., None], 3, axis=2))
            if prediction.sky_prob is not None else grey)
     text = np.full((tile_h, 2 * tile, 3), 255, np.uint8)
@@ -79,14 +92,39 @@ def contact_row(prediction: Prediction, tile: int = CONTACT_TILE) -> np.ndarray:
                   + (f" ({sources[k]})" if sources.get(k, "network") != "network" else "")
                   for k, v in prediction.pose.items()]
     for row, line in enumerate(lines):
-        cv2.putText(text, line, (6, 22 + 24 * row), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
-    return np.concatenate([image, depth, sky, text], axis=1)
+        _text(text, line, (6, 22 + 24 * row))
+    return [image, depth, sky, text]
 
 
-def contact_sheet(rows: Sequence[np.ndarray]) -> np.ndarray:
-    """Rows of :func:`contact_row` stacked (padded to the widest), RGB."""
-    width = max(r.shape[1] for r in rows)
-    return np.concatenate([np.pad(r, ((0, 4), (0, width - r.shape[1]), (0, 0)), constant_values=255)
-                           for r in rows], axis=0)
+def contact_row(prediction: Prediction, tile: int = CONTACT_TILE) -> np.ndarray:
+    """:func:`contact_tiles` side by side: ``image | depth | sky | pose``, RGB."""
+    return np.concatenate(contact_tiles(prediction, tile), axis=1)
 
 
+def _pad(picture: np.ndarray, width: int) -> np.ndarray:
+    """``picture`` centred in ``width`` columns of white."""
+    extra = width - picture.shape[1]
+    return np.pad(picture, ((0, 0), (extra // 2, extra - extra // 2), (0, 0)), constant_values=255)
+
+
+def contact_sheet(rows: Sequence[np.ndarray | Sequence[np.ndarray]]) -> np.ndarray:
+    """The sheet, RGB.
+
+    Rows of :func:`contact_tiles` under column headings, each column as wide as its widest tile (tiles centred
+    in it); rows given whole (:func:`contact_row`) are stacked, padded to the widest.
+    """
+    if all(isinstance(r, np.ndarray) for r in rows):
+        whole = [np.asarray(r) for r in rows]
+        width = max(r.shape[1] for r in whole)
+        return np.concatenate([np.pad(r, ((0, 4), (0, width - r.shape[1]), (0, 0)), constant_values=255)
+                               for r in whole], axis=0)
+    tiled = [list(r) for r in rows]
+    widths = [max(r[k].shape[1] for r in tiled) for k in range(len(tiled[0]))]
+    heading = np.full((CONTACT_HEADING, sum(widths), 3), 255, np.uint8)
+    x = 0
+    for title, width in zip(CONTACT_COLUMNS, widths):
+        _text(heading, title, (x + 6, CONTACT_HEADING - 9))
+        x += width
+    lines = [np.concatenate([_pad(t, w) for t, w in zip(r, widths)], axis=1) for r in tiled]
+    return np.concatenate([heading, *(np.pad(r, ((0, 4), (0, 0), (0, 0)), constant_values=255) for r in lines)],
+                          axis=0)

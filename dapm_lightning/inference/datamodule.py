@@ -13,8 +13,9 @@ from dapm_lightning.inference.inputs import (
     NetworkSize,
     PredictSource,
     checkpoint_network_size,
-    predict_loader,
+    predict_loaders,
 )
+from dapm_lightning.inference.sources import Sources
 from dapm_lightning.models.prior import EXACT_SIGMA, PriorMode, PriorSettings
 
 
@@ -22,8 +23,8 @@ class PredictDataModule(DAPMDataModule):
     """Predict on images or a video of any size and aspect; no depth or pose needed.
 
     Args:
-        source: a folder of images, a glob pattern ('flight/**/*.jpg', quoted), one image, or a video
-            file (.mp4, .avi, .mov, ...).
+        source: a folder of images (sub-folders included), a glob pattern ('flight/**/*.jpg', quoted), an image,
+            a video file (.mp4, .avi, .mov, ...), a .txt list of paths, or a list of those.
         image_width: network input width (height from each image's aspect); None: the checkpoint's training
             size (the same pixel count in each image's aspect; 512 x 512 for checkpoints that do not record it).
         batch_size: images per forward pass (images of one network size are batched together).
@@ -46,15 +47,17 @@ class PredictDataModule(DAPMDataModule):
             more fuses the two (docs/predict.md).
     """
 
-    def __init__(self, source: str = "images", image_width: int | None = None, batch_size: int = DEFAULT_BATCH_SIZE,
-                 num_workers: int = 0, frame_step: int = 1, max_frames: int | None = None,
+    def __init__(self, source: str | list[str] = "images", image_width: int | None = None,
+                 batch_size: int = DEFAULT_BATCH_SIZE, num_workers: int = 0, frame_step: int = 1,
+                 max_frames: int | None = None,
                  keep_rgb: bool = True, pin_memory: bool = False, telemetry: str | None = None,
                  read_metadata: bool = True, sensor_width_mm: float | None = None,
                  telemetry_mode: PriorMode = "condition",
                  telemetry_sigma: tuple[float, float, float, float] = EXACT_SIGMA,
                  strict_telemetry: bool = False) -> None:
         super().__init__(batch_size=batch_size, num_workers=num_workers, augment=False, pin_memory=pin_memory)
-        self.source = PredictSource(source, frame_step, max_frames, telemetry, read_metadata, sensor_width_mm,
+        paths: Sources = source if isinstance(source, str) else tuple(source)
+        self.source = PredictSource(paths, frame_step, max_frames, telemetry, read_metadata, sensor_width_mm,
                                     strict_telemetry)
         self.image_width, self.keep_rgb = image_width, keep_rgb
         self.prior_settings = PriorSettings(telemetry_mode, telemetry_sigma)
@@ -71,12 +74,13 @@ class PredictDataModule(DAPMDataModule):
         module = self.trainer.lightning_module if self.trainer is not None else None
         return checkpoint_network_size(module)
 
-    def predict_dataloader(self) -> DataLoader[Any]:  # batches of PredictBatch
+    def predict_dataloader(self) -> DataLoader[Any] | list[DataLoader[Any]]:  # type: ignore[override]
         # Lightning's notes on custom batch samplers and on iterable data sets concern writers that need batch
         # indices; PredictionWriter names its files from the samples, and the size batches return every image
         warnings.filterwarnings("ignore", message="You are using a custom batch sampler `SizeBatchSampler`")
         warnings.filterwarnings("ignore", message="Couldn't infer the batch indices fetched from your dataloader")
         world_size, rank = self._processes()
-        return predict_loader(self.source, self.network_target(), self.prior_settings, batch_size=self.batch_size,
-                              num_workers=self.num_workers, keep_rgb=self.keep_rgb, pin_memory=self.pin_memory,
-                              rank=rank, world_size=world_size)
+        loaders = predict_loaders(self.source, self.network_target(), self.prior_settings,
+                                  batch_size=self.batch_size, num_workers=self.num_workers, keep_rgb=self.keep_rgb,
+                                  pin_memory=self.pin_memory, rank=rank, world_size=world_size)
+        return loaders[0] if len(loaders) == 1 else loaders  # images, then each video: one after the other

@@ -20,13 +20,16 @@ POSE_COLUMNS = ["name", *POSE_FIELDS]
 
 
 def pose_row(prediction: Prediction) -> dict[str, Any]:
-    """One poses-table row: the pose used; with a prior also each component's source and the network's value."""
+    """One poses-table row: the pose used; with telemetry also each component's source and the network's value.
+
+    A row of the network's pose alone gets those columns from :func:`write_poses` when others in the table have them.
+    """
     assert prediction.pose is not None
     row: dict[str, Any] = {"name": prediction.name,
                            **{pose_field(k): round(v, 4) for k, v in prediction.pose.items()}}
     if prediction.time_s is not None:  # a video frame: its time in the video
         row["time_s"] = round(prediction.time_s, 3)
-    if prediction.pose_source:
+    if prediction.pose_source and set(prediction.pose_source.values()) != {"network"}:
         network = prediction.pose_network or prediction.pose
         provenance = prediction.pose_provenance or {}
         for key in POSE_KEYS:
@@ -51,7 +54,7 @@ def table_columns(rows: Iterable[dict[str, Any]]) -> list[str]:
 def write_poses(out: Path, rows: list[dict[str, Any]], suffix: str = "") -> Path:
     """``poses{suffix}.csv`` and ``.json``, merged with the folder's earlier ones.
 
-    A row of the same name is replaced, the others are kept (a second run into one folder adds to its table).
+    A row of the same name is replaced, the others are kept (a run added with ``--exist_ok`` adds to the table).
     The read, merge and rewrite hold a lock (:func:`~dapm_lightning.data.files.exclusive_lock`), so runs into
     one folder at once keep every row; both tables are written whole from the same merged rows, so a reader
     never sees half a table and a failed write leaves the earlier tables as they were.
@@ -89,5 +92,3 @@ def _number(value: Any) -> Any:
         except ValueError:
             return value
     return value
-
-

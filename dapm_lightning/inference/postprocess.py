@@ -59,12 +59,17 @@ def resize_depth(depth_m: Tensor, size: Sequence[int], max_depth: float = MAX_DE
     return decode_log_depth(torch.where(weight > 1e-3, mixed, plain), max_depth)[0]
 
 
+_FIELD_KEYS = {pose_field(k): k for k in POSE_KEYS}
+"""The files' pose names (``height_m``, ...) -> the API's (``height``, ...)."""
+
+
 @dataclass(frozen=True, eq=False)  # eq from Mapping: equal to a dict of the same values
 class CameraPose(Mapping[str, float]):
     """A pose in physical units: ``height`` m, ``pitch``, ``roll``, ``fov`` deg (docs/conventions.md).
 
     Read as attributes (``pose.pitch``) or as a mapping in :data:`POSE_KEYS` order (``pose["pitch"]``,
-    ``dict(pose)``, ``pose.items()``).
+    ``dict(pose)``, ``pose.items()``); the files' names with units work too (``pose["pitch_deg"]``), and
+    :meth:`fields` gives the pose as the files and the telemetry CSV name it.
     """
 
     height: float
@@ -79,9 +84,14 @@ class CameraPose(Mapping[str, float]):
         return cls(height, pitch, roll, fov)
 
     def __getitem__(self, key: str) -> float:
+        key = _FIELD_KEYS.get(key, key)
         if key not in POSE_KEYS:
             raise KeyError(key)
         return float(getattr(self, key))
+
+    def fields(self) -> dict[str, float]:
+        """``{"height_m": ..., "pitch_deg": ..., "roll_deg": ..., "fov_deg": ...}``: the files' names and units."""
+        return {pose_field(k): self[k] for k in POSE_KEYS}
 
     def __iter__(self) -> Iterator[str]:
         return iter(POSE_KEYS)
@@ -120,13 +130,15 @@ class Prediction:
         name: what its files are called.
         size: ``(H, W)`` of the input image.
         pose_network: the network's own estimate per component (equal to ``pose`` without a prior).
-        pose_source: per component, where ``pose`` comes from: ``"network"``, ``"telemetry"`` or ``"fused"``.
+        pose_source: per component, where ``pose`` comes from: ``"network"``, ``"telemetry"`` or ``"fused"``
+            (all ``"network"`` without telemetry; None without a pose).
         pose_provenance: per component given by telemetry (``telemetry`` or ``fused``), the file and the place in it
             (``"flight.csv line 12"``, ``"DJI_0001.JPG XMP drone-dji:RelativeAltitude"``,
             ``"DJI_0005.SRT subtitle 215 rel_alt"``, ``"Python API prior"``).
         scale_from: how the telemetry scale fit found its factor: ``ground``, ``height`` or ``none``.
         rgb: the input's ``[H, W, 3]`` uint8 pixels, when the loader was asked to keep them.
         time_s: a video frame's time in the video (seconds); None for an image.
+        network_size: ``(h, w)`` the network saw the image at; None where not known.
     """
 
     depth_m: np.ndarray | None
@@ -145,6 +157,14 @@ class Prediction:
     scale_from: str = "none"
     rgb: np.ndarray | None = None
     time_s: float | None = None
+    network_size: tuple[int, int] | None = None
+
+    def auto_stride(self) -> int:
+        """The point-cloud stride that gives about the network's resolution (1 where not known or larger)."""
+        if self.network_size is None:
+            return 1
+        ratio = (self.size[0] * self.size[1]) / max(1, self.network_size[0] * self.network_size[1])
+        return max(1, round(math.sqrt(ratio)))
 
     def points(self, stride: int = 1, max_depth: float | None = None, rgb: np.ndarray | None = None) -> PointCloud:
         """Metric point cloud of the non-sky pixels, every ``stride``-th row and column, in the world frame.
@@ -159,7 +179,7 @@ class Prediction:
             raise ValueError(f"stride must be >= 1, got {stride}")
         depth = torch.from_numpy(np.ascontiguousarray(self.depth_m, np.float32))[None, None]
         pose = torch.tensor([[self.pose[k] for k in POSE_KEYS]], dtype=torch.float64)
-        xyz = depth_to_points(depth.double(), pose, depth_kind=self.depth_kind)[0, ::stride, ::stride]
+        xyz = depth_to_points(depth.double(), pose, depth_kind=self.depth_kind, stride=stride)[0]
         keep = valid_points(depth, min(self.max_depth, max_depth or math.inf))[0]
         if self.sky is not None:
             keep &= ~torch.from_numpy(self.sky)
@@ -235,8 +255,14 @@ def make_prediction(name: str, size: Sequence[int], depth_m: Tensor | None, sky_
         k = intrinsics_matrix(pose64[:, 3], size)[0].numpy()
         c2w = camera_to_world(pose64)[0].numpy()
     return Prediction(depth, sky, pose_used, prob, k, c2w, spec.depth_kind, spec.max_depth, name, size,
-                      _camera_pose(pose_network) or pose_used, dict(pose_source) if pose_source else None,
+                      _camera_pose(pose_network) or pose_used,
+                      dict(pose_source) if pose_source else _network_sources(pose_used),
                       dict(pose_provenance) if pose_provenance else None)
+
+
+def _network_sources(pose: CameraPose | None) -> dict[str, str] | None:
+    """Without telemetry every component is the network's (None without a pose)."""
+    return None if pose is None else {k: "network" for k in POSE_KEYS}
 
 
 def predictions_from_outputs(output: InferenceOutput, names: Sequence[str], sizes: Sequence[Sequence[int]],
@@ -279,4 +305,5 @@ def batch_predictions(output: InferenceOutput, batch: PredictBatch, spec: IGDSpe
     for prediction, scale_from, rgb, time_s in zip(predictions, applied.scale_from, batch.rgb or [None] * len(batch),
                                                    batch.times or [None] * len(batch)):
         prediction.scale_from, prediction.rgb, prediction.time_s = scale_from, rgb, time_s
+        prediction.network_size = (int(batch.images.shape[-2]), int(batch.images.shape[-1]))
     return predictions

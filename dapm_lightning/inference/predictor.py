@@ -10,18 +10,19 @@ from typing import Any
 import numpy as np
 import torch
 from torch import Tensor
-from torch.utils.data import DataLoader
 
 from dapm_lightning.data.unlabelled import PredictBatch, PredictInput
 from dapm_lightning.geometry.igd import IGDSpec
 from dapm_lightning.inference.inputs import (
     DEFAULT_BATCH_SIZE,
     NetworkSize,
+    PredictLoader,
     PredictSource,
     checkpoint_network_size,
     network_size,
     predict_input,
     predict_loader,
+    read_image,
     resize_images,
     to_rgb8,
     upscale_note,
@@ -30,6 +31,7 @@ from dapm_lightning.inference.onnx import ensure_exported
 from dapm_lightning.inference.postprocess import Prediction, batch_predictions
 from dapm_lightning.inference.prior import prior_rows
 from dapm_lightning.inference.runtime import OnnxRuntime, Precision, Runtime, TorchRuntime
+from dapm_lightning.inference.sources import Sources
 from dapm_lightning.models.prior import EXACT_SIGMA, PriorMode, PriorSettings
 from dapm_lightning.training.checkpointing import load_dapm_module
 
@@ -114,8 +116,14 @@ class DAPMPredictor:
         return batch_predictions(self.runtime(batch.images, batch.network_prior), batch, self.spec)
 
     def _predict_input(self, image: Any, index: int, prior: Tensor, provenance: tuple[str, ...]) -> PredictInput:
-        """One image (numpy RGB, PIL, or tensor ``[3, H, W]``) at the network size, with its prior."""
-        if isinstance(image, Tensor) and image.dtype != torch.uint8:  # float RGB: resized as floats
+        """One image (a path, numpy RGB, PIL, or tensor ``[3, H, W]``) at the network size, with its prior."""
+        if isinstance(image, (str, Path)):  # an image file: named by its stem
+            path = Path(image).expanduser()
+            if not path.is_file():
+                raise FileNotFoundError(f"image {index}: {path}: no such file")
+            item = predict_input(read_image(path), path.stem, str(path), self.target, False, prior.numpy(),
+                                 provenance)
+        elif isinstance(image, Tensor) and image.dtype != torch.uint8:  # float RGB: resized as floats
             if image.ndim != 3 or image.shape[0] not in (1, 3):
                 raise ValueError(f"image {index}: a tensor must be [3, H, W] or [B, 3, H, W] RGB, got "
                                  f"{tuple(image.shape)}")
@@ -140,9 +148,10 @@ class DAPMPredictor:
         """Predict one image or several.
 
         Args:
-            images: one image: ``[H, W]`` / ``[H, W, 3|4]`` numpy array in RGB order (uint8 or uint16), a PIL
-                image, or a ``[3, H, W]`` tensor (uint8, or float RGB in [0, 1]); or several: a list of those,
-                a ``[B, H, W, 3]`` numpy array or a ``[B, 3, H, W]`` tensor.
+            images: one image: a path to an image file (named by its stem), an ``[H, W]`` / ``[H, W, 3|4]``
+                numpy array in RGB order (uint8 or uint16), a PIL image, or a ``[3, H, W]`` tensor (uint8, or float
+                RGB in [0, 1]); or several: a list of those, a ``[B, H, W, 3]`` numpy array or a ``[B, 3, H, W]``
+                tensor. (Folders, patterns and videos: :meth:`predict_source`.)
             prior: what is known of the pose (telemetry): for one image a dict (``height_m``, ``pitch_deg``,
                 ``roll_deg``, ``fov_deg``, any subset), a ``[4]`` array with NaN where unknown, or a
                 ``PoseTelemetry``; for several, a list of those (None for an image without). Checked as a
@@ -178,9 +187,8 @@ class DAPMPredictor:
         flush()
         return results[0] if single else results
 
-    def loader(self, source: str | Path | PredictSource, keep_rgb: bool = False,
-               num_workers: int = 0) -> DataLoader[PredictInput]:
-        """Batches of a folder, glob pattern, image or video at the network size, with their telemetry.
+    def loader(self, source: Sources | PredictSource, keep_rgb: bool = False, num_workers: int = 0) -> PredictLoader:
+        """Batches of folders, glob patterns, images, videos or lists at the network size, with their telemetry.
 
         ``source``: a path, or a :class:`~dapm_lightning.inference.inputs.PredictSource` saying also which frames
         and where the telemetry comes from. Mixed sizes are batched by size (:func:`predict_loader`).
@@ -189,11 +197,11 @@ class DAPMPredictor:
         return predict_loader(source, self.target, self.prior_settings, batch_size=self.batch_size,
                               num_workers=num_workers, keep_rgb=keep_rgb)
 
-    def predict_source(self, source: str | Path | PredictSource, frame_step: int = 1, max_frames: int | None = None,
+    def predict_source(self, source: Sources | PredictSource, frame_step: int = 1, max_frames: int | None = None,
                        keep_rgb: bool = False, num_workers: int = 0, telemetry: str | Path | None = None,
                        read_metadata: bool = True, sensor_width_mm: float | None = None,
                        strict_telemetry: bool = False) -> Iterator[Prediction]:
-        """Predictions for a folder, glob pattern, image or video file, one at a time (constant memory).
+        """Predictions for folders, glob patterns, images, videos or ``.txt`` lists, one at a time (constant memory).
 
         With ``keep_rgb`` each prediction's ``rgb`` holds the input pixels (for coloured points).
         ``frame_step``, ``max_frames``, ``telemetry``, ``read_metadata``, ``sensor_width_mm``,

@@ -38,13 +38,34 @@ class Runtime(Protocol):
         ...
 
 
+DEVICE_ALIASES = {"gpu": "cuda", "cuda0": "cuda:0", "nvidia": "cuda", "cpu0": "cpu", "mac": "mps"}
+"""Device names people type, and what torch calls them (named in the message, not guessed)."""
+
+
 def resolve_device(device: str) -> str:
-    """``"auto"``: ``"cuda"`` when a GPU is there, else ``"cpu"``; ``"cuda"`` without one is refused."""
+    """``"auto"``: ``"cuda"`` when a GPU is there, else ``"cpu"``; ``"cuda"`` without one is refused.
+
+    A name torch does not know (``gpu``) is refused in one line with the name it has (``cuda``).
+    """
     if device == "auto":
         return "cuda" if torch.cuda.is_available() else "cpu"
+    try:
+        torch.device(device)
+    except (RuntimeError, TypeError):
+        known = DEVICE_ALIASES.get(device.lower())
+        hint = f"did you mean {known}? " if known else ""
+        raise ValueError(f"device {device!r}: unknown ({hint}use cpu, cuda, cuda:N or auto)") from None
     if device.startswith("cuda") and not torch.cuda.is_available():
-        raise ValueError(f"device {device!r}: no CUDA GPU is available here (use --device cpu or auto)")
+        raise ValueError(f"device {device!r}: no CUDA GPU is available here (use the cpu, or auto)")
     return device
+
+
+def check_device(device: str, precision: str = "32") -> str:
+    """:func:`resolve_device`, and a precision the device cannot run refused in one line (float16 on the CPU)."""
+    resolved = resolve_device(device)
+    if torch.device(resolved).type == "cpu" and str(precision) == "16":
+        raise ValueError("precision 16 (float16) does not run on the CPU: use 32 or bf16 there, or a GPU (cuda)")
+    return resolved
 
 
 def apply_inference_options(module: nn.Module, channels_last: bool, compile: bool) -> nn.Module:
@@ -73,7 +94,7 @@ class TorchRuntime:
                  channels_last: bool = False, compile: bool = False) -> None:
         if str(precision) not in PRECISIONS:
             raise ValueError(f"precision must be one of {', '.join(PRECISIONS)}, got {precision!r}")
-        self.device = torch.device(resolve_device(device))
+        self.device = torch.device(check_device(device, precision))
         self.precision, self.channels_last = str(precision), channels_last
         self.module = apply_inference_options(module.eval().to(self.device), channels_last, compile)
 

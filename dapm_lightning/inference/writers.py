@@ -5,9 +5,9 @@ Per image (``OUT/NAME_*``, each kind selectable, :data:`Output`): ``depth.npy`` 
 limit), ``depth_color.png`` for people, ``sky.png`` (probability x 255), ``camera.json`` (K, camera-to-world,
 the pose per component with its source and the network's own estimate), ``points.ply`` (metric point cloud in
 the gravity-aligned world frame of docs/conventions.md, ground at z = 0, coloured, sky left out) and, on request,
-``npz`` (all of it in one ``NAME.npz``). Per run: ``poses.csv`` / ``poses.json`` (merged with those of earlier
-runs into the same folder, under a lock: runs into one folder at once keep every row) and ``contact_sheet.png``
-(tiles bounded for any aspect).
+``npz`` (all of it in one ``NAME.npz``); an image's files all come from one run (the others of its name are
+removed). Per run: ``poses.csv`` / ``poses.json`` (merged with those of earlier runs into the same folder, under a
+lock: runs into one folder at once keep every row) and ``contact_sheet.png`` (tiles bounded for any aspect).
 
 Every file is written whole or not at all and checked (:mod:`dapm_lightning.data.files`): a failed write raises
 :class:`~dapm_lightning.data.files.WriteError` naming the file and the fix. The output folder is checked before
@@ -16,6 +16,7 @@ any work and made with the first file; one inside the source is refused (:func:`
 
 from __future__ import annotations
 
+import difflib
 import fnmatch
 import json
 import re
@@ -28,7 +29,6 @@ from typing import Any, Literal, get_args
 import cv2
 import lightning as L
 import numpy as np
-import torch
 import torch.distributed as dist
 from lightning.pytorch.callbacks import BasePredictionWriter
 from lightning.pytorch.utilities import rank_zero_info
@@ -42,47 +42,68 @@ from dapm_lightning.data.files import (
     write_image,
     write_text,
 )
-from dapm_lightning.data.pictures import colorize_depth
-from dapm_lightning.geometry.constants import POSE_KEYS
+from dapm_lightning.data.pictures import depth_picture
+from dapm_lightning.geometry.constants import POSE_FIELDS, POSE_KEYS
 from dapm_lightning.geometry.igd import IGDSpec
-from dapm_lightning.inference.contact_sheet import CONTACT_MAX_IMAGES, contact_row, contact_sheet
+from dapm_lightning.inference.contact_sheet import CONTACT_MAX_IMAGES, contact_sheet, contact_tiles
 from dapm_lightning.inference.inputs import PredictSource
 from dapm_lightning.inference.poses_table import pose_row, write_poses
 from dapm_lightning.inference.postprocess import Prediction, batch_predictions
+from dapm_lightning.inference.run_folder import remove_stale_files, run_folder
 from dapm_lightning.inference.runtime import apply_inference_options
+from dapm_lightning.inference.sources import Sources, as_list
+from dapm_lightning.inference.video_preview import VideoPreviews
 from dapm_lightning.models.dapm import DAPMOutput
 
 Output = Literal["depth_npy", "depth_tiff", "depth16", "depth_color", "sky", "camera", "points", "npz"]
 """A per-image file kind."""
 OUTPUT_KINDS: tuple[str, ...] = get_args(Output)
-DEFAULT_OUTPUTS: tuple[str, ...] = tuple(k for k in OUTPUT_KINDS if k != "npz")
-"""What is written when nothing is chosen: every kind but the compact ``npz``."""
+DEFAULT_OUTPUTS: tuple[str, ...] = ("depth_color", "sky", "camera")
+"""What is written per image when nothing is chosen: light files to look at and the camera; raw depth and the
+point cloud on request (``all``: every kind)."""
 DEPTH16_SCALE = 64.0
 """``depth16.png`` stores ``round(depth_m * 64)``: 1/64 m steps, 1000 m = 64000."""
-def check_outputs(outputs: Iterable[str] | None) -> list[str]:
-    """The chosen output kinds (default :data:`DEFAULT_OUTPUTS`); unknown ones are refused with the valid list."""
-    chosen = list(DEFAULT_OUTPUTS if outputs is None else outputs)
-    unknown = sorted(set(chosen) - set(OUTPUT_KINDS))
-    if unknown:
-        raise ValueError(f"unknown output(s) {unknown}; choose from {list(OUTPUT_KINDS)}")
-    return chosen
+def check_outputs(outputs: Iterable[str] | str | None) -> list[str]:
+    """The chosen output kinds, in their order (default :data:`DEFAULT_OUTPUTS`).
+
+    Names may come one by one or comma-separated (``depth_npy,camera``); ``all`` is every kind. An unknown one
+    is refused in one line with the closest kind and the valid list.
+    """
+    given = DEFAULT_OUTPUTS if outputs is None else [outputs] if isinstance(outputs, str) else outputs
+    chosen: list[str] = []
+    for item in given:
+        for kind in (k.strip() for k in str(item).split(",")):
+            if kind == "all":
+                chosen += OUTPUT_KINDS
+            elif kind not in OUTPUT_KINDS:
+                close = difflib.get_close_matches(kind, OUTPUT_KINDS, n=1)
+                raise ValueError(f"unknown output {kind!r}{f' (did you mean {close[0]}?)' if close else ''}; "
+                                 f"choose from {', '.join(OUTPUT_KINDS)} or all")
+            elif kind:
+                chosen.append(kind)
+    return list(dict.fromkeys(chosen))
 
 
 def write_prediction(out: Path, prediction: Prediction, outputs: Iterable[str] = DEFAULT_OUTPUTS,
-                     points_stride: int = 2, points_max_depth: float | None = None) -> list[Path]:
+                     points_stride: int | None = None, points_max_depth: float | None = None,
+                     depth_range: tuple[float, float] | None = None) -> list[Path]:
     """Write the selected per-image files of one prediction (``OUT/NAME_*``); returns the paths written.
 
     Each file is written whole or not at all and checked (:mod:`dapm_lightning.data.files`). The point cloud is
-    coloured with the prediction's ``rgb`` when it carries the input's pixels.
+    coloured with the prediction's ``rgb`` when it carries the input's pixels; ``points_stride`` None keeps
+    about as many points as the network saw pixels (:meth:`Prediction.auto_stride`). The colour depth map is in
+    its own robust range with a colour bar in metres, or in ``depth_range`` (metres) for maps to compare
+    (:func:`~dapm_lightning.data.pictures.depth_picture`).
 
     Raises:
         WriteError: a file could not be written (a full disk, a read-only folder, an image too large to encode).
     """
-    return list(prediction_files(out, prediction, outputs, points_stride, points_max_depth).values())
+    return list(prediction_files(out, prediction, outputs, points_stride, points_max_depth, depth_range).values())
 
 
 def prediction_files(out: Path, prediction: Prediction, outputs: Iterable[str] = DEFAULT_OUTPUTS,
-                     points_stride: int = 2, points_max_depth: float | None = None) -> dict[str, Path]:
+                     points_stride: int | None = None, points_max_depth: float | None = None,
+                     depth_range: tuple[float, float] | None = None) -> dict[str, Path]:
     """:func:`write_prediction`, returning each kind written with its path (what the model could give of it)."""
     outputs, written, name = set(outputs), {}, prediction.name
     if prediction.depth_m is not None:
@@ -97,7 +118,7 @@ def prediction_files(out: Path, prediction: Prediction, outputs: Iterable[str] =
             written["depth16"] = write_image(out / f"{name}_depth16.png",
                                              np.clip(np.round(depth * DEPTH16_SCALE), 0, 65535).astype(np.uint16))
         if "depth_color" in outputs:
-            color = colorize_depth(torch.from_numpy(depth), prediction.max_depth)
+            color = depth_picture(depth, prediction.sky, depth_range)
             written["depth_color"] = write_image(out / f"{name}_depth_color.png",
                                                  cv2.cvtColor(color, cv2.COLOR_RGB2BGR))
     if "sky" in outputs and prediction.sky_prob is not None:
@@ -106,13 +127,15 @@ def prediction_files(out: Path, prediction: Prediction, outputs: Iterable[str] =
     if "camera" in outputs and prediction.pose is not None:
         written["camera"] = write_text(out / f"{name}_camera.json", _json_rows(prediction.camera_dict()))
     if "points" in outputs and prediction.depth_m is not None and prediction.pose is not None:
-        written["points"] = prediction.points(points_stride, points_max_depth, prediction.rgb).write_ply(
+        stride = points_stride or prediction.auto_stride()  # None: about the network's resolution
+        written["points"] = prediction.points(stride, points_max_depth, prediction.rgb).write_ply(
             out / f"{name}_points.ply")
     if "npz" in outputs:
         written["npz"] = out / f"{name}.npz"
         arrays: dict[str, Any] = npz_arrays(prediction)
         with open_atomic(written["npz"]) as handle:
             np.savez_compressed(handle, **arrays)
+    remove_stale_files(out, name, written.values())  # an image's files all come from one run
     return written
 
 
@@ -120,6 +143,7 @@ def npz_arrays(prediction: Prediction) -> dict[str, np.ndarray]:
     """What ``NAME.npz`` holds, of what the model predicts.
 
     ``depth`` (m), ``sky_prob``, ``K``, ``pose`` (height m, pitch, roll, fov deg), ``pose_network``,
+    ``pose_fields`` (the names of ``pose``'s entries, as the files name them: ``height_m``, ``pitch_deg``, ...),
     ``camera_to_world``.
     """
     arrays: dict[str, np.ndarray | None] = {
@@ -127,7 +151,8 @@ def npz_arrays(prediction: Prediction) -> dict[str, np.ndarray]:
         "camera_to_world": prediction.camera_to_world,
         "pose": None if prediction.pose is None else np.array([prediction.pose[k] for k in POSE_KEYS]),
         "pose_network": None if prediction.pose_network is None
-        else np.array([prediction.pose_network[k] for k in POSE_KEYS])}
+        else np.array([prediction.pose_network[k] for k in POSE_KEYS]),
+        "pose_fields": None if prediction.pose is None else np.array(POSE_FIELDS)}
     return {k: v for k, v in arrays.items() if v is not None}
 
 
@@ -173,14 +198,15 @@ def source_holding(out: str | Path, source: str | Path) -> Path | None:
     return None
 
 
-def check_output_outside_source(out: str | Path, source: str | Path, option: str = "--out") -> None:
-    """Refuse an output folder whose files the source would read back as images (one line).
+def check_output_outside_source(out: str | Path, source: Sources, option: str = "--out") -> None:
+    """Refuse an output folder whose files a source would read back as images (one line).
 
     Raises:
-        ValueError: ``out`` is the source folder or lies inside it (:func:`source_holding`).
+        ValueError: ``out`` is a source folder or lies inside one (:func:`source_holding`).
     """
-    root = source_holding(out, source)
-    if root is not None:
+    for root in (source_holding(out, one) for one in as_list(source)):
+        if root is None:
+            continue
         where = "is" if Path(out).expanduser().resolve() == root.resolve() else "lies inside"
         raise ValueError(f"{option} {out} {where} the source {root}, so its files would be read back as images: "
                          "give an output folder outside the source")
@@ -197,29 +223,39 @@ class PredictionFiles:
     :class:`~dapm_lightning.data.files.WriteError` naming the file and the fix.
 
     Args:
-        output_dir: where the files go (created with the first file).
+        output_dir: where the files go (created with the first file); None: a new ``runs/predict<N>``
+            (:func:`~dapm_lightning.inference.run_folder.run_folder`).
         outputs: which per-image files to write, any of depth_npy, depth_tiff, depth16, depth_color, sky, camera,
-            points, npz (default: all but npz).
-        points_stride: point clouds keep every points_stride-th row and column.
+            points, npz, or all; a list or comma-separated (default: depth_color, sky, camera).
+        points_stride: point clouds keep every points_stride-th row and column; None: about the network's
+            resolution.
         points_max_depth: point clouds drop points farther than this (metres; sky is always dropped).
         contact_sheet: ``contact_sheet.png`` with the first this many images (image and horizon | depth | sky |
             pose), at most :data:`CONTACT_MAX_IMAGES`; 0: none.
         option: the setting that named ``output_dir`` (e.g. ``--out``), named in error messages.
+        depth_range: the colour depth maps' range in metres (maps to compare); None: each map its own.
+        video_preview: a video's frames beside their depth as ``STEM_depth.mp4``.
+        exist_ok: add to an ``output_dir`` that already holds files (each image's files rewritten together); False
+            refuses it in one line. exist_ok_option: the setting that says so, named in that line.
     """
 
-    def __init__(self, output_dir: str | Path = "predictions", outputs: Iterable[str] | None = None,
-                 points_stride: int = 2, points_max_depth: float | None = None, contact_sheet: int = 8,
-                 option: str | None = None) -> None:
-        self.output_dir = Path(output_dir)
+    def __init__(self, output_dir: str | Path | None = None, outputs: Iterable[str] | str | None = None,
+                 points_stride: int | None = None, points_max_depth: float | None = None, contact_sheet: int = 8,
+                 option: str | None = None, exist_ok: bool = True, exist_ok_option: str = "--exist_ok",
+                 depth_range: tuple[float, float] | None = None, video_preview: bool = True) -> None:
+        self.output_dir = run_folder(output_dir, exist_ok, option or "output_dir", exist_ok_option)
         self.outputs = check_outputs(outputs)
-        if points_stride < 1:
+        if points_stride is not None and points_stride < 1:
             raise ValueError(f"points_stride must be >= 1, got {points_stride}")
         self.points_stride, self.points_max_depth = points_stride, points_max_depth
         if contact_sheet > CONTACT_MAX_IMAGES:
             warnings.warn(f"a contact sheet shows at most {CONTACT_MAX_IMAGES} images, not {contact_sheet}",
                           stacklevel=2)
         self.contact_images = min(max(0, contact_sheet), CONTACT_MAX_IMAGES)
-        self.option = option
+        self.option, self.video_preview = option, video_preview
+        if depth_range is not None and not 0 < depth_range[0] < depth_range[1]:
+            raise ValueError(f"depth_range must be two depths in metres, 0 < MIN < MAX, got {list(depth_range)}")
+        self.depth_range = None if depth_range is None else (float(depth_range[0]), float(depth_range[1]))
         check_folder_writable(self.output_dir, option)
         self.created: list[Path] = []
         """The folders this object created (outermost first)."""
@@ -228,7 +264,8 @@ class PredictionFiles:
     def start(self) -> None:
         """A new run: nothing counted yet (the folder is created with the first file)."""
         self.rows: list[dict[str, Any]] = []
-        self.contact_rows: list[np.ndarray] = []
+        self.contact_rows: list[list[np.ndarray]] = []
+        self.previews = VideoPreviews()
         self.images = 0
         self.kinds: set[str] = set()
         """The per-image kinds written for at least one image."""
@@ -249,7 +286,10 @@ class PredictionFiles:
         """Write one prediction's files (its ``rgb``, when kept, colours the points and the contact sheet)."""
         try:
             written = prediction_files(self._folder(), prediction, self.outputs, self.points_stride,
-                                       self.points_max_depth)
+                                       self.points_max_depth, self.depth_range)
+            if self.video_preview and prediction.time_s is not None and prediction.depth_m is not None:
+                self.previews.add(self.output_dir, prediction,
+                                  depth_picture(prediction.depth_m, prediction.sky, self.depth_range))
         except BaseException as error:
             raised = self._failed(error)
             if raised is error:
@@ -259,7 +299,7 @@ class PredictionFiles:
         if prediction.pose is not None:
             self.rows.append(pose_row(prediction))
         if len(self.contact_rows) < self.contact_images:
-            self.contact_rows.append(contact_row(prediction))
+            self.contact_rows.append(contact_tiles(prediction))
         self.images += 1
 
     def finish(self, suffix: str = "") -> str:
@@ -269,6 +309,7 @@ class PredictionFiles:
         """
         extra = []
         try:
+            extra += [p.name for p in self.previews.finish()]
             if self.rows:
                 extra.append(write_poses(self._folder(), self.rows, suffix).name)
             if self.contact_rows:
@@ -292,7 +333,7 @@ class PredictionFiles:
         parts: list[Any] = [None] * dist.get_world_size()
         dist.all_gather_object(parts, (self.rows, self.contact_rows, self.images, sorted(self.kinds)))
         if is_first:
-            self.rows = [row for part in parts for row in part[0]]
+            self.rows = sorted((row for part in parts for row in part[0]), key=lambda row: str(row["name"]))
             self.contact_rows = [row for part in parts for row in part[1]][:self.contact_images]
             self.images = sum(part[2] for part in parts)
             self.kinds = {kind for part in parts for kind in part[3]}
@@ -301,6 +342,7 @@ class PredictionFiles:
 
     def close(self) -> None:
         """The end of a run, done or failed: the folders this run created go again if nothing was written there."""
+        self.previews.abandon()
         remove_empty_folders(self.created)
         self.created = [folder for folder in self.created if folder.is_dir()]
 
@@ -326,20 +368,25 @@ class PredictionWriter(BasePredictionWriter):
         compile: torch.compile the network before the first batch (each new input size compiles
             again: worth it for long runs of one size, e.g. a video).
 
-    Under DDP every process writes the files of its own images; the first process writes the one poses table
-    and contact sheet of all (every image exactly once) and the summary line.
+    Under DDP every process writes the files of its own images into rank 0's folder; the first process gathers
+    every process's rows and writes the one poses table and contact sheet of all (every image exactly once) and
+    the summary line.
+    ``output_dir`` None: a new ``runs/predict<N>`` per run; one that holds files is refused unless ``exist_ok``.
     """
 
     OPTION = "--trainer.callbacks.output_dir"
     """The setting that names the output folder, in messages."""
 
-    def __init__(self, output_dir: str = "predictions", outputs: list[Output] | None = None, points_stride: int = 2,
+    def __init__(self, output_dir: str | None = None, outputs: list[str] | str | None = None,
+                 points_stride: int | None = None,
                  points_max_depth: float | None = None, contact_sheet: int = 8, channels_last: bool = False,
-                 compile: bool = False) -> None:
+                 compile: bool = False, exist_ok: bool = False,
+                 depth_range: tuple[float, float] | None = None) -> None:
         super().__init__(write_interval="batch")
         self.channels_last, self.compile = channels_last, compile
         self.files = PredictionFiles(output_dir, outputs, points_stride, points_max_depth, contact_sheet,
-                                     option=self.OPTION)
+                                     option=self.OPTION, depth_range=depth_range)
+        self.named, self.exist_ok = output_dir is not None, exist_ok
         self.spec = IGDSpec()
 
     @property
@@ -351,6 +398,11 @@ class PredictionWriter(BasePredictionWriter):
         source = getattr(getattr(trainer, "datamodule", None), "source", None)
         if isinstance(source, PredictSource):  # before the first batch; a missing checkpoint is named first
             check_output_outside_source(self.output_dir, source.path, self.OPTION)
+        if self.named:  # a folder that holds files: refused unless exist_ok
+            run_folder(self.output_dir, self.exist_ok, self.OPTION, "--trainer.callbacks.exist_ok")
+        if trainer.world_size > 1:  # one folder for every process: rank 0's (a new runs/predict<N> is per process)
+            self.files.output_dir = Path(trainer.strategy.broadcast(str(self.files.output_dir)))
+        self.files.video_preview = trainer.world_size == 1  # a video's frames are shared between processes
         trainer.predict_loop.return_predictions = False  # the files are the result: keep nothing in memory
         apply_inference_options(pl_module, self.channels_last, self.compile)
         config = getattr(pl_module, "net_config", None)

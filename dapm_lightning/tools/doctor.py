@@ -224,7 +224,7 @@ def diagnose_split(root: Path, split: str, depth_kind: DepthKind, quiet: bool = 
     containers = dict(zip(dataset.names, dataset.depth_containers))
     sky_fractions, agreements, ratios, flagged, unchecked = [], [], [], [], []
     depth_min, depth_max = math.inf, 0.0
-    with one_torch_thread(), progress_bar(len(dataset.names), f"checking {split}", quiet=quiet) as bar:
+    with one_torch_thread(), progress_bar(len(dataset.names), quiet=quiet, what=f"checking {split}") as bar:
         for index, name in enumerate(dataset.names):
             bar.update()
             grey = None

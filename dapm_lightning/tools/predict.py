@@ -1,9 +1,10 @@
 """dapm-lightning predict SOURCE --ckpt_path CKPT: depth, sky, camera and metric 3D for images, folders or videos.
 
-SOURCE is a folder of images, a quoted glob pattern ('flight/**/*.jpg'), one image or a video file; images of
-any sizes and aspects. The network runs at the checkpoint's training size (the same pixel count in each
-image's aspect) unless --image_width says otherwise. The Lightning form (``--config configs/predict.yaml``,
-every trainer setting, several GPUs) is the same command with a config instead of SOURCE.
+SOURCE is one or more of: a folder of images (sub-folders included), a glob pattern ('flight/**/*.jpg'; .JPG
+matches too), an image, a video file, a .txt list of paths (one a line); images of any sizes and aspects. The
+network runs at the checkpoint's training size (the same pixel count in each image's aspect) unless
+--image_width says otherwise. The Lightning form (``--config configs/predict.yaml``, every trainer setting,
+several GPUs) is the same command with a config instead of SOURCE.
 """
 
 from __future__ import annotations
@@ -13,17 +14,20 @@ import difflib
 import sys
 import warnings
 from collections.abc import Sequence
-from pathlib import Path
 
-from dapm_lightning.inference.inputs import DEFAULT_BATCH_SIZE, PredictSource, resolve_source
-from dapm_lightning.inference.runtime import PRECISIONS
+from dapm_lightning.inference.inputs import DEFAULT_BATCH_SIZE, PredictSource
+from dapm_lightning.inference.run_folder import run_folder
+from dapm_lightning.inference.runtime import PRECISIONS, check_device
+from dapm_lightning.inference.sources import resolve_sources
 from dapm_lightning.inference.writers import (
     DEFAULT_OUTPUTS,
     OUTPUT_KINDS,
     PredictionFiles,
     check_output_outside_source,
+    check_outputs,
 )
 from dapm_lightning.models.prior import EXACT_SIGMA, PRIOR_MODES
+from dapm_lightning.tools.progress import progress_bar, quiet_notes
 
 LIGHTNING_OPTIONS = ("--config", "--data", "--trainer", "--model", "--print_config", "--seed_everything")
 """Options that select the Lightning form of ``predict``."""
@@ -41,33 +45,71 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message}\nSee `{self.prog} --help`.\n")
 
 
+def positive(text: str) -> int:
+    """A whole number above zero (sizes, counts), or an argparse error saying so."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
+def not_negative(text: str) -> int:
+    """A whole number zero or above, or an argparse error saying so."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be 0 or more, got {value}")
+    return value
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The one-line form's options."""
     parser = _Parser(prog="dapm-lightning predict", allow_abbrev=False, description=__doc__,
-                     usage="%(prog)s SOURCE --ckpt_path CKPT [--out DIR] [--device cpu|cuda|auto] "
+                     usage="%(prog)s SOURCE [SOURCE ...] --ckpt_path CKPT [--out DIR] [--device cpu|cuda|auto] "
                            "[--outputs KIND ...] [--telemetry FILE] [options]",
                      formatter_class=argparse.RawDescriptionHelpFormatter,
                      epilog="Every Lightning setting (devices, precision, DDP): "
                             "dapm-lightning predict --config configs/predict.yaml --help")
-    parser.add_argument("source", help="folder of images, quoted glob pattern, image or video file")
+    parser.add_argument("source", nargs="+", metavar="SOURCE",
+                        help="folder of images (sub-folders included), glob pattern, image, video or .txt list")
     parser.add_argument("--ckpt_path", "--ckpt", required=True,
                         help="a dapm-lightning checkpoint (.ckpt), or a model exported from one (.onnx: float32, fp16 "
                              "or int8; runs in onnxruntime on the CPU)")
-    parser.add_argument("--out", default="predictions", help="output folder (default: %(default)s)")
+    parser.add_argument("--out", default=None,
+                        help="output folder (default: a new one per run: runs/predict, runs/predict2, ...)")
+    parser.add_argument("--exist_ok", action="store_true",
+                        help="add to an --out that holds files (its images' files are rewritten together)")
     parser.add_argument("--device", default="auto", help="cpu, cuda, cuda:N or auto (default: %(default)s)")
     parser.add_argument("--outputs", nargs="+", default=list(DEFAULT_OUTPUTS), metavar="KIND",
-                        help=f"per-image files, any of {', '.join(OUTPUT_KINDS)} (default: all but npz)")
-    parser.add_argument("--image_width", type=int, default=None,
+                        help=f"per-image files, any of {', '.join(OUTPUT_KINDS)}, or all; spaces or commas "
+                             f"(default: {','.join(DEFAULT_OUTPUTS)}; poses.csv/json and contact_sheet.png per run)")
+    parser.add_argument("--image_width", type=positive, default=None,
                         help="network input width (default: the checkpoint's training size)")
-    parser.add_argument("--batch_size", type=int, default=DEFAULT_BATCH_SIZE,
+    parser.add_argument("--batch_size", type=positive, default=DEFAULT_BATCH_SIZE,
                         help="images per forward pass (default: %(default)s)")
     parser.add_argument("--precision", choices=PRECISIONS, default="32", help="(default: %(default)s)")
-    parser.add_argument("--frame_step", type=int, default=1, help="videos: every N-th frame (default: 1)")
-    parser.add_argument("--max_frames", type=int, default=None, help="videos: stop after this many frames")
-    parser.add_argument("--contact_sheet", type=int, default=8,
+    parser.add_argument("--frame_step", type=positive, default=1, help="videos: every N-th frame (default: 1)")
+    parser.add_argument("--max_frames", type=positive, default=None, help="videos: stop after this many frames")
+    parser.add_argument("--contact_sheet", type=not_negative, default=8,
                         help="contact_sheet.png of the first N images (at most 64); 0: none (default: %(default)s)")
-    parser.add_argument("--points_stride", type=int, default=2, help="point clouds: every N-th row and column")
-    parser.add_argument("--num_workers", type=int, default=0, help="decoding processes (default: 0)")
+    parser.add_argument("--depth_range", type=float, nargs=2, default=None, metavar=("MIN_M", "MAX_M"),
+                        help="colour depth maps in this range of metres, the same for every image (maps to compare; "
+                             "default: each map its own 2nd-98th percentile)")
+    parser.add_argument("--points_stride", type=positive, default=None,
+                        help="point clouds: every N-th row and column (default: about the network's resolution)")
+    parser.add_argument("--points_max_depth", type=float, default=None,
+                        help="point clouds: drop points farther than this (metres; sky is always dropped)")
+    parser.add_argument("--channels_last", action="store_true", help="channels-last memory (NHWC convolutions)")
+    parser.add_argument("--compile", action="store_true",
+                        help="torch.compile the network (minutes to start; pays off on long videos)")
+    parser.add_argument("--num_workers", type=not_negative, default=0, help="decoding processes (default: 0)")
+    parser.add_argument("--quiet", "-q", action="store_true",
+                        help="no progress bar and no notes (the bar shows only at a terminal anyway)")
     flight = parser.add_argument_group("telemetry (docs/predict.md): the pose the drone knows, for metric depth")
     flight.add_argument("--telemetry", default=None, metavar="FILE",
                         help="CSV name,height_m,pitch_deg,roll_deg,fov_deg (empty cell: unknown), or a video's SRT")
@@ -90,18 +132,17 @@ def build_parser() -> argparse.ArgumentParser:
 def parse(argv: Sequence[str]) -> argparse.Namespace:
     """Parse the one-line form; an unknown option is named with the closest valid one."""
     parser = build_parser()
-    args, unknown = parser.parse_known_args(list(argv))
+    args, unknown = parser.parse_known_intermixed_args(list(argv))  # SOURCE ... before, between or after options
     if unknown:
         options = [o for action in parser._actions for o in action.option_strings]
         flag = unknown[0].split("=")[0]
         close = difflib.get_close_matches(flag, options, n=2)
         hint = f" (did you mean {' or '.join(close)}?)" if close else ""
         parser.error(f"unknown option {unknown[0]!r}{hint}")
-    for kind in args.outputs:
-        if kind not in OUTPUT_KINDS:
-            close = difflib.get_close_matches(kind, OUTPUT_KINDS, n=1)
-            parser.error(f"unknown output {kind!r}{f' (did you mean {close[0]}?)' if close else ''}; "
-                         f"choose from {', '.join(OUTPUT_KINDS)}")
+    try:
+        args.outputs = check_outputs(args.outputs)
+    except ValueError as error:
+        parser.error(str(error))
     return args
 
 
@@ -115,21 +156,29 @@ def predict_main(argv: Sequence[str]) -> None:
     from dapm_lightning.inference.predictor import DAPMPredictor
 
     args = parse(argv)
+    quiet_notes(args.quiet)
+    check_device(args.device, args.precision)  # before the model loads: gpu for cuda, 16 on the CPU
     warnings.formatwarning = _short_warning  # "warning: MESSAGE", not the source line that raised it
     # what can be found wrong without the model is found before it loads (seconds): a missing source, an
     # output folder inside it (its files would be read back as images) or one that cannot be written
-    resolve_source(args.source)
-    check_output_outside_source(args.out, args.source, "--out")
-    files = PredictionFiles(Path(args.out), args.outputs, args.points_stride, contact_sheet=args.contact_sheet,
-                            option="--out")
+    resolve_sources(args.source)
+    check_output_outside_source(run_folder(None) if args.out is None else args.out, args.source, "--out")
+    out = run_folder(args.out, args.exist_ok)
+    files = PredictionFiles(out, args.outputs, args.points_stride, args.points_max_depth,
+                            contact_sheet=args.contact_sheet, option="--out", depth_range=args.depth_range)
     predictor = DAPMPredictor.from_checkpoint(args.ckpt_path, args.image_width, args.device,
                                               precision=args.precision, batch_size=args.batch_size,
+                                              channels_last=args.channels_last, compile=args.compile,
                                               telemetry_mode=args.telemetry_mode,
                                               telemetry_sigma=args.telemetry_sigma)
-    source = PredictSource(args.source, args.frame_step, args.max_frames, args.telemetry, not args.no_metadata,
+    source = PredictSource(tuple(args.source), args.frame_step, args.max_frames, args.telemetry, not args.no_metadata,
                            args.sensor_width_mm, args.strict_telemetry)
-    keep_rgb = "points" in files.outputs or files.contact_images > 0
-    with files:  # the output folder is made with the first file, and goes again if the run fails before it
-        for prediction in predictor.predict_source(source, keep_rgb=keep_rgb, num_workers=args.num_workers):
-            files.add(prediction)
+    # the pixels ride along (the points' colours, the contact sheet, a video's preview): one batch at a time
+    loader = predictor.loader(source, keep_rgb=True, num_workers=args.num_workers)
+    with files, progress_bar(loader.expected_images(), args.quiet) as bar:  # no folder if nothing was written
+        for batch in loader:
+            for prediction in predictor.predict_batch(batch):
+                files.add(prediction)
+                bar.update(1)
+        bar.close()
         print(files.finish(), file=sys.stdout, flush=True)

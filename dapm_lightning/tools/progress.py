@@ -1,48 +1,38 @@
-"""Progress bars for the long commands (synth, doctor, export, predict): on a terminal only, off with ``--quiet``.
+"""Progress and quiet: a progress bar for people at a terminal, none of Lightning's tips and foreign warnings.
 
-``tqdm`` (Lightning's own progress bar uses it) shows the count, the rate and the time left on stderr; where
-stderr is not a terminal (a job log, a pipe, CI) nothing is drawn, so logs stay one line per event.
+:func:`progress_bar` shows the count done, the rate (images/s) and the time left (tqdm, on stderr) when stdout and
+stderr are terminals and not ``quiet``: in a job log, a pipe or CI nothing is drawn, so logs stay one line per
+event. Used by ``predict``, ``synth`` and ``doctor``. :func:`~dapm_lightning.training.quiet.quiet_lightning`
+drops Lightning's tips and foreign warnings.
 """
 
 from __future__ import annotations
 
+import logging
 import sys
 from typing import Any
 
-
-class NoProgress:
-    """What :func:`progress_bar` gives when nothing is drawn: the same calls, doing nothing."""
-
-    def update(self, count: int = 1) -> None:
-        """Nothing to draw."""
-
-    def set_postfix_str(self, text: str) -> None:
-        """Nothing to draw."""
-
-    def close(self) -> None:
-        """Nothing to close."""
-
-    def __enter__(self) -> NoProgress:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+from dapm_lightning.training.quiet import RANK_ZERO_LOGGER
+from dapm_lightning.training.quiet import quiet_lightning as quiet_lightning
 
 
-def progress_bar(total: int | None, what: str, unit: str = "image", quiet: bool = False) -> Any:
-    """A ``tqdm`` bar of ``total`` ``unit``s labelled ``what`` on a terminal; else :class:`NoProgress`.
+def quiet_notes(quiet: bool) -> None:
+    """With ``quiet``, Lightning's informational lines (the telemetry summary, notes) are not shown."""
+    logging.getLogger(RANK_ZERO_LOGGER).setLevel(logging.WARNING if quiet else logging.NOTSET)
 
-    Args:
-        total: how many steps (None: unknown, a count and a rate only).
-        what: the label, e.g. ``"rendering"``.
-        unit: the name of one step, shown in the rate (``images/s``).
-        quiet: never draw.
+
+def show_progress(quiet: bool = False) -> bool:
+    """Whether to draw a progress bar: not ``quiet``, and stdout and stderr are terminals."""
+    return not quiet and sys.stdout.isatty() and sys.stderr.isatty()
+
+
+def progress_bar(total: int | None, quiet: bool = False, unit: str = "image", what: str = "predict") -> Any:
+    """A tqdm bar on stderr labelled ``what``, counting ``unit`` s: the rate, and the time left when ``total`` is known.
+
+    Disabled (the same calls, drawing nothing) when :func:`show_progress` says so. Use as a context manager,
+    ``update(n)`` as work is done.
     """
-    if quiet or not sys.stderr.isatty():
-        return NoProgress()
     from tqdm import tqdm
 
-    return tqdm(total=total, desc=what, unit=unit, unit_scale=False, dynamic_ncols=True, leave=False)
-
-
-__all__ = ["NoProgress", "progress_bar"]
+    return tqdm(total=total, unit=unit, disable=not show_progress(quiet), file=sys.stderr, dynamic_ncols=True,
+                smoothing=0.1, desc=what)

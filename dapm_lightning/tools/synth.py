@@ -79,7 +79,7 @@ def synth_main(argv: Sequence[str]) -> None:
     part = shard_range(args.train + args.val, args.shard)
     start = time.perf_counter()
     try:
-        with progress_bar(len(part), "rendering", quiet=args.quiet) as bar:
+        with progress_bar(len(part), quiet=args.quiet, what="rendering") as bar:
             out = generate_uapd(args.out, train=args.train, val=args.val, size=size, seed=args.seed,
                                 workers=args.workers, families=args.families, effects=args.effects, shard=args.shard,
                                 distortion=args.distortion, max_depth=args.max_depth, progress=bar.update)

@@ -35,6 +35,7 @@ from dapm_lightning.training.checkpointing import (
     resolve_last_checkpoint,
 )
 from dapm_lightning.training.module import DAPMModule
+from dapm_lightning.training.quiet import quiet_lightning
 
 TRAINER_DEFAULTS = {"plugins": [{"class_path": "dapm_lightning.training.checkpointing.SafeCheckpointIO"}]}
 """Checkpoints load with ``weights_only=True`` and save atomically. A ``--trainer.plugins`` value replaces this list:
@@ -378,7 +379,8 @@ def _as_list(value: Any) -> list[Any]:
 
 
 def run_lightning_cli(args: Sequence[str] | None = None, run: bool = True) -> DAPMCLI:
-    """Parse ``args`` (``fit --config FILE ...``) and run the subcommand."""
+    """Parse ``args`` (``fit --config FILE ...``) and run the subcommand, without Lightning's tips."""
+    quiet_lightning()
     return DAPMCLI(DAPMModule, DAPMDataModule, subclass_mode_data=True, seed_everything_default=0,
                    save_config_callback=SaveConfigOfRun, save_config_kwargs={"overwrite": True},
                    args=list(args) if args is not None else None, run=run, auto_configure_optimizers=False,

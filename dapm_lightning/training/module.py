@@ -423,7 +423,7 @@ class DAPMModule(L.LightningModule):
     def on_test_epoch_end(self) -> None:
         self._log_metrics("test")
 
-    def predict_step(self, batch: PredictBatch, batch_idx: int) -> DAPMOutput:
+    def predict_step(self, batch: PredictBatch, batch_idx: int, dataloader_idx: int = 0) -> DAPMOutput:
         """The network's output for a :class:`~dapm_lightning.data.unlabelled.PredictBatch`, given its prior.
 
         :class:`~dapm_lightning.inference.writers.PredictionWriter` turns it into files.

@@ -47,7 +47,7 @@ def test_two_predicts_into_one_folder_keep_every_row(checkpoint, tmp_path):
         for k in range(32):
             cv2.imwrite(str(folder / f"{run}{k:02d}.png"), rng.integers(0, 255, (40, 60, 3), np.uint8))
         commands.append(["predict", str(folder), "--ckpt_path", str(checkpoint), "--out", str(out),
-                         "--device", "cpu", "--outputs", "depth_npy", "--contact_sheet", "0"])
+                         "--device", "cpu", "--outputs", "depth_npy", "--contact_sheet", "0", "--exist_ok"])
     spawn = multiprocessing.get_context("spawn")
     barrier = spawn.Barrier(2)
     logs = [tmp_path / f"run_{run}.log" for run in "ab"]

@@ -25,11 +25,13 @@ from dapm_lightning.data.files import (
 )
 from dapm_lightning.geometry.igd import IGDSpec
 from dapm_lightning.inference.contact_sheet import (
+    CONTACT_HEADING,
     CONTACT_MAX_ASPECT,
     CONTACT_MAX_IMAGES,
     CONTACT_TILE,
     contact_row,
     contact_sheet,
+    contact_tiles,
 )
 from dapm_lightning.inference.poses_table import write_poses
 from dapm_lightning.inference.postprocess import make_prediction
@@ -200,7 +202,7 @@ def test_a_full_disk_fails_the_run_naming_the_file_and_keeps_the_table(checkpoin
     earlier = "name,height_m,pitch_deg,roll_deg,fov_deg\n" + "".join(f"old{k},50,-40,1,70\n" for k in range(100))
     (out / "poses.csv").write_text(earlier)
     code, err = run_main(["predict", str(flight), "--ckpt_path", str(checkpoint), "--out", str(out),
-                          "--device", "cpu", "--batch_size", "8"], capsys)
+                          "--device", "cpu", "--batch_size", "8", "--exist_ok"], capsys)
     message = err.splitlines()
     assert code == 1 and message[0].startswith(f"error: {out}/im") and ": cannot be written (" in message[0]
     assert message[1].startswith("Fix: ") and "--out" in message[1]
@@ -342,6 +344,8 @@ def test_contact_sheet_tiles_are_bounded_for_any_aspect(size):
         assert tile == 3 * min(max(natural, CONTACT_TILE // CONTACT_MAX_ASPECT), CONTACT_MAX_ASPECT * CONTACT_TILE)
     sheet = contact_sheet([row] * CONTACT_MAX_IMAGES)
     assert sheet.shape[1] <= ROW_MAX_WIDTH and sheet.shape[0] == CONTACT_MAX_IMAGES * (CONTACT_TILE + 4)
+    sheet = contact_sheet([contact_tiles(prediction)] * CONTACT_MAX_IMAGES)  # aligned, under headings
+    assert sheet.shape == (CONTACT_HEADING + CONTACT_MAX_IMAGES * (CONTACT_TILE + 4), row.shape[1], 3)
 
 
 def test_thin_and_wide_images_through_the_command(checkpoint, tmp_path, capsys):
@@ -358,7 +362,7 @@ def test_thin_and_wide_images_through_the_command(checkpoint, tmp_path, capsys):
     summary = capsys.readouterr().out.strip().splitlines()[-1]
     assert summary == f"predicted 2 images: depth16, sky per image; poses.csv, contact_sheet.png in {out}/"
     sheet = cv2.imread(str(out / "contact_sheet.png"))
-    assert sheet.shape[:2] == (2 * (CONTACT_TILE + 4), ROW_MAX_WIDTH)
+    assert sheet.shape[:2] == (CONTACT_HEADING + 2 * (CONTACT_TILE + 4), ROW_MAX_WIDTH)
     assert cv2.imread(str(out / "wide_depth16.png"), cv2.IMREAD_UNCHANGED).shape == (8, 1200)
     with pytest.warns(UserWarning, match=f"at most {CONTACT_MAX_IMAGES} images"):
         assert PredictionFiles(tmp_path / "x", contact_sheet=1000).contact_images == CONTACT_MAX_IMAGES

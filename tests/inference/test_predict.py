@@ -18,7 +18,7 @@ from dapm_lightning.inference.inputs import (
 )
 from dapm_lightning.inference.postprocess import make_prediction
 from dapm_lightning.inference.predictor import DAPMPredictor
-from dapm_lightning.inference.writers import DEPTH16_SCALE, PredictionWriter, write_prediction
+from dapm_lightning.inference.writers import DEPTH16_SCALE, OUTPUT_KINDS, PredictionWriter, write_prediction
 from dapm_lightning.models import DAPMConfig, InferenceOutput
 from dapm_lightning.training.lightning_cli import run_lightning_cli
 from dapm_lightning.training.module import DAPMModule
@@ -89,11 +89,11 @@ def test_sources_folder_glob_image_video_and_mistakes(image_folder, tmp_path):
     assert resolve_source(video) == ("video", [video])
     with pytest.raises(FileNotFoundError, match="no such file or folder.*glob pattern"):
         resolve_source(tmp_path / "missing")
-    with pytest.raises(FileNotFoundError, match="matches no image.*quote"):
+    with pytest.raises(FileNotFoundError, match="matches no image or video"):
         resolve_source(f"{tmp_path}/*.jpg")
-    (tmp_path / "notes.txt").write_text("x")
+    (tmp_path / "notes.md").write_text("x")
     with pytest.raises(ValueError, match="neither an image"):
-        resolve_source(tmp_path / "notes.txt")
+        resolve_source(tmp_path / "notes.md")
     (tmp_path / "damaged.png").write_bytes(b"not a png")
     with pytest.raises(ValueError, match="damaged.png: cannot be decoded"):
         ImageFilesDataset([tmp_path / "damaged.png"])[0]
@@ -119,7 +119,8 @@ def test_cli_predict_writes_every_output(checkpoint, image_folder, tmp_path, mon
     cli = run_lightning_cli(["predict", "--config", str(CONFIGS / "predict.yaml"), "--ckpt_path", str(checkpoint),
                              "--data.init_args.source", str(image_folder), "--data.init_args.image_width", "64",
                              "--data.init_args.batch_size", "4", "--data.init_args.num_workers", "0",
-                             "--trainer.callbacks.output_dir", str(out), "--trainer.callbacks.points_stride", "3"])
+                             "--trainer.callbacks.output_dir", str(out), "--trainer.callbacks.points_stride", "3",
+                             "--trainer.callbacks.outputs", "all"])
     assert cli.trainer.predict_loop.predictions == []  # return_predictions off: nothing kept in memory
     poses = json.loads((out / "poses.json").read_text())
     assert [p["name"] for p in poses] == ["colour", "grey", "rgba16"]
@@ -217,9 +218,11 @@ def test_python_api_video_and_single_branch_models(tmp_path):
     assert r.depth_m.shape == (36, 48) and r.pose is None and r.K is None and r.rgb.shape == (36, 48, 3)
     with pytest.raises(ValueError, match="needs depth and pose"):
         r.points()
-    written = write_prediction(tmp_path, r)
+    assert {p.name for p in write_prediction(tmp_path, r)} == {f"{r.name}_{s}" for s in ("depth_color.png",
+                                                                                         "sky.png")}  # default
+    written = write_prediction(tmp_path, r, OUTPUT_KINDS)
     assert {p.name for p in written} == {f"{r.name}_{s}" for s in ("depth.npy", "depth.tif", "depth16.png",
-                                                                    "depth_color.png", "sky.png")}
+                                                                    "depth_color.png", "sky.png")} | {f"{r.name}.npz"}
     pose_only = DAPMPredictor(DAPMModule(net=DAPMConfig(**TINY, use_depth=False, use_igd_feature=False)),
                               image_width=32)
     p = pose_only(np.zeros((36, 48, 3), np.uint8))
@@ -243,7 +246,11 @@ def test_cli_predict_honours_precision_and_a_video_source(checkpoint, tmp_path, 
     assert names == ["clip_f000000", "clip_f000002", "clip_f000004"]
     assert sorted(p.name for p in out.iterdir()) == sorted(
         [f"{n}_{s}" for n in names for s in ("depth.npy", "camera.json")]
-        + ["poses.csv", "poses.json", "contact_sheet.png"])
+        + ["poses.csv", "poses.json", "contact_sheet.png", "clip_depth.mp4"])  # the frames beside their depth
+    preview = cv2.VideoCapture(str(out / "clip_depth.mp4"))
+    assert preview.get(cv2.CAP_PROP_FRAME_COUNT) == 3 and preview.get(cv2.CAP_PROP_FPS) == pytest.approx(5.0)
+    assert preview.get(cv2.CAP_PROP_FRAME_WIDTH) == 96 and preview.get(cv2.CAP_PROP_FRAME_HEIGHT) == 36
+    preview.release()
     fp32 = DAPMPredictor.from_checkpoint(checkpoint, image_width=64)(next(iter(
         VideoFramesDataset(video, None, keep_rgb=True))).rgb)
     bf16 = np.load(out / "clip_f000000_depth.npy")
@@ -290,10 +297,10 @@ def test_sky_is_sky_at_every_output_size(size, sky_rows, tmp_path):
     assert (result.depth_m[sky] == 1000.0).all() and (result.depth_m[~sky] < 1000.0).all()
     assert (result.depth_m >= 1000.0).sum() == sky.sum()  # `depth >= max_depth` finds exactly the sky
     assert (result.depth_m[~sky] <= 100.0 + 1e-3).all()  # resizing mixes no sky into the ground
-    written = {p.name: p for p in write_prediction(tmp_path, result, points_stride=1)}
+    written = {p.name: p for p in write_prediction(tmp_path, result, OUTPUT_KINDS, points_stride=1)}
     depth16 = cv2.imread(str(written["f_depth16.png"]), cv2.IMREAD_UNCHANGED)
     assert (depth16[sky] == 64000).all() and (depth16[~sky] < 64000).all()
-    colour = cv2.imread(str(written["f_depth_color.png"]))
+    colour = cv2.imread(str(written["f_depth_color.png"]))[:, :size[1]]  # the picture, left of its colour bar
     sky_colour = colour[sky][0]
     assert (colour[sky] == sky_colour).all() and not (colour[~sky] == sky_colour).all(axis=1).any()
     assert len(read_ply_independently(written["f_points.ply"])) == (~sky).sum()  # no sky point in the cloud
@@ -350,7 +357,9 @@ def test_one_line_predict_on_a_folder_of_mixed_sizes(checkpoint, image_folder, t
                        f"in {out}/")
     for name, shape in (("colour", (45, 70)), ("grey", (30, 30)), ("rgba16", (40, 52))):
         packed = np.load(out / f"{name}.npz")
-        assert set(packed.files) == {"depth", "sky_prob", "K", "pose", "pose_network", "camera_to_world"}
+        assert set(packed.files) == {"depth", "sky_prob", "K", "pose", "pose_network", "pose_fields",
+                                     "camera_to_world"}
+        assert list(packed["pose_fields"]) == ["height_m", "pitch_deg", "roll_deg", "fov_deg"]  # as the files say
         np.testing.assert_array_equal(packed["depth"], np.load(out / f"{name}_depth.npy"))
         assert packed["depth"].shape == shape and packed["K"].shape == (3, 3) and packed["pose"].shape == (4,)
     sheet = cv2.imread(str(out / "contact_sheet.png"))
@@ -361,7 +370,7 @@ def test_one_line_predict_on_a_folder_of_mixed_sizes(checkpoint, image_folder, t
     cv2.imwrite(str(other / "new.png"), np.full((40, 60, 3), 90, np.uint8))
     cv2.imwrite(str(other / "grey.png"), np.full((30, 30), 10, np.uint8))
     main(["predict", str(other), "--ckpt", str(checkpoint), "--out", str(out), "--device", "cpu",
-          "--outputs", "depth_npy", "--contact_sheet", "0"])
+          "--outputs", "depth_npy", "--contact_sheet", "0", "--exist_ok"])
     rows = (out / "poses.csv").read_text().splitlines()
     assert [r.split(",")[0] for r in rows] == ["name", "colour", "grey", "rgba16", "new"]
     assert [p["name"] for p in json.loads((out / "poses.json").read_text())] == ["colour", "grey", "rgba16", "new"]
@@ -383,7 +392,7 @@ def test_one_line_predict_errors_and_help(checkpoint, image_folder, tmp_path, ca
     with pytest.raises(SystemExit) as info:
         main(["predict", "--help"])
     head = capsys.readouterr().out.splitlines()[:12]
-    assert info.value.code == 0 and any("source" in line for line in head) and any("--out" in line for line in head)
+    assert info.value.code == 0 and any("SOURCE" in line for line in head) and any("--out" in line for line in head)
 
 
 def test_lightning_form_finds_the_packaged_config_and_short_class_names(tmp_path, monkeypatch, capsys):

@@ -177,7 +177,8 @@ def test_csv_telemetry_through_the_documented_config_form(checkpoint, flight, tm
     out = tmp_path / "lightning"
     main(["predict", "--config", "configs/predict.yaml", "--ckpt_path", str(checkpoint),
           "--data.init_args.source", str(folder), "--data.init_args.telemetry", str(table),
-          "--data.init_args.num_workers", "0", "--trainer.callbacks.output_dir", str(out)])
+          "--data.init_args.num_workers", "0", "--trainer.callbacks.output_dir", str(out),
+          "--trainer.callbacks.outputs", "depth_npy,camera"])
     camera = json.loads((out / "a_camera.json").read_text())["pose"]
     assert camera["height_m"] == {"value": pytest.approx(45.5), "source": "telemetry",
                                   "network": camera["height_m"]["network"]}

@@ -5,7 +5,7 @@ import sys
 
 import pytest
 
-from dapm_lightning.tools.progress import NoProgress, progress_bar
+from dapm_lightning.tools.progress import progress_bar
 from dapm_lightning.tools.synth import synth_main
 
 
@@ -18,6 +18,7 @@ class Terminal(io.StringIO):
 def test_synth_draws_a_bar_on_a_terminal_only(terminal, quiet, drawn, tmp_path, monkeypatch, capsys):
     stream = Terminal() if terminal else io.StringIO()
     monkeypatch.setattr(sys, "stderr", stream)
+    monkeypatch.setattr(sys.stdout, "isatty", lambda: terminal, raising=False)
     synth_main(["--out", str(tmp_path / "d"), "--train", "5", "--val", "1", "--size", "16", "--workers", "1",
                 *(["--quiet"] if quiet else [])])
     assert "wrote 5 train + 1 val images" in capsys.readouterr().out  # the result line, always
@@ -25,12 +26,13 @@ def test_synth_draws_a_bar_on_a_terminal_only(terminal, quiet, drawn, tmp_path, 
     assert ("rendering:" in bar and "/6 [" in bar and "image/s" in bar) == drawn, bar
 
 
-def test_no_progress_takes_the_same_calls(monkeypatch):
-    monkeypatch.setattr(sys, "stderr", io.StringIO())
-    with progress_bar(3, "x") as bar:
-        assert isinstance(bar, NoProgress)
+def test_an_undrawn_bar_takes_the_same_calls(monkeypatch):
+    stream = io.StringIO()
+    monkeypatch.setattr(sys, "stderr", stream)
+    with progress_bar(3, what="x") as bar:
         bar.update(2)
         bar.set_postfix_str("y")
+    assert stream.getvalue() == ""
 
 
 def test_doctor_draws_a_bar_per_split_on_a_terminal(tmp_path, monkeypatch, capsys):
@@ -40,6 +42,7 @@ def test_doctor_draws_a_bar_per_split_on_a_terminal(tmp_path, monkeypatch, capsy
     root = generate_uapd(tmp_path / "d", train=3, val=2, size=16, workers=1)
     stream = Terminal()
     monkeypatch.setattr(sys, "stderr", stream)
+    monkeypatch.setattr(sys.stdout, "isatty", lambda: True, raising=False)
     assert doctor_main([str(root)]) == 0
     assert "checking train:" in stream.getvalue() and "checking val:" in stream.getvalue()
     stream.truncate(0)

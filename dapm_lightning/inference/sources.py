@@ -1,0 +1,190 @@
+"""What to predict, as users have it: folders (searched recursively), glob patterns, files, ``.txt`` lists.
+
+:func:`resolve_sources` turns any number of SOURCE arguments into :class:`SourceFile` s, images and videos, each
+with an output name that is unique in the run and says where the file came from: a file found in a folder or by a
+pattern is named by its path below that folder (``100MEDIA/DJI_0001.JPG`` -> ``100MEDIA_DJI_0001``), a file given
+by itself by its stem. Extensions are matched regardless of case (``.JPG``), hidden files and folders (``.Trashes``,
+macOS's ``._DJI_0001.JPG``) are left out.
+"""
+
+from __future__ import annotations
+
+import glob
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+from dapm_lightning.data.uapd import IMAGE_SUFFIXES
+
+VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg", ".wmv")
+LIST_SUFFIX = ".txt"
+"""A SOURCE with this extension is a list of paths, one a line (blank lines and ``#`` comments skipped)."""
+SourceKind = Literal["image", "video"]
+Sources = str | Path | Sequence[str | Path]
+"""One SOURCE or several."""
+
+
+@dataclass(frozen=True)
+class SourceFile:
+    """One file to predict: its ``path``, its output ``name`` (a video's frames add ``_f<frame>``), ``kind``."""
+
+    path: Path
+    name: str
+    kind: SourceKind
+
+
+def has_magic(text: str) -> bool:
+    """Whether ``text`` is a glob pattern."""
+    return any(c in text for c in "*?[")
+
+
+def file_kind(path: Path) -> SourceKind | None:
+    """``image`` or ``video`` from the extension (any case), else None."""
+    suffix = path.suffix.lower()
+    return "image" if suffix in IMAGE_SUFFIXES else "video" if suffix in VIDEO_SUFFIXES else None
+
+
+def as_list(sources: Sources) -> list[str | Path]:
+    """``sources`` as a list of SOURCE arguments."""
+    return [sources] if isinstance(sources, (str, Path)) else list(sources)
+
+
+def case_free(pattern: str) -> str:
+    """A glob pattern whose last component matches regardless of case (``*.jpg`` finds ``DJI_0001.JPG``)."""
+    head, sep, last = pattern.rpartition("/")
+    out, depth = [], 0
+    for c in last:
+        depth += c == "["
+        depth -= c == "]" and depth > 0
+        out.append(f"[{c.lower()}{c.upper()}]" if c.isalpha() and depth == 0 and c.lower() != c.upper() else c)
+    return head + sep + "".join(out)
+
+
+def _hidden(path: Path, root: Path) -> bool:
+    return any(part.startswith(".") for part in path.relative_to(root).parts)
+
+
+def _named(path: Path, root: Path | None) -> tuple[Path, str]:
+    """``path`` with its output name: the path below ``root`` joined with ``_``, or the stem."""
+    if root is None:
+        return path, path.stem
+    relative = path.relative_to(root)
+    return path, "_".join((*relative.parent.parts, relative.stem))
+
+
+def _folder(path: Path) -> tuple[list[tuple[Path, str]], list[str]]:
+    """A folder's images, sub-folders included; a note on the videos it also holds (not predicted)."""
+    files = sorted(p for p in path.rglob("*") if p.is_file() and not _hidden(p, path))
+    images = [_named(p, path) for p in files if file_kind(p) == "image"]
+    videos = [p.relative_to(path).as_posix() for p in files if file_kind(p) == "video"]
+    if not images:
+        hint = f" (it holds video(s) {', '.join(videos[:3])}: give the video file itself)" if videos else ""
+        raise ValueError(f"{path}: no images ({', '.join(IMAGE_SUFFIXES)}, any case, sub-folders included){hint}")
+    notes = []
+    if videos:
+        notes.append(f"{path}: {len(videos)} video(s) not predicted ({', '.join(videos[:2])}"
+                     f"{', ...' if len(videos) > 2 else ''}): give a video as SOURCE to predict its frames")
+    return images, notes
+
+
+def _pattern(text: str) -> list[tuple[Path, str]]:
+    """The images and videos a glob pattern matches (extensions in any case), named below its root."""
+    parts = Path(text).expanduser().parts
+    first = next(k for k, part in enumerate(parts) if has_magic(part))
+    root = Path(*parts[:first]) if first else Path(".")
+    matches = sorted({Path(p) for p in glob.glob(case_free(str(Path(text).expanduser())), recursive=True)})
+    found = [_named(p, root) for p in matches if p.is_file() and file_kind(p) and not _hidden(p, root)]
+    if not found:
+        raise FileNotFoundError(f"{text}: the pattern matches no image or video ({len(matches)} other path(s))")
+    return found
+
+
+def _entry(text: str, origin: str = "") -> tuple[list[tuple[Path, str]], list[str]]:
+    """One SOURCE (not a list): its files with their names, and notes."""
+    path = Path(text).expanduser()
+    if path.is_dir():
+        return _folder(path)
+    if path.is_file():
+        if file_kind(path) is None:
+            raise ValueError(f"{origin}{path}: neither an image ({', '.join(IMAGE_SUFFIXES)}) nor a video "
+                             f"({', '.join(VIDEO_SUFFIXES)}), nor a {LIST_SUFFIX} list of paths")
+        return [_named(path, None)], []
+    if has_magic(text):
+        try:
+            return _pattern(text), []
+        except FileNotFoundError as error:
+            raise FileNotFoundError(f"{origin}{error}") from None
+    raise FileNotFoundError(f"{origin}{text}: no such file or folder (give folders of images, glob patterns such as "
+                            f"'flight/**/*.jpg', images, videos or a {LIST_SUFFIX} list of paths)")
+
+
+def _list_file(path: Path) -> tuple[list[tuple[Path, str]], list[str]]:
+    """The entries of a ``.txt`` list, paths relative to the list's folder."""
+    found: list[tuple[Path, str]] = []
+    notes: list[str] = []
+    for number, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
+        entry = line.strip()
+        if not entry or entry.startswith("#"):
+            continue
+        if entry.lower().endswith(LIST_SUFFIX):
+            raise ValueError(f"{path} line {number}: {entry}: a list inside a list is not read")
+        target = Path(entry).expanduser()
+        text = str(target if target.is_absolute() else path.parent / target)
+        files, more = _entry(text, f"{path} line {number}: ")
+        found += files
+        notes += more
+    if not found:
+        raise ValueError(f"{path}: the list names no path (one image, video, folder or pattern a line)")
+    return found, notes
+
+
+def _unique_names(found: list[tuple[Path, str]]) -> list[tuple[Path, str]]:
+    """Names made unique by their parent folders' names; two files that stay alike are refused."""
+    names = [name for _, name in found]
+    for level in range(1, 4):
+        clashes = {n for n in names if names.count(n) > 1}
+        if not clashes:
+            break
+        names = [f"{found[k][0].parent.parts[-level]}_{n}"
+                 if n in clashes and len(found[k][0].parent.parts) >= level else n for k, n in enumerate(names)]
+    seen: dict[str, Path] = {}
+    for (path, _), name in zip(found, names):
+        if name in seen:
+            raise ValueError(f"{path} and {seen[name]} would write the same output files (name {name!r}): "
+                             "predict them in separate runs or rename one")
+        seen[name] = path
+    return [(path, name) for (path, _), name in zip(found, names)]
+
+
+def resolve_sources(sources: Sources) -> tuple[list[SourceFile], list[str]]:
+    """Every file the SOURCE arguments name, in their order (each file once), and notes for the user.
+
+    A folder gives its images, sub-folders included (videos in it are noted, not predicted); a glob pattern
+    (``**`` recursive) its images and videos; an image or a video file itself; a ``.txt`` file the paths it
+    lists, one a line, relative to its own folder. Raises ``FileNotFoundError`` / ``ValueError`` in one line
+    saying what to give instead.
+    """
+    found: list[tuple[Path, str]] = []
+    notes: list[str] = []
+    for source in as_list(sources):
+        path = Path(source).expanduser()
+        files, more = (_list_file(path) if path.is_file() and path.suffix.lower() == LIST_SUFFIX
+                       else _entry(str(source)))
+        found += files
+        notes += more
+    if not found:
+        raise ValueError("no SOURCE given: name folders, images, videos, glob patterns or a .txt list")
+    unique: dict[Path, tuple[Path, str]] = {}
+    for path, name in found:
+        unique.setdefault(path.resolve(), (path, name))
+    named = _unique_names(list(unique.values()))
+    return [SourceFile(p, n, file_kind(p) or "image") for p, n in named], notes
+
+
+def resolve_source(source: Sources) -> tuple[Literal["images", "video"], list[Path]]:
+    """What one SOURCE names: ``("video", [path])`` for a video alone, else ``("images", paths)``."""
+    files, _ = resolve_sources(source)
+    if len(files) == 1 and files[0].kind == "video":
+        return "video", [files[0].path]
+    return "images", [f.path for f in files if f.kind == "image"]

@@ -1,0 +1,36 @@
+"""No Lightning tips and foreign warnings: what Lightning prints that says nothing about the user's run.
+
+:func:`quiet_lightning` drops its advertising tips ("💡 Tip: ... litlogger"), its note on callbacks a checkpoint
+was trained with ("Please add the following callbacks") and a deprecation warning Lightning raises inside itself.
+"""
+
+from __future__ import annotations
+
+import logging
+import warnings
+
+FOREIGN_WARNINGS = (
+    r"(?s).*Please add the following callbacks",  # callbacks of training, restored into predict / test
+    r"(?s).*isinstance\(treespec, LeafSpec\)",  # Lightning's own use of a torch API it deprecated
+)
+"""Warnings raised inside Lightning that a user can do nothing about (regular expressions)."""
+RANK_ZERO_LOGGER = "lightning.pytorch.utilities.rank_zero"
+
+
+class _NoTips(logging.Filter):
+    """Drops Lightning's "💡 Tip:" lines (advertising litlogger / litmodels)."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not str(record.getMessage()).startswith("💡 Tip")
+
+
+_NO_TIPS = _NoTips()
+
+
+def quiet_lightning() -> None:
+    """No Lightning tips and no :data:`FOREIGN_WARNINGS` in this process (idempotent)."""
+    logger = logging.getLogger(RANK_ZERO_LOGGER)
+    if _NO_TIPS not in logger.filters:
+        logger.addFilter(_NO_TIPS)
+    for pattern in FOREIGN_WARNINGS:
+        warnings.filterwarnings("ignore", message=pattern)

@@ -1,0 +1,97 @@
+"""Sources as users have them: an SD card's folders, .JPG, several SOURCE arguments, .txt lists, videos among them."""
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from dapm_lightning.cli import main
+from dapm_lightning.inference.sources import case_free, resolve_sources
+from tests.inference.test_predict import write_video
+
+
+def write_image(path, shape=(30, 40), seed=0):
+    path.parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(path), np.random.default_rng(seed).integers(0, 255, (*shape, 3), np.uint8))
+    return path
+
+
+@pytest.fixture()
+def sd_card(tmp_path):
+    """A DJI card: photos in DCIM/100MEDIA and 101MEDIA (numbering restarted), a video, macOS and system junk."""
+    card = tmp_path / "card"
+    write_image(card / "DCIM" / "100MEDIA" / "DJI_0001.JPG", seed=1)
+    write_image(card / "DCIM" / "100MEDIA" / "DJI_0002.JPG", (36, 36), seed=2)
+    write_image(card / "DCIM" / "101MEDIA" / "DJI_0001.JPG", seed=3)
+    write_video(card / "DCIM" / "100MEDIA" / "DJI_0003.AVI", frames=3)
+    (card / "DCIM" / "100MEDIA" / "._DJI_0001.JPG").write_bytes(b"AppleDouble")  # would not decode
+    write_image(card / ".Trashes" / "old.jpg")
+    return card
+
+
+def test_a_card_folder_is_searched_recursively_with_traceable_names(sd_card):
+    files, notes = resolve_sources(sd_card)
+    assert [(f.name, f.kind) for f in files] == [("DCIM_100MEDIA_DJI_0001", "image"),
+                                                 ("DCIM_100MEDIA_DJI_0002", "image"),
+                                                 ("DCIM_101MEDIA_DJI_0001", "image")]
+    assert len(notes) == 1 and "1 video(s) not predicted (DCIM/100MEDIA/DJI_0003.AVI)" in notes[0]
+
+
+def test_patterns_match_extensions_in_any_case(sd_card):
+    assert case_free("a/B/*.jpg") == "a/B/*.[jJ][pP][gG]" and case_free("x/[ab]*.png") == "x/[ab]*.[pP][nN][gG]"
+    files, _ = resolve_sources(f"{sd_card}/**/*.jpg")  # quoted as the docs say; DJI writes .JPG
+    assert [f.name for f in files] == ["DCIM_100MEDIA_DJI_0001", "DCIM_100MEDIA_DJI_0002", "DCIM_101MEDIA_DJI_0001"]
+    files, _ = resolve_sources(f"{sd_card}/DCIM/*/*.avi")  # a pattern may name videos
+    assert [(f.name, f.kind) for f in files] == [("100MEDIA_DJI_0003", "video")]
+    with pytest.raises(FileNotFoundError, match=r"\*\.gif: the pattern matches no image or video"):
+        resolve_sources(f"{sd_card}/*.gif")
+
+
+def test_several_sources_and_lists_keep_names_unique(sd_card, tmp_path):
+    media = sd_card / "DCIM"
+    one, two = media / "100MEDIA" / "DJI_0001.JPG", media / "101MEDIA" / "DJI_0001.JPG"
+    files, _ = resolve_sources([one, two, one, media / "100MEDIA" / "DJI_0003.AVI"])  # a file twice: once
+    assert [(f.name, f.kind) for f in files] == [("100MEDIA_DJI_0001", "image"), ("101MEDIA_DJI_0001", "image"),
+                                                 ("DJI_0003", "video")]
+    listing = sd_card / "survey.txt"
+    listing.write_text("# today's flight\nDCIM/100MEDIA/DJI_0002.JPG\n\nDCIM/100MEDIA/DJI_0003.AVI\n")
+    files, _ = resolve_sources(listing)  # paths relative to the list's folder
+    assert [(f.path, f.name) for f in files] == [(media / "100MEDIA" / "DJI_0002.JPG", "DJI_0002"),
+                                                 (media / "100MEDIA" / "DJI_0003.AVI", "DJI_0003")]
+    listing.write_text("DCIM/100MEDIA/DJI_0002.JPG\nDCIM/100MEDIA/DJI_9999.JPG\n")
+    with pytest.raises(FileNotFoundError, match=r"survey.txt line 2: .*DJI_9999.JPG: no such file or folder"):
+        resolve_sources(listing)
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(ValueError, match="no images .*any case, sub-folders included"):
+        resolve_sources(empty)
+
+
+def test_one_line_predict_takes_an_unquoted_glob_a_list_and_a_video(checkpoint, sd_card, tmp_path, capsys,
+                                                                    monkeypatch):
+    media = sd_card / "DCIM" / "100MEDIA"
+    out = tmp_path / "out"
+    # the shell expanded 'DCIM/*/DJI_0001.JPG' into two paths; options before, between and after SOURCE
+    main(["predict", str(sd_card / "DCIM" / "100MEDIA" / "DJI_0001.JPG"), "--ckpt_path", str(checkpoint),
+          str(sd_card / "DCIM" / "101MEDIA" / "DJI_0001.JPG"), str(media / "DJI_0003.AVI"), "--out", str(out),
+          "--device", "cpu", "--outputs", "camera"])
+    assert "predicted 5 images" in capsys.readouterr().out
+    names = sorted(p.name for p in out.glob("*_camera.json"))
+    assert names == ["100MEDIA_DJI_0001_camera.json", "101MEDIA_DJI_0001_camera.json",
+                     *(f"DJI_0003_f{k:06d}_camera.json" for k in range(3))]
+
+    listing = tmp_path / "list.txt"
+    listing.write_text(f"{media / 'DJI_0002.JPG'}\n{media / 'DJI_0003.AVI'}\n")
+    one_line, lightning = tmp_path / "one_line", tmp_path / "lightning"
+    main(["predict", str(listing), "--ckpt_path", str(checkpoint), "--out", str(one_line), "--device", "cpu",
+          "--outputs", "camera", "depth_npy"])
+    monkeypatch.chdir(tmp_path)
+    main(["predict", "--config", "configs/predict.yaml", "--ckpt_path", str(checkpoint),
+          "--data.init_args.source", f"[{listing}]", "--data.init_args.num_workers", "0",
+          "--trainer.callbacks.output_dir", str(lightning), "--trainer.callbacks.outputs", "[camera, depth_npy]"])
+    expected = {p.name: p.read_bytes() for p in one_line.iterdir()}
+    assert len([n for n in expected if n.endswith("_camera.json")]) == 4  # an image and the video's 3 frames
+    assert {p.name: p.read_bytes() for p in lightning.iterdir()} == expected
+    assert [r["name"] for r in json.loads((one_line / "poses.json").read_text())][:2] == ["DJI_0002",
+                                                                                          "DJI_0003_f000000"]
