@@ -53,6 +53,8 @@ class DAPMPredictor:
             ``scale`` (the depth fitted to the known pose's ground afterwards; any checkpoint) or ``both``.
         telemetry_sigma: σ of the telemetry (height m, pitch, roll, fov deg) where a prior gives none; 0: the
             telemetry replaces the network's value, > 0: fused with it.
+        igd_bound: margin of the IGD bound: an image whose telemetry gives the height gets no depth beyond
+            ``1 + igd_bound`` times the flat ground of the pose used (docs/predict.md); None: no bound.
 
     Example:
         >>> predictor = DAPMPredictor.from_checkpoint("last.ckpt")                  # doctest: +SKIP
@@ -67,7 +69,7 @@ class DAPMPredictor:
     def __init__(self, module: torch.nn.Module | None, image_width: int | None = None, device: str = "cpu",
                  precision: Precision = "32", batch_size: int = DEFAULT_BATCH_SIZE, channels_last: bool = False,
                  compile: bool = False, onnx_path: str | Path | None = None, telemetry_mode: PriorMode = "condition",
-                 telemetry_sigma: Sequence[float] = EXACT_SIGMA) -> None:
+                 telemetry_sigma: Sequence[float] = EXACT_SIGMA, igd_bound: float | None = None) -> None:
         runtime: Runtime
         config: Any
         trained: tuple[int, int] | None = None
@@ -90,9 +92,9 @@ class DAPMPredictor:
         else:
             self.target = trained if trained is not None else checkpoint_network_size(module)
         self.batch_size = max(1, batch_size)
-        settings = PriorSettings(telemetry_mode, tuple(telemetry_sigma))  # type: ignore[arg-type]
+        settings = PriorSettings(telemetry_mode, tuple(telemetry_sigma), igd_bound)  # type: ignore[arg-type]
         # a runtime that takes no prior (ONNX) applies the known pose afterwards
-        self.prior_settings = settings if runtime.takes_prior else PriorSettings("scale", settings.sigma)
+        self.prior_settings = settings if runtime.takes_prior else PriorSettings("scale", settings.sigma, igd_bound)
         self.spec: IGDSpec = config.igd if config is not None else IGDSpec()
 
     @classmethod

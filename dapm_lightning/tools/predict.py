@@ -23,7 +23,7 @@ from dapm_lightning.inference.writers import (
     PredictionFiles,
     check_output_outside_source,
 )
-from dapm_lightning.models.prior import EXACT_SIGMA, PRIOR_MODES
+from dapm_lightning.models.prior import EXACT_SIGMA, IGD_BOUND_MARGIN, PRIOR_MODES
 
 LIGHTNING_OPTIONS = ("--config", "--data", "--trainer", "--model", "--print_config", "--seed_everything")
 """Options that select the Lightning form of ``predict``."""
@@ -84,6 +84,9 @@ def build_parser() -> argparse.ArgumentParser:
     flight.add_argument("--telemetry_sigma", type=float, nargs=4, default=EXACT_SIGMA,
                         metavar=("HEIGHT_M", "PITCH", "ROLL", "FOV"),
                         help="telemetry uncertainty; 0 replaces the network's value (default: 0 0 0 0)")
+    flight.add_argument("--igd_bound", type=float, nargs="?", const=IGD_BOUND_MARGIN, default=None, metavar="MARGIN",
+                        help="cap each pixel's depth at (1 + MARGIN) x the flat ground of the pose used, for images "
+                             f"whose telemetry gives the height (MARGIN default {IGD_BOUND_MARGIN}; docs/predict.md)")
     return parser
 
 
@@ -125,7 +128,7 @@ def predict_main(argv: Sequence[str]) -> None:
     predictor = DAPMPredictor.from_checkpoint(args.ckpt_path, args.image_width, args.device,
                                               precision=args.precision, batch_size=args.batch_size,
                                               telemetry_mode=args.telemetry_mode,
-                                              telemetry_sigma=args.telemetry_sigma)
+                                              telemetry_sigma=args.telemetry_sigma, igd_bound=args.igd_bound)
     source = PredictSource(args.source, args.frame_step, args.max_frames, args.telemetry, not args.no_metadata,
                            args.sensor_width_mm, args.strict_telemetry)
     keep_rgb = "points" in files.outputs or files.contact_images > 0
