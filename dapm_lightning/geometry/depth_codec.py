@@ -71,6 +71,11 @@ close to the lens) to 1.25 (ground up to 25 % farther than the flat ground of th
 take-off level, or a pose whose height is too low). Above the horizon the IGD is ``max_depth``, so the ratio is of
 the depth limit and the range spans 1 m to the limit, as the absolute depth does."""
 _RATIO_LOG2 = (math.log2(IGD_RATIO_RANGE[0]), math.log2(IGD_RATIO_RANGE[1]))
+FLAT_GROUND_NORM = -_RATIO_LOG2[0] / (_RATIO_LOG2[1] - _RATIO_LOG2[0])
+"""The normalised log ratio of a depth equal to the IGD (the flat ground itself): about 0.969."""
+FLAT_GROUND_LOGIT = math.log(FLAT_GROUND_NORM / (1.0 - FLAT_GROUND_NORM))
+"""Its logit: the ``igd_ratio`` head's output is a correction to this, so an untrained head predicts the flat
+ground (a sigmoid at 0 would start at a ratio of 0.035, far from every target)."""
 
 
 @float32

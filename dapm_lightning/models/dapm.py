@@ -10,7 +10,13 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from dapm_lightning.geometry.depth_codec import decode_igd_ratio, decode_log_depth, encode_igd_ratio, encode_log_depth
+from dapm_lightning.geometry.depth_codec import (
+    FLAT_GROUND_LOGIT,
+    decode_igd_ratio,
+    decode_log_depth,
+    encode_igd_ratio,
+    encode_log_depth,
+)
 from dapm_lightning.geometry.precision import held_in
 from dapm_lightning.models.blocks import conv_bn_relu
 from dapm_lightning.models.config import DAPMConfig
@@ -302,6 +308,8 @@ class DAPMNet(nn.Module):
         if self.config.depth_residual_priors and igd_head is not None:  # the initial depth as a ratio
             refined_logit = refined_logit + encode_igd_ratio(decode_log_depth(init_head, igd.max_depth), igd_head,
                                                              igd.max_depth).to(refined_logit.dtype)
+        elif igd_head is not None:  # a correction to the flat ground (ratio 1)
+            refined_logit = refined_logit + FLAT_GROUND_LOGIT
         elif self.config.depth_residual_priors:  # the authors' head: logit + initial depth + IGD (both in [0, 1])
             refined_logit = refined_logit + init_head + (0.0 if igd_norm is None else igd_norm)
         refined = torch.sigmoid(refined_logit)

@@ -137,3 +137,13 @@ def test_onnx_export_equals_pytorch(tmp_path):
 
     rows = export_onnx(tiny_net(), tmp_path / "m.onnx", (64, 64), checks=1, dynamic=False)
     assert rows[0]["depth_m"] < 1e-2 and rows[0]["pose"] < 1e-3  # metres, degrees: max differences
+
+
+def test_a_head_that_adds_nothing_predicts_the_flat_ground():
+    net = tiny_net(head_stride=1)
+    with torch.no_grad():
+        for p in net.depth_pqb.head[-1].parameters():
+            p.zero_()
+        out = net(torch.rand(2, 3, *SIZE), prior=PosePrior(POSES, torch.zeros(4)))
+    ground = out.depth.sky_logits <= 0
+    torch.testing.assert_close(out.depth_m[ground], ideal_ground_depth(POSES, SIZE)[ground], rtol=1e-4, atol=1e-3)
