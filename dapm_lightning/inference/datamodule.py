@@ -15,7 +15,7 @@ from dapm_lightning.inference.inputs import (
     checkpoint_network_size,
     predict_loader,
 )
-from dapm_lightning.models.prior import EXACT_SIGMA, PriorMode, PriorSettings
+from dapm_lightning.models.prior import EXACT_SIGMA, IGD_BOUND_MARGIN, PriorMode, PriorSettings
 
 
 class PredictDataModule(DAPMDataModule):
@@ -45,7 +45,7 @@ class PredictDataModule(DAPMDataModule):
         telemetry_sigma: σ of the telemetry (height m, pitch, roll, fov deg): 0 replaces the network's value,
             more fuses the two (docs/predict.md).
         igd_bound: margin of the IGD bound (docs/predict.md): images whose telemetry gives the height get no depth
-            beyond ``1 + igd_bound`` times the flat ground of the pose used; None: no bound.
+            beyond ``1 + igd_bound`` times the flat ground of the pose used (default 0.1); None (``null``): no bound.
     """
 
     def __init__(self, source: str = "images", image_width: int | None = None, batch_size: int = DEFAULT_BATCH_SIZE,
@@ -54,7 +54,7 @@ class PredictDataModule(DAPMDataModule):
                  read_metadata: bool = True, sensor_width_mm: float | None = None,
                  telemetry_mode: PriorMode = "condition",
                  telemetry_sigma: tuple[float, float, float, float] = EXACT_SIGMA,
-                 strict_telemetry: bool = False, igd_bound: float | None = None) -> None:
+                 strict_telemetry: bool = False, igd_bound: float | None = IGD_BOUND_MARGIN) -> None:
         super().__init__(batch_size=batch_size, num_workers=num_workers, augment=False, pin_memory=pin_memory)
         self.source = PredictSource(source, frame_step, max_frames, telemetry, read_metadata, sensor_width_mm,
                                     strict_telemetry)

@@ -30,7 +30,7 @@ from dapm_lightning.inference.onnx import ensure_exported
 from dapm_lightning.inference.postprocess import Prediction, batch_predictions
 from dapm_lightning.inference.prior import prior_rows
 from dapm_lightning.inference.runtime import OnnxRuntime, Precision, Runtime, TorchRuntime
-from dapm_lightning.models.prior import EXACT_SIGMA, PriorMode, PriorSettings
+from dapm_lightning.models.prior import EXACT_SIGMA, IGD_BOUND_MARGIN, PriorMode, PriorSettings
 from dapm_lightning.training.checkpointing import load_dapm_module
 
 
@@ -54,7 +54,7 @@ class DAPMPredictor:
         telemetry_sigma: σ of the telemetry (height m, pitch, roll, fov deg) where a prior gives none; 0: the
             telemetry replaces the network's value, > 0: fused with it.
         igd_bound: margin of the IGD bound: an image whose telemetry gives the height gets no depth beyond
-            ``1 + igd_bound`` times the flat ground of the pose used (docs/predict.md); None: no bound.
+            ``1 + igd_bound`` times the flat ground of the pose used (docs/predict.md; default 0.1); None: no bound.
 
     Example:
         >>> predictor = DAPMPredictor.from_checkpoint("last.ckpt")                  # doctest: +SKIP
@@ -69,7 +69,7 @@ class DAPMPredictor:
     def __init__(self, module: torch.nn.Module | None, image_width: int | None = None, device: str = "cpu",
                  precision: Precision = "32", batch_size: int = DEFAULT_BATCH_SIZE, channels_last: bool = False,
                  compile: bool = False, onnx_path: str | Path | None = None, telemetry_mode: PriorMode = "condition",
-                 telemetry_sigma: Sequence[float] = EXACT_SIGMA, igd_bound: float | None = None) -> None:
+                 telemetry_sigma: Sequence[float] = EXACT_SIGMA, igd_bound: float | None = IGD_BOUND_MARGIN) -> None:
         runtime: Runtime
         config: Any
         trained: tuple[int, int] | None = None

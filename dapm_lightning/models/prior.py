@@ -44,12 +44,13 @@ class PriorSettings:
     ``sigma``: per component (height m, pitch, roll, fov deg) the telemetry's standard deviation where a prior
     gives none; 0 replaces the network's value, more fuses the two. ``igd_bound``: the margin of the IGD bound
     (:func:`~dapm_lightning.inference.prior.bound_by_ground`: images whose telemetry gives the height get no depth
-    beyond ``1 + igd_bound`` times the flat ground of the pose used); None: no bound. All are checked here, once.
+    beyond ``1 + igd_bound`` times the flat ground of the pose used; on by default); None: no bound. All are checked
+    here, once.
     """
 
     mode: PriorMode = "condition"
     sigma: tuple[float, float, float, float] = EXACT_SIGMA
-    igd_bound: float | None = None
+    igd_bound: float | None = IGD_BOUND_MARGIN
 
     def __post_init__(self) -> None:
         if self.mode not in PRIOR_MODES:

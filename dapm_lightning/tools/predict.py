@@ -84,9 +84,11 @@ def build_parser() -> argparse.ArgumentParser:
     flight.add_argument("--telemetry_sigma", type=float, nargs=4, default=EXACT_SIGMA,
                         metavar=("HEIGHT_M", "PITCH", "ROLL", "FOV"),
                         help="telemetry uncertainty; 0 replaces the network's value (default: 0 0 0 0)")
-    flight.add_argument("--igd_bound", type=float, nargs="?", const=IGD_BOUND_MARGIN, default=None, metavar="MARGIN",
-                        help="cap each pixel's depth at (1 + MARGIN) x the flat ground of the pose used, for images "
-                             f"whose telemetry gives the height (MARGIN default {IGD_BOUND_MARGIN}; docs/predict.md)")
+    flight.add_argument("--igd_bound", type=float, default=IGD_BOUND_MARGIN, metavar="MARGIN",
+                        help="images whose telemetry gives the height: each pixel's depth capped at (1 + MARGIN) x the "
+                             "flat ground of the pose used (default: %(default)s; docs/predict.md)")
+    flight.add_argument("--no_igd_bound", dest="igd_bound", action="store_const", const=None,
+                        help="no IGD bound (ground far below the take-off level: a valley, the sea from a cliff)")
     return parser
 
 

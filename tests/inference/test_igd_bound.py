@@ -55,7 +55,7 @@ def flight(tmp_path):
     for name, shape in (("a", (40, 60)), ("b", (48, 48))):
         cv2.imwrite(str(folder / f"{name}.png"), rng.integers(0, 255, (*shape, 3), np.uint8))
     table = tmp_path / "flight.csv"
-    table.write_text("name,height_m,pitch_deg,roll_deg,fov_deg\na.png,45.5,-35,2.5,70\nb.png,300,-30,0,60\n")
+    table.write_text("name,height_m,pitch_deg,roll_deg,fov_deg\na.png,45.5,-35,2.5,70\nb.png,5,-60,0,60\n")
     return folder, table
 
 
@@ -63,22 +63,27 @@ def test_every_way_to_predict_bounds_the_same(checkpoint, flight, tmp_path, monk
     folder, table = flight
     one_line, lightning = tmp_path / "one_line", tmp_path / "lightning"
     main(["predict", str(folder), "--ckpt_path", str(checkpoint), "--out", str(one_line), "--device", "cpu",
-          "--telemetry", str(table), "--outputs", "depth_npy", "camera", "--igd_bound"])
+          "--telemetry", str(table), "--outputs", "depth_npy", "camera"])  # on by default
+    off = tmp_path / "off"
+    main(["predict", str(folder), "--ckpt_path", str(checkpoint), "--out", str(off), "--device", "cpu",
+          "--telemetry", str(table), "--outputs", "depth_npy", "--no_igd_bound"])
     monkeypatch.chdir(tmp_path)  # configs/predict.yaml: the package's own
     main(["predict", "--config", "configs/predict.yaml", "--ckpt_path", str(checkpoint),
           "--data.init_args.source", str(folder), "--data.init_args.telemetry", str(table),
           "--data.init_args.num_workers", "0", "--data.init_args.igd_bound", str(IGD_BOUND_MARGIN),
           "--trainer.callbacks.output_dir", str(lightning)])
     api = DAPMPredictor.from_checkpoint(checkpoint, igd_bound=IGD_BOUND_MARGIN)
-    free = DAPMPredictor.from_checkpoint(checkpoint)
-    for name, pose in (("a", POSE), ("b", (300.0, -30.0, 0.0, 60.0))):
+    free = DAPMPredictor.from_checkpoint(checkpoint, igd_bound=None)
+    for name, pose in (("a", POSE), ("b", (5.0, -60.0, 0.0, 60.0))):  # b: 5 m up, the net's depth is far
         depth = np.load(one_line / f"{name}_depth.npy")
         np.testing.assert_allclose(np.load(lightning / f"{name}_depth.npy"), depth, rtol=1e-5)
         rgb = cv2.cvtColor(cv2.imread(str(folder / f"{name}.png")), cv2.COLOR_BGR2RGB)
         np.testing.assert_allclose(api(rgb, prior=np.array(pose)).depth_m, depth, rtol=1e-5)
         _capped(depth, json.loads((one_line / f"{name}_camera.json").read_text()), IGD_BOUND_MARGIN)
-    unbounded = free(rgb, prior=np.array(pose)).depth_m  # image b: 300 m up, the untrained net's depth is short
+    unbounded = free(rgb, prior=np.array(pose)).depth_m
+    np.testing.assert_allclose(np.load(off / "b_depth.npy"), unbounded, rtol=1e-5)
     assert (np.load(one_line / "b_depth.npy") <= unbounded + 1e-3).all()
+    assert not np.allclose(np.load(one_line / "b_depth.npy"), unbounded)  # the bound acts
     assert np.array_equal(free(rgb).depth_m, api(rgb).depth_m)  # no telemetry: no bound
 
 
