@@ -8,7 +8,8 @@ the previous generator's figures.
 from every other family, trains the quickstart-size model on it (ResNet-18, 64x64, CPU), and tests
 it on each family separately, beside the mean-pose and mean-pose-IGD baselines; the held-out
 family is the transfer figure (target: every pose median at least 2x better than the mean pose,
-d1 >= 0.5, AbsRel <= 0.35).
+d1 >= 0.5, AbsRel <= 0.35). With noisy telemetry (rows ``SUBSET/cond``, ``SUBSET/scale``) and the IGD bound at
+each of ``--bound-margins`` (rows ``SUBSET/cond+bound[@MARGIN]``); ``--test-families`` limits the testing.
 """
 
 from __future__ import annotations
