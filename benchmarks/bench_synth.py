@@ -8,7 +8,8 @@ the previous generator's figures.
 from every other family, trains the quickstart-size model on it (ResNet-18, 64x64, CPU), and tests
 it on each family separately, beside the mean-pose and mean-pose-IGD baselines; the held-out
 family is the transfer figure (target: every pose median at least 2x better than the mean pose,
-d1 >= 0.5, AbsRel <= 0.35).
+d1 >= 0.5, AbsRel <= 0.35). With noisy telemetry (rows ``SUBSET/cond``, ``SUBSET/scale``) and the IGD bound at
+each of ``--bound-margins`` (rows ``SUBSET/cond+bound[@MARGIN]``); ``--test-families`` limits the testing.
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ import dapm_lightning
 from dapm_lightning.data.synthetic import FAMILIES, generate_uapd, is_current
 from dapm_lightning.geometry.constants import MAX_DEPTH_M, SKY_GREY
 from dapm_lightning.geometry.depth_codec import depth_to_grey
+from dapm_lightning.models.prior import IGD_BOUND_MARGIN
 from dapm_lightning.tools.evaluate import evaluate
 
 PREVIOUS_GENERATOR = {64: 46.5, 128: 16.9}
@@ -147,7 +149,9 @@ def transfer(args: argparse.Namespace) -> dict[str, Any]:
         module = load_dapm_module(best).eval()
     train_minutes = (time.time() - start) / 60 - render_minutes
     print("[3/3] testing on every family")
-    results = {family: evaluate(module, root, mean_pose) for family, root in test_roots.items()}
+    tested = args.test_families or list(FAMILIES)
+    results = {family: evaluate(module, root, mean_pose, bound_margins=tuple(args.bound_margins))
+               for family, root in test_roots.items() if family in tested}
     header = f"{'family':<13}{'row':<14}" + "".join(f"{title:>9}" for _, title in COLUMNS)
     lines = [header, "-" * len(header)]
     for family, rows in results.items():
@@ -164,14 +168,15 @@ def transfer(args: argparse.Namespace) -> dict[str, Any]:
           "per image to the true median; mean_pose: the mean training pose and its IGD; true_pose: the IGD of "
           "the true pose; SUBSET/cond, SUBSET/scale: noisy telemetry (height 3 m, angles 1 deg, FoV 2 deg) of "
           "all components (full), the height, pitch and roll (gravity) or the FoV, into the network (cond) or "
-          "fitted to its depth afterwards (scale).\n")
+          "fitted to its depth afterwards (scale); SUBSET/cond+bound[@MARGIN]: cond with each pixel capped at "
+          "(1 + MARGIN) x the IGD of the pose used.\n")
     print("\n".join(lines))
     summary: dict[str, Any] = {"trained_on": trained, "held_out": args.held_out, "results": results,
                                "render_minutes": render_minutes, "train_minutes": train_minutes,
                                "settings": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()
                                             if k != "func"}}
     if module is not None:
-        for family in args.held_out:
+        for family in (f for f in args.held_out if f in results):
             misses = target_check(results[family]["model"], results[family]["mean_pose"])
             summary.setdefault("target_misses", {})[family] = misses
             verdict = "meets the transfer target" if not misses else "target missed: " + "; ".join(misses)
@@ -230,6 +235,10 @@ def main(argv: Sequence[str] | None = None) -> None:
     p.add_argument("--epochs", type=int, default=None, help="default: the quickstart's")
     p.add_argument("--batch-size", type=int, default=32)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--test-families", nargs="+", default=None, choices=FAMILIES,
+                   help="test on these families only (default: every family)")
+    p.add_argument("--bound-margins", type=float, nargs="+", default=[IGD_BOUND_MARGIN],
+                   help="margins of the IGD bound rows (default: the prediction default)")
     p.add_argument("--workers", type=int, default=None)
     p.add_argument("--skip-training", action="store_true", help="baselines only (checks the pipeline quickly)")
     p.add_argument("--checkpoint", type=Path, default=None,

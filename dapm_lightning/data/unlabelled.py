@@ -55,6 +55,7 @@ class PredictBatch:
         names, sizes, sources, rgb, provenance: per image, as in :class:`PredictInput`.
         prior: the batch's :class:`PosePrior` (σ from the run's settings), None when nothing is known.
         mode: how the prior is used (:data:`~dapm_lightning.models.prior.PriorMode`).
+        igd_bound: the margin of the IGD bound on the depth (None: no bound), from the run's settings.
     """
 
     images: Tensor
@@ -66,6 +67,7 @@ class PredictBatch:
     rgb: list[np.ndarray | None] = field(default_factory=list)
     provenance: list[tuple[str, ...]] = field(default_factory=list)
     times: list[float | None] = field(default_factory=list)
+    igd_bound: float | None = None
 
     @classmethod
     def collate(cls, items: Sequence[PredictInput], settings: PriorSettings = PriorSettings()) -> PredictBatch:  # noqa: B008
@@ -76,7 +78,8 @@ class PredictBatch:
         prior = PosePrior.from_rows(torch.stack([item.prior.float() for item in items]), settings.sigma)
         return cls(torch.stack([item.image for item in items]), [item.name for item in items],
                    [item.size for item in items], [item.source for item in items], prior, settings.mode,
-                   [item.rgb for item in items], [item.provenance for item in items], [item.time_s for item in items])
+                   [item.rgb for item in items], [item.provenance for item in items], [item.time_s for item in items],
+                   settings.igd_bound)
 
     def __len__(self) -> int:
         return len(self.names)

@@ -63,3 +63,36 @@ def sky_at_limit(depth_m: Tensor, sky: Tensor, max_depth: float = MAX_DEPTH_M) -
     """
     below = float(np.nextafter(np.float32(max_depth), np.float32(0)))
     return torch.where(sky, torch.full_like(depth_m, max_depth), depth_m.clamp(max=below))
+
+
+IGD_RATIO_RANGE = (2.0**-10, 1.25)
+"""What the ``igd_ratio`` parametrisation covers: depth / IGD from 1/1024 (1 m at the 1000 m horizon, a mast
+close to the lens) to 1.25 (ground up to 25 % farther than the flat ground of the pose used: terrain below the
+take-off level, or a pose whose height is too low). Above the horizon the IGD is ``max_depth``, so the ratio is of
+the depth limit and the range spans 1 m to the limit, as the absolute depth does."""
+_RATIO_LOG2 = (math.log2(IGD_RATIO_RANGE[0]), math.log2(IGD_RATIO_RANGE[1]))
+FLAT_GROUND_NORM = -_RATIO_LOG2[0] / (_RATIO_LOG2[1] - _RATIO_LOG2[0])
+"""The normalised log ratio of a depth equal to the IGD (the flat ground itself): about 0.969."""
+FLAT_GROUND_LOGIT = math.log(FLAT_GROUND_NORM / (1.0 - FLAT_GROUND_NORM))
+"""Its logit: the ``igd_ratio`` head's output is a correction to this, so an untrained head predicts the flat
+ground (a sigmoid at 0 would start at a ratio of 0.035, far from every target)."""
+
+
+@float32
+def encode_igd_ratio(depth_m: Tensor, igd_m: Tensor, max_depth: float = MAX_DEPTH_M) -> Tensor:
+    """Metres to the normalised log ratio ``(log2(d / igd) - log2 lo) / (log2 hi - log2 lo)`` in [0, 1].
+
+    ``igd_m``: the ideal ground depth of the pose the network uses (:data:`IGD_RATIO_RANGE` ``= (lo, hi)``);
+    depths are clamped to ``[0, max_depth]`` and ratios outside the range to its ends.
+    """
+    ratio = depth_m.clamp(1e-6, max_depth) / igd_m.clamp(1e-3, max_depth)
+    lo, hi = _RATIO_LOG2
+    return ((torch.log2(ratio) - lo) / (hi - lo)).clamp(0.0, 1.0)
+
+
+@float32
+def decode_igd_ratio(ratio_norm: Tensor, igd_m: Tensor, max_depth: float = MAX_DEPTH_M) -> Tensor:
+    """Inverse of :func:`encode_igd_ratio`: metres in ``[0, max_depth]``."""
+    lo, hi = _RATIO_LOG2
+    ratio = torch.exp2(lo + ratio_norm.clamp(0.0, 1.0) * (hi - lo))
+    return (ratio * igd_m.clamp(1e-3, max_depth)).clamp(max=max_depth)

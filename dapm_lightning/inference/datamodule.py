@@ -16,7 +16,7 @@ from dapm_lightning.inference.inputs import (
     predict_loaders,
 )
 from dapm_lightning.inference.sources import Sources
-from dapm_lightning.models.prior import EXACT_SIGMA, PriorMode, PriorSettings
+from dapm_lightning.models.prior import EXACT_SIGMA, IGD_BOUND_MARGIN, PriorMode, PriorSettings
 
 
 class PredictDataModule(DAPMDataModule):
@@ -45,6 +45,8 @@ class PredictDataModule(DAPMDataModule):
             to the known pose's ground afterwards; any checkpoint) or both.
         telemetry_sigma: σ of the telemetry (height m, pitch, roll, fov deg): 0 replaces the network's value,
             more fuses the two (docs/predict.md).
+        igd_bound: margin of the IGD bound (docs/predict.md): images whose telemetry gives the height get no depth
+            beyond ``1 + igd_bound`` times the flat ground of the pose used (default 0.1); None (``null``): no bound.
     """
 
     def __init__(self, source: str | list[str] = "images", image_width: int | None = None,
@@ -54,13 +56,13 @@ class PredictDataModule(DAPMDataModule):
                  read_metadata: bool = True, sensor_width_mm: float | None = None,
                  telemetry_mode: PriorMode = "condition",
                  telemetry_sigma: tuple[float, float, float, float] = EXACT_SIGMA,
-                 strict_telemetry: bool = False) -> None:
+                 strict_telemetry: bool = False, igd_bound: float | None = IGD_BOUND_MARGIN) -> None:
         super().__init__(batch_size=batch_size, num_workers=num_workers, augment=False, pin_memory=pin_memory)
         paths: Sources = source if isinstance(source, str) else tuple(source)
         self.source = PredictSource(paths, frame_step, max_frames, telemetry, read_metadata, sensor_width_mm,
                                     strict_telemetry)
         self.image_width, self.keep_rgb = image_width, keep_rgb
-        self.prior_settings = PriorSettings(telemetry_mode, telemetry_sigma)
+        self.prior_settings = PriorSettings(telemetry_mode, telemetry_sigma, igd_bound)
 
     def setup(self, stage: str | None = None) -> None:
         if stage not in (None, "predict"):

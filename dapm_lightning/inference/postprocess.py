@@ -28,7 +28,7 @@ from dapm_lightning.geometry.depth_codec import decode_log_depth, encode_log_dep
 from dapm_lightning.geometry.igd import DepthKind, IGDSpec
 from dapm_lightning.geometry.pointcloud import camera_to_world, depth_to_points, valid_points
 from dapm_lightning.inference.ply import write_ply
-from dapm_lightning.inference.prior import apply_pose_prior
+from dapm_lightning.inference.prior import apply_pose_prior, bound_by_ground
 from dapm_lightning.models.dapm import InferenceOutput
 
 
@@ -291,9 +291,12 @@ def batch_predictions(output: InferenceOutput, batch: PredictBatch, spec: IGDSpe
     """The predictions of one predict batch: its network output, its pose prior applied as its mode says.
 
     The one step from a network output to :class:`Prediction`: the Lightning writer and
-    :class:`~dapm_lightning.inference.predictor.DAPMPredictor` (any runtime) both call it.
+    :class:`~dapm_lightning.inference.predictor.DAPMPredictor` (any runtime) both call it. With the batch's
+    ``igd_bound``, the depth is then capped by the ground of the pose used (:func:`bound_by_ground`).
     """
     applied = apply_pose_prior(output, batch.prior, batch.mode, spec)
+    if batch.igd_bound is not None:
+        applied = applied._replace(output=bound_by_ground(applied.output, batch.prior, spec, batch.igd_bound))
     provenance = None
     if batch.prior is not None:
         given = batch.provenance or [("",) * len(POSE_KEYS)] * len(batch)

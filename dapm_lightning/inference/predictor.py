@@ -32,7 +32,7 @@ from dapm_lightning.inference.postprocess import Prediction, batch_predictions
 from dapm_lightning.inference.prior import prior_rows
 from dapm_lightning.inference.runtime import OnnxRuntime, Precision, Runtime, TorchRuntime
 from dapm_lightning.inference.sources import Sources
-from dapm_lightning.models.prior import EXACT_SIGMA, PriorMode, PriorSettings
+from dapm_lightning.models.prior import EXACT_SIGMA, IGD_BOUND_MARGIN, PriorMode, PriorSettings
 from dapm_lightning.training.checkpointing import load_dapm_module
 
 
@@ -55,6 +55,8 @@ class DAPMPredictor:
             ``scale`` (the depth fitted to the known pose's ground afterwards; any checkpoint) or ``both``.
         telemetry_sigma: σ of the telemetry (height m, pitch, roll, fov deg) where a prior gives none; 0: the
             telemetry replaces the network's value, > 0: fused with it.
+        igd_bound: margin of the IGD bound: an image whose telemetry gives the height gets no depth beyond
+            ``1 + igd_bound`` times the flat ground of the pose used (docs/predict.md; default 0.1); None: no bound.
 
     Example:
         >>> predictor = DAPMPredictor.from_checkpoint("last.ckpt")                  # doctest: +SKIP
@@ -69,7 +71,7 @@ class DAPMPredictor:
     def __init__(self, module: torch.nn.Module | None, image_width: int | None = None, device: str = "cpu",
                  precision: Precision = "32", batch_size: int = DEFAULT_BATCH_SIZE, channels_last: bool = False,
                  compile: bool = False, onnx_path: str | Path | None = None, telemetry_mode: PriorMode = "condition",
-                 telemetry_sigma: Sequence[float] = EXACT_SIGMA) -> None:
+                 telemetry_sigma: Sequence[float] = EXACT_SIGMA, igd_bound: float | None = IGD_BOUND_MARGIN) -> None:
         runtime: Runtime
         config: Any
         trained: tuple[int, int] | None = None
@@ -92,9 +94,9 @@ class DAPMPredictor:
         else:
             self.target = trained if trained is not None else checkpoint_network_size(module)
         self.batch_size = max(1, batch_size)
-        settings = PriorSettings(telemetry_mode, tuple(telemetry_sigma))  # type: ignore[arg-type]
+        settings = PriorSettings(telemetry_mode, tuple(telemetry_sigma), igd_bound)  # type: ignore[arg-type]
         # a runtime that takes no prior (ONNX) applies the known pose afterwards
-        self.prior_settings = settings if runtime.takes_prior else PriorSettings("scale", settings.sigma)
+        self.prior_settings = settings if runtime.takes_prior else PriorSettings("scale", settings.sigma, igd_bound)
         self.spec: IGDSpec = config.igd if config is not None else IGDSpec()
 
     @classmethod

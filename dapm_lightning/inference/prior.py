@@ -213,3 +213,29 @@ def apply_pose_prior(output: InferenceOutput, prior: PosePrior | None, mode: Pri
                                       spec.max_depth)
         output = output.replace(depth_m=sky_at_limit(depth * scale.view(-1, 1, 1, 1), sky, spec.max_depth))
     return PriorApplied(output, pose_sources(prior, batch), methods)
+
+
+def bound_by_ground(output: InferenceOutput, prior: PosePrior | None, spec: IGDSpec, margin: float) -> InferenceOutput:
+    """Each pixel's depth capped at ``1 + margin`` times the ideal ground depth of the pose used.
+
+    The assumption: a flat ground at the known height, so nothing visible below the horizon lies farther than the
+    ground along its ray; ``margin`` allows terrain below the take-off level and the height's own error. Applied to
+    the images whose prior knows the height (the IGD's scale; with the other components from the pose used,
+    telemetry or fused); where the IGD is at the depth limit (above the horizon) nothing is capped. A pixel the
+    bound reaches cannot be sky: its ``sky_prob`` becomes 0. For models trained in absolute depth (an ``igd_ratio``
+    model bounds itself at 1.25 times the ground of the pose it uses).
+    """
+    if prior is None or output.depth_m is None or output.pose is None:
+        return output
+    applies = prior.known[:, 0].to(output.device)
+    if not bool(applies.any()):
+        return output
+    depth = output.depth_m
+    igd = spec.depth(output.pose.float(), (depth.shape[-2], depth.shape[-1]))
+    cap = igd * (1.0 + margin)
+    reached = applies.view(-1, 1, 1, 1) & (igd < spec.max_depth) & (cap < spec.max_depth)
+    bounded = torch.where(reached, torch.minimum(depth, cap.to(depth.dtype)), depth)
+    sky_prob = output.sky_prob
+    if sky_prob is not None:
+        sky_prob = torch.where(reached, torch.zeros_like(sky_prob), sky_prob)
+    return output.replace(depth_m=bounded, sky_prob=sky_prob)

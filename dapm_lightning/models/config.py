@@ -69,6 +69,12 @@ class DAPMConfig:
         pose_dropout: ``Dropout`` on each pooled vector before the pose decoder's projections (authors: 0.2).
         linear_dropout: ``Dropout`` after the inner ReLU of the pose branch's residual linear / MLP blocks
             (authors: 0.3).
+        depth_parametrization: what the refined depth (the bins and the head) predicts: ``"absolute"`` (default,
+            the paper's: the normalised log depth) or ``"igd_ratio"``: the normalised log of depth / IGD of the pose
+            the network uses (its own, teacher-forced in training, or fused with a prior) over
+            :data:`~dapm_lightning.geometry.depth_codec.IGD_RATIO_RANGE` (1/1024 to 1.25), so nothing below the
+            horizon is predicted farther than 1.25 times the flat ground of that pose. Needs both branches and a
+            refinement head; the decoder's initial depth stays absolute (the pose branch reads it). docs/model.md.
         weight_init: ``"pytorch"`` (default: PyTorch's) or ``"authors"``: the depth decoder's convs
             Kaiming-normal (fan_out) with bias 0, the pose branch's linears Xavier-normal with bias 0.01 and
             its convs Kaiming-normal (fan_out); the depth bins heads and the IGD feature keep PyTorch's, as the
@@ -107,6 +113,7 @@ class DAPMConfig:
     pose_dropout: float = 0.0
     linear_dropout: float = 0.0
     weight_init: WeightInit = "pytorch"
+    depth_parametrization: Literal["absolute", "igd_ratio"] = _architecture("absolute")
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "depth_bins", tuple(int(n) for n in self.depth_bins))
@@ -135,6 +142,13 @@ class DAPMConfig:
         for name in ("dropout", "block_dropout", "pose_dropout", "linear_dropout"):
             if not 0.0 <= getattr(self, name) < 1.0:
                 raise ValueError(f"model.net.{name} must be in [0, 1), got {getattr(self, name)}")
+        if self.depth_parametrization not in ("absolute", "igd_ratio"):
+            raise ValueError("model.net.depth_parametrization must be 'absolute' or 'igd_ratio', "
+                             f"got {self.depth_parametrization!r}")
+        if self.depth_parametrization == "igd_ratio" and not (
+                self.use_depth and self.use_pose and (self.depth_bins or self.use_igd_feature)):
+            raise ValueError("model.net.depth_parametrization 'igd_ratio' needs both branches and a depth refinement "
+                             "(depth_bins or use_igd_feature): the ratio is to the IGD of the predicted pose")
         if self.head_stride not in (1, 2, 4, 8):
             raise ValueError(f"model.net.head_stride must be 1, 2, 4 or 8, got {self.head_stride}")
 

@@ -10,7 +10,13 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from dapm_lightning.geometry.depth_codec import decode_log_depth
+from dapm_lightning.geometry.depth_codec import (
+    FLAT_GROUND_LOGIT,
+    decode_igd_ratio,
+    decode_log_depth,
+    encode_igd_ratio,
+    encode_log_depth,
+)
 from dapm_lightning.geometry.precision import held_in
 from dapm_lightning.models.blocks import conv_bn_relu
 from dapm_lightning.models.config import DAPMConfig
@@ -34,7 +40,10 @@ class DepthPrediction(NamedTuple):
     ``depth_init_norm``: the decoder's; ``depth_m``: metres, sky set to ``max_depth``;
     ``sky_logits`` (None without a 2-bin stage); ``bin_logits``: ``[B, n, h, w]`` per bins stage;
     ``igd_norm``: the IGD fed to the refinement at head resolution (None without the IGD feature);
-    ``refined``: whether a refinement head produced ``depth_norm``.
+    ``refined``: whether a refinement head produced ``depth_norm``;
+    ``igd_m``: with ``depth_parametrization: igd_ratio``, the IGD (metres, full resolution) of the pose the
+    network used, which ``depth_norm`` is relative to (:func:`~dapm_lightning.geometry.depth_codec.encode_igd_ratio`);
+    None: ``depth_norm`` is the absolute normalised log depth.
     """
 
     depth_norm: Tensor
@@ -44,6 +53,24 @@ class DepthPrediction(NamedTuple):
     bin_logits: tuple[Tensor, ...]
     igd_norm: Tensor | None
     refined: bool
+    igd_m: Tensor | None = None
+
+    def encode(self, depth_m: Tensor, max_depth: float) -> Tensor:
+        """Metres ``[B, 1, H, W]`` in the space of ``depth_norm`` (targets of the loss and of the bins)."""
+        if self.igd_m is None:
+            return encode_log_depth(depth_m, max_depth)
+        return encode_igd_ratio(depth_m, self.igd_m, max_depth)
+
+    def decode(self, norm: Tensor, max_depth: float) -> Tensor:
+        """Inverse of :meth:`encode`: metres."""
+        if self.igd_m is None:
+            return decode_log_depth(norm, max_depth)
+        return decode_igd_ratio(norm, self.igd_m, max_depth)
+
+    def log_depth_norm(self, max_depth: float) -> Tensor:
+        """The refined depth as absolute normalised log depth (``depth_norm`` itself in absolute space)."""
+        return self.depth_norm if self.igd_m is None else encode_log_depth(self.decode(self.depth_norm, max_depth),
+                                                                           max_depth)
 
 
 class PosePrediction(NamedTuple):
@@ -263,16 +290,27 @@ class DAPMNet(nn.Module):
         head_size = (max(1, -(-size[0] // stride)), max(1, -(-size[1] // stride)))
         feature = self.to_head(F.interpolate(depth_feature, size=head_size, mode="bilinear", align_corners=False))
         init_head = F.interpolate(depth_coarse, size=head_size, mode="bilinear", align_corners=False)
-        igd_norm = igd_feature = None
-        if self.igd_feature is not None and pose is not None:
+        ratio = self.config.depth_parametrization == "igd_ratio"
+        igd_norm = igd_feature = used_norm = None
+        if pose is not None and (self.igd_feature is not None or ratio):
             own = pose.pose_norm if pose.used_norm is None else pose.used_norm
-            pose_norm = own if self.config.igd_feature_grad else own.detach()
+            used_norm = own if self.config.igd_feature_grad else own.detach()
             if teacher_forcing is not None:
-                pose_norm = teacher_forcing.blend(pose_norm)
-            igd_norm = held_in(igd.depth_norm(pose_norm, head_size), pose.pose_norm)
+                used_norm = teacher_forcing.blend(used_norm)
+        if self.igd_feature is not None and used_norm is not None and pose is not None:
+            igd_norm = held_in(igd.depth_norm(used_norm, head_size), pose.pose_norm)
             igd_feature = self.igd_feature(igd_norm)
+        igd_m = igd_head = None
+        if ratio and used_norm is not None:  # the depth is relative to the ground of the pose used
+            used = igd.denormalize(used_norm.float())
+            igd_m, igd_head = igd.depth(used, size), igd.depth(used, head_size)
         refined_logit, sky_logit, bin_logits = self.depth_pqb(feature, init_head, igd_feature)
-        if self.config.depth_residual_priors:  # the authors' head: logit + initial depth + IGD (both in [0, 1])
+        if self.config.depth_residual_priors and igd_head is not None:  # the initial depth as a ratio
+            refined_logit = refined_logit + encode_igd_ratio(decode_log_depth(init_head, igd.max_depth), igd_head,
+                                                             igd.max_depth).to(refined_logit.dtype)
+        elif igd_head is not None:  # a correction to the flat ground (ratio 1)
+            refined_logit = refined_logit + FLAT_GROUND_LOGIT
+        elif self.config.depth_residual_priors:  # the authors' head: logit + initial depth + IGD (both in [0, 1])
             refined_logit = refined_logit + init_head + (0.0 if igd_norm is None else igd_norm)
         refined = torch.sigmoid(refined_logit)
         if self.upsample is not None:
@@ -281,7 +319,8 @@ class DAPMNet(nn.Module):
             refined = F.interpolate(refined, size=size, mode="bilinear", align_corners=False)
         sky_logits = (None if sky_logit is None
                       else F.interpolate(sky_logit, size=size, mode="bilinear", align_corners=False))
-        depth_m = decode_log_depth(refined, igd.max_depth)
+        depth_m = (decode_log_depth(refined, igd.max_depth) if igd_m is None
+                   else decode_igd_ratio(refined, igd_m, igd.max_depth))
         if sky_logits is not None and self.config.sky_override:
             depth_m = torch.where(sky_logits > 0, torch.full_like(depth_m, igd.max_depth), depth_m)
-        return DepthPrediction(refined, depth_init, depth_m, sky_logits, tuple(bin_logits), igd_norm, True)
+        return DepthPrediction(refined, depth_init, depth_m, sky_logits, tuple(bin_logits), igd_norm, True, igd_m)

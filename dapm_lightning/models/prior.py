@@ -32,16 +32,25 @@ EXACT_SIGMA: Final[tuple[float, float, float, float]] = (0.0, 0.0, 0.0, 0.0)
 """The default telemetry σ (height m, pitch, roll, fov deg): the telemetry replaces the network's values."""
 
 
+IGD_BOUND_MARGIN: Final[float] = 0.1
+"""The IGD bound's margin: depth may exceed the flat ground of the known pose by 10 % (terrain up to 10 % of the
+slant range below the take-off level, the telemetry height's own error); docs/predict.md."""
+
+
 @dataclass(frozen=True)
 class PriorSettings:
-    """How one prediction run uses its pose priors: ``mode`` (:data:`PriorMode`) and ``sigma``.
+    """How one prediction run uses its pose priors: ``mode`` (:data:`PriorMode`), ``sigma`` and ``igd_bound``.
 
     ``sigma``: per component (height m, pitch, roll, fov deg) the telemetry's standard deviation where a prior
-    gives none; 0 replaces the network's value, more fuses the two. Both are checked here, once.
+    gives none; 0 replaces the network's value, more fuses the two. ``igd_bound``: the margin of the IGD bound
+    (:func:`~dapm_lightning.inference.prior.bound_by_ground`: images whose telemetry gives the height get no depth
+    beyond ``1 + igd_bound`` times the flat ground of the pose used; on by default); None: no bound. All are checked
+    here, once.
     """
 
     mode: PriorMode = "condition"
     sigma: tuple[float, float, float, float] = EXACT_SIGMA
+    igd_bound: float | None = IGD_BOUND_MARGIN
 
     def __post_init__(self) -> None:
         if self.mode not in PRIOR_MODES:
@@ -51,6 +60,8 @@ class PriorSettings:
             raise ValueError(f"telemetry_sigma: four standard deviations >= 0 (height m, pitch, roll, fov deg), "
                              f"got {list(self.sigma)}")
         object.__setattr__(self, "sigma", sigma)
+        if self.igd_bound is not None and not 0.0 <= float(self.igd_bound) < 10.0:
+            raise ValueError(f"igd_bound: a margin in [0, 10) (0.1: 10 % beyond the flat ground), got {self.igd_bound}")
 
     @property
     def conditions(self) -> bool:

@@ -14,9 +14,9 @@ import torch
 from dapm_lightning.data.uapd import UAPDDataset
 from dapm_lightning.geometry.constants import MAX_DEPTH_M, MIN_DEPTH_M
 from dapm_lightning.geometry.igd import ideal_ground_depth
-from dapm_lightning.inference.prior import apply_pose_prior
+from dapm_lightning.inference.prior import apply_pose_prior, bound_by_ground
 from dapm_lightning.metrics import DepthMetrics, PoseMetrics
-from dapm_lightning.models.prior import PosePrior, PriorMode
+from dapm_lightning.models.prior import IGD_BOUND_MARGIN, PosePrior, PriorMode
 
 TELEMETRY_SUBSETS = {"full": (True, True, True, True), "height": (True, False, False, False),
                      "gravity": (False, True, True, False), "fov": (False, False, False, True)}
@@ -24,6 +24,18 @@ TELEMETRY_SUBSETS = {"full": (True, True, True, True), "height": (True, False, F
 TELEMETRY_NOISE = (3.0, 1.0, 1.0, 2.0)
 """Telemetry noise of the evaluation, also the σ the model is told: height 3 m, angles 1°, FoV 2°."""
 TELEMETRY_ROWS = tuple(f"{subset}/{mode}" for subset in TELEMETRY_SUBSETS for mode in ("cond", "scale"))
+BOUNDED_SUBSETS = ("full", "height")
+"""The subsets that give the height, where the IGD bound applies (rows ``SUBSET/cond+bound``)."""
+
+
+def bound_row(subset: str, margin: float) -> str:
+    """A bounded row's name: ``SUBSET/cond+bound`` at the default margin, ``SUBSET/cond+bound@MARGIN`` else."""
+    return f"{subset}/cond+bound" + ("" if margin == IGD_BOUND_MARGIN else f"@{margin:g}")
+
+
+def bound_rows(margins: tuple[float, ...]) -> list[str]:
+    """Names of the bounded rows of every subset that gives the height, at each margin."""
+    return [bound_row(subset, m) for subset in BOUNDED_SUBSETS for m in margins]
 
 
 def median_scaled(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
@@ -61,7 +73,8 @@ def scale_errors(pred: torch.Tensor, true: torch.Tensor) -> dict[str, float]:
 
 @torch.no_grad()
 def evaluate(module: Any, root: Path, mean_pose: torch.Tensor, batch: int = 32,
-             telemetry: bool = True) -> dict[str, dict[str, float]]:
+             telemetry: bool = True, bound_margins: tuple[float, ...] = (IGD_BOUND_MARGIN,)
+             ) -> dict[str, dict[str, float]]:
     """Metrics on ``root/val`` per row (depth and pose keys).
 
     ``module``: a :class:`~dapm_lightning.training.module.DAPMModule` in eval mode, or None (baselines only).
@@ -70,11 +83,13 @@ def evaluate(module: Any, root: Path, mean_pose: torch.Tensor, batch: int = 32,
     learning); ``true_pose``: the IGD of each image's true pose (what a perfect pose alone gives);
     with ``telemetry``, ``SUBSET/cond`` and ``SUBSET/scale``: the model given noisy telemetry of the
     subset (:data:`TELEMETRY_SUBSETS`, :data:`TELEMETRY_NOISE`) into its IGD feature (conditioning), or
-    after it (the depth fitted to the ground of the known pose), see :mod:`dapm_lightning.inference.prior`.
+    after it (the depth fitted to the ground of the known pose), see :mod:`dapm_lightning.inference.prior`;
+    ``SUBSET/cond+bound``: the conditioned depth capped by the IGD bound (:func:`bound_by_ground`) at each of
+    ``bound_margins`` (:func:`bound_rows`).
     """
     data = UAPDDataset(root, "val")
     names = ["model", "scale_fixed", "mean_pose", "true_pose"]
-    names += list(TELEMETRY_ROWS) if module is not None and telemetry else []
+    names += [*TELEMETRY_ROWS, *bound_rows(bound_margins)] if module is not None and telemetry else []
     metrics = {name: (DepthMetrics(), PoseMetrics()) for name in names}
     poses: dict[str, list[torch.Tensor]] = {"true": [], "model": [], "mean_pose": []}
     generator = torch.Generator().manual_seed(0)
@@ -110,6 +125,10 @@ def evaluate(module: Any, root: Path, mean_pose: torch.Tensor, batch: int = 32,
                     metrics[row][0].update(used.depth_m.float(), depth)
                     metrics[row][1].update(used.pose.double(), pose)
                     poses.setdefault(row, []).append(used.pose.double())
+                    for margin in bound_margins if mode == "cond" and subset in BOUNDED_SUBSETS else ():
+                        capped = bound_by_ground(used, prior, spec, margin)
+                        metrics[bound_row(subset, margin)][0].update(capped.depth_m.float(), depth)
+                        metrics[bound_row(subset, margin)][1].update(capped.pose.double(), pose)
     result = {}
     for name, (depth_m, pose_m) in metrics.items():
         if name in ("model", "scale_fixed") and module is None:
@@ -121,5 +140,5 @@ def evaluate(module: Any, root: Path, mean_pose: torch.Tensor, batch: int = 32,
     return result
 
 
-__all__ = ["TELEMETRY_NOISE", "TELEMETRY_ROWS", "TELEMETRY_SUBSETS", "evaluate", "median_scaled", "scale_errors",
-           "telemetry_prior"]
+__all__ = ["BOUNDED_SUBSETS", "TELEMETRY_NOISE", "TELEMETRY_ROWS", "TELEMETRY_SUBSETS", "bound_row", "bound_rows",
+           "evaluate", "median_scaled", "scale_errors", "telemetry_prior"]

@@ -26,7 +26,7 @@ from dapm_lightning.inference.writers import (
     check_output_outside_source,
     check_outputs,
 )
-from dapm_lightning.models.prior import EXACT_SIGMA, PRIOR_MODES
+from dapm_lightning.models.prior import EXACT_SIGMA, IGD_BOUND_MARGIN, PRIOR_MODES
 from dapm_lightning.tools.progress import progress_bar, quiet_notes
 
 LIGHTNING_OPTIONS = ("--config", "--data", "--trainer", "--model", "--print_config", "--seed_everything")
@@ -126,6 +126,11 @@ def build_parser() -> argparse.ArgumentParser:
     flight.add_argument("--telemetry_sigma", type=float, nargs=4, default=EXACT_SIGMA,
                         metavar=("HEIGHT_M", "PITCH", "ROLL", "FOV"),
                         help="telemetry uncertainty; 0 replaces the network's value (default: 0 0 0 0)")
+    flight.add_argument("--igd_bound", type=float, default=IGD_BOUND_MARGIN, metavar="MARGIN",
+                        help="images whose telemetry gives the height: each pixel's depth capped at (1 + MARGIN) x the "
+                             "flat ground of the pose used (default: %(default)s; docs/predict.md)")
+    flight.add_argument("--no_igd_bound", dest="igd_bound", action="store_const", const=None,
+                        help="no IGD bound (ground far below the take-off level: a valley, the sea from a cliff)")
     return parser
 
 
@@ -170,7 +175,7 @@ def predict_main(argv: Sequence[str]) -> None:
                                               precision=args.precision, batch_size=args.batch_size,
                                               channels_last=args.channels_last, compile=args.compile,
                                               telemetry_mode=args.telemetry_mode,
-                                              telemetry_sigma=args.telemetry_sigma)
+                                              telemetry_sigma=args.telemetry_sigma, igd_bound=args.igd_bound)
     source = PredictSource(tuple(args.source), args.frame_step, args.max_frames, args.telemetry, not args.no_metadata,
                            args.sensor_width_mm, args.strict_telemetry)
     # the pixels ride along (the points' colours, the contact sheet, a video's preview): one batch at a time

@@ -46,7 +46,7 @@ def baselines(root: Path, depth_kind: str = "range") -> dict[str, dict[str, floa
 
 
 def with_telemetry(checkpoint: str, root: Path) -> dict[str, dict[str, float]]:
-    """The model on the validation images given their full telemetry through its IGD feature.
+    """The model on the validation images given their full telemetry through its IGD feature (no IGD bound).
 
     Telemetry with noise (height 3 m, angles 1°, FoV 2°); returns the depth metrics and those of the pose used.
     """

@@ -20,7 +20,7 @@ from dapm_lightning.metrics.depth import DEPTH_METRIC_NAMES, per_image_depth_met
 from dapm_lightning.models.dapm import DAPMOutput
 
 
-def stage_maps(out: DAPMOutput, index: int) -> dict[str, np.ndarray]:
+def stage_maps(out: DAPMOutput, index: int, max_depth: float = MAX_DEPTH_M) -> dict[str, np.ndarray]:
     """The per-stage maps of image ``index`` as uint8 grey images, keyed by folder name.
 
     ``sky``: the binary stage thresholded at 0.5 (255 = beyond max depth); ``bins_<n>``: the arg-max class
@@ -31,7 +31,7 @@ def stage_maps(out: DAPMOutput, index: int) -> dict[str, np.ndarray]:
     if depth is None:
         return {}
     maps = {"depth_init": norm_to_grey(depth.depth_init_norm[index, 0]),
-            "depth": norm_to_grey(depth.depth_norm[index, 0])}
+            "depth": norm_to_grey(depth.log_depth_norm(max_depth)[index, 0])}
     if depth.sky_logits is not None:
         maps["sky"] = ((depth.sky_logits[index, 0] > 0).to(torch.uint8) * SKY_GREY).cpu().numpy()
     seen: dict[int, int] = {}
@@ -99,7 +99,8 @@ class EvaluationOutputWriter(L.Callback):
         for i, name in enumerate(names):
             stem = str(name).replace("/", "_").replace("\\", "_")  # sample names are stems already
             if self.write_maps:
-                maps = {**stage_maps(outputs, i), **{key: value[i].numpy() for key, value in igd_images.items()}}
+                maps = {**stage_maps(outputs, i, self.max_depth),
+                        **{key: value[i].numpy() for key, value in igd_images.items()}}
                 for stage, image in maps.items():
                     folder = self._root / "maps" / stage
                     folder.mkdir(parents=True, exist_ok=True)
@@ -118,7 +119,8 @@ class EvaluationOutputWriter(L.Callback):
             row[f"depth_{metric}"] = float(metrics[metric][i]) if metrics else math.nan
         if out.depth is not None:
             target = encode_log_depth(batch["depth"][i].double().clamp(0, self.max_depth), self.max_depth)
-            row["depth_mae_grey"] = float((out.depth.depth_norm[i].double() - target).abs().mean() * SKY_GREY)
+            refined = out.depth.log_depth_norm(self.max_depth)[i].double()
+            row["depth_mae_grey"] = float((refined - target).abs().mean() * SKY_GREY)
         return row
 
     def on_test_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:

@@ -180,21 +180,27 @@ class DAPMLoss(nn.Module):
         terms["total"] = sum((weights[k] * v for k, v in terms.items()), torch.zeros(()))
         return terms
 
-    def _eq17(self, pred_norm: Tensor, depth_m: Tensor, metric: Tensor) -> Tensor:
+    def _eq17(self, pred_norm: Tensor, depth_m: Tensor, metric: Tensor, depth: DepthPrediction | None = None
+              ) -> Tensor:
+        """Eq. 17 of a normalised prediction: absolute log depth, or in the space of ``depth`` (its ``encode``)."""
         config, max_depth = self.config, self.igd.max_depth
+        encode = encode_log_depth if depth is None else depth.encode
+        decode = decode_log_depth if depth is None else depth.decode
         if config.depth_space == "log_norm":  # every finite target counts, 0 m (grey 0, e.g. Potsdam ground) too
             finite = torch.isfinite(depth_m) & (depth_m >= 0)
-            target_norm = encode_log_depth(torch.where(finite, depth_m, torch.zeros_like(depth_m)).clamp(
-                0.0, max_depth), max_depth)
+            target_norm = encode(torch.where(finite, depth_m, torch.zeros_like(depth_m)).clamp(0.0, max_depth),
+                                 max_depth)
             return silog_loss_per_image(pred_norm, target_norm, finite, variance_focus=config.variance_focus,
                                         scale=config.silog_scale)
-        return silog_loss(decode_log_depth(pred_norm, max_depth), depth_m, metric,
+        return silog_loss(decode(pred_norm, max_depth), depth_m, metric,
                           variance_focus=config.variance_focus, scale=config.silog_scale)
 
     def depth_terms(self, depth: DepthPrediction, targets: LossTargets) -> dict[str, Tensor]:
         """``init_depth`` (Eq. 17), and with a refinement ``depth`` (Eq. 17) and ``dq`` (Eq. 16).
 
-        Eq. 17 in the space :attr:`LossConfig.depth_space` names; ``grad`` (code-only) when enabled.
+        Eq. 17 in the space :attr:`LossConfig.depth_space` names; ``grad`` (code-only) when enabled. The refined
+        depth's terms and bins are in the network's depth parametrisation (``depth.encode``: absolute log depth,
+        or the log ratio to the IGD of the pose it used); the initial depth is absolute.
         """
         depth_m, valid, sky = targets["depth"], targets["valid"], targets["sky"]
         metric = valid & ~sky & (depth_m > MIN_DEPTH_M)
@@ -202,9 +208,9 @@ class DAPMLoss(nn.Module):
         terms = {"init_depth": self._eq17(depth.depth_init_norm, depth_m, metric)}
         if not depth.refined:
             return terms
-        terms["depth"] = self._eq17(depth.depth_norm, depth_m, metric)
+        terms["depth"] = self._eq17(depth.depth_norm, depth_m, metric, depth)
         if self.config.use_gradient_loss:
-            target_norm = torch.where(valid, encode_log_depth(depth_m.clamp(0.0, max_depth), max_depth),
+            target_norm = torch.where(valid, depth.encode(depth_m.clamp(0.0, max_depth), max_depth),
                                       torch.zeros_like(depth_m))
             terms["grad"] = laplacian_gradient_loss(depth.depth_norm, target_norm, valid)
         dq = depth.depth_norm.sum() * 0.0
@@ -213,7 +219,7 @@ class DAPMLoss(nn.Module):
         if depth.sky_logits is not None:
             bce = F.binary_cross_entropy_with_logits(depth.sky_logits, sky.float(), reduction="none")
             dq = dq + _masked_mean(bce, counted)
-        depth_norm = encode_log_depth(torch.where(counted, depth_m, torch.zeros_like(depth_m)), max_depth)
+        depth_norm = depth.encode(torch.where(counted, depth_m, torch.zeros_like(depth_m)), max_depth)
         binned = counted & ~sky if self.config.depth_space == "log_norm" else metric
         for logits in depth.bin_logits:
             size = (logits.shape[-2], logits.shape[-1])

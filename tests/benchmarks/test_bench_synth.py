@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from benchmarks.bench_synth import main, target_check
-from dapm_lightning.tools.evaluate import TELEMETRY_ROWS
+from dapm_lightning.tools.evaluate import TELEMETRY_ROWS, bound_rows
 
 TINY = ["transfer", "--held-out", "water", "--train", "6", "--val", "2", "--test", "2", "--size", "32",
         "--batch-size", "2", "--workers", "1"]
@@ -14,12 +14,14 @@ TINY = ["transfer", "--held-out", "water", "--train", "6", "--val", "2", "--test
 
 def test_transfer_trains_with_the_extra_fit_arguments_and_reports_every_family(tmp_path, capsys):
     out = tmp_path / "transfer"
-    main([*TINY, "--out", str(out), "--epochs", "1", "--", "--model.net.pose_stages", "2",
-          "--trainer.max_steps", "1", "--trainer.limit_val_batches", "0", "--data.init_args.num_workers", "0"])
+    main([*TINY, "--out", str(out), "--epochs", "1", "--bound-margins", "0", "0.1", "--",
+          "--model.net.pose_stages", "2", "--trainer.max_steps", "1", "--trainer.limit_val_batches", "0",
+          "--data.init_args.num_workers", "0"])
     report = json.loads((out / "transfer.json").read_text())
     assert report["held_out"] == ["water"] and "water" not in report["trained_on"]
     assert set(report["results"]) == {"downtown", "suburb", "industrial", "farmland", "forest", "water"}
-    expected = {"model", "scale_fixed", "mean_pose", "true_pose", *TELEMETRY_ROWS}
+    expected = {"model", "scale_fixed", "mean_pose", "true_pose", *TELEMETRY_ROWS, *bound_rows((0.0, 0.1))}
+    assert {"full/cond+bound", "full/cond+bound@0", "height/cond+bound"} <= expected
     assert all(set(rows) == expected for rows in report["results"].values())
     assert len(TELEMETRY_ROWS) == 8 and all(0 <= rows["full/scale"]["d1"] <= 1 for rows in report["results"].values())
     for rows in report["results"].values():  # the true pose's IGD is exact on every ground pixel
