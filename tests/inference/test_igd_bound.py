@@ -71,7 +71,7 @@ def test_every_way_to_predict_bounds_the_same(checkpoint, flight, tmp_path, monk
     main(["predict", "--config", "configs/predict.yaml", "--ckpt_path", str(checkpoint),
           "--data.init_args.source", str(folder), "--data.init_args.telemetry", str(table),
           "--data.init_args.num_workers", "0", "--data.init_args.igd_bound", str(IGD_BOUND_MARGIN),
-          "--trainer.callbacks.output_dir", str(lightning)])
+          "--trainer.callbacks.output_dir", str(lightning), "--trainer.callbacks.outputs", "[depth_npy]"])
     api = DAPMPredictor.from_checkpoint(checkpoint, igd_bound=IGD_BOUND_MARGIN)
     free = DAPMPredictor.from_checkpoint(checkpoint, igd_bound=None)
     for name, pose in (("a", POSE), ("b", (5.0, -60.0, 0.0, 60.0))):  # b: 5 m up, the net's depth is far
