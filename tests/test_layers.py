@@ -4,7 +4,8 @@ import ast
 from pathlib import Path
 
 PACKAGE = Path(__file__).resolve().parents[1] / "dapm_lightning"
-LAYERS = {"geometry": 0, "models": 1, "metrics": 1, "data": 2, "training": 3, "inference": 4, "tools": 5, "cli": 6}
+LAYERS = {"options": 0, "geometry": 0, "models": 1, "metrics": 1, "data": 2, "training": 3, "inference": 4, "tools": 5,
+          "cli": 6}
 """Lower numbers are lower layers; a module may import its own layer and those below."""
 
 

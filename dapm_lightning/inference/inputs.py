@@ -39,9 +39,7 @@ from dapm_lightning.inference.sources import VIDEO_SUFFIXES as VIDEO_SUFFIXES
 from dapm_lightning.inference.sources import SourceFile, Sources, resolve_sources
 from dapm_lightning.inference.sources import resolve_source as resolve_source
 from dapm_lightning.models.prior import PriorSettings
-
-DEFAULT_BATCH_SIZE = 4
-"""Images per forward pass in prediction, unless told otherwise (every entry point)."""
+from dapm_lightning.options import DEFAULT_BATCH_SIZE as DEFAULT_BATCH_SIZE
 
 
 def predict_input(rgb: np.ndarray, name: str, source: str, target: NetworkSize, keep_rgb: bool,

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any, Final, Literal, Protocol, get_args
+from typing import Any, Protocol
 
 import torch
 from torch import Tensor, nn
@@ -21,10 +21,8 @@ from dapm_lightning.inference.onnx import METADATA_NET, PRIOR_INPUTS, onnx_feed
 from dapm_lightning.models.config import DAPMConfig
 from dapm_lightning.models.dapm import InferenceOutput
 from dapm_lightning.models.prior import PosePrior
-
-Precision = Literal["32", "bf16", "16"]
-"""Arithmetic of the PyTorch runtime: float32, or autocast to bfloat16 / float16 (half precision: GPUs)."""
-PRECISIONS: Final[tuple[str, ...]] = get_args(Precision)
+from dapm_lightning.options import PRECISIONS as PRECISIONS
+from dapm_lightning.options import Precision as Precision
 
 
 class Runtime(Protocol):

@@ -16,7 +16,6 @@ any work and made with the first file; one inside the source is refused (:func:`
 
 from __future__ import annotations
 
-import difflib
 import fnmatch
 import json
 import re
@@ -24,7 +23,7 @@ import warnings
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 from types import TracebackType
-from typing import Any, Literal, get_args
+from typing import Any
 
 import cv2
 import lightning as L
@@ -54,36 +53,13 @@ from dapm_lightning.inference.runtime import apply_inference_options
 from dapm_lightning.inference.sources import Sources, as_list
 from dapm_lightning.inference.video_preview import VideoPreviews
 from dapm_lightning.models.dapm import DAPMOutput
+from dapm_lightning.options import DEFAULT_OUTPUTS as DEFAULT_OUTPUTS
+from dapm_lightning.options import OUTPUT_KINDS as OUTPUT_KINDS
+from dapm_lightning.options import Output as Output
+from dapm_lightning.options import check_outputs as check_outputs
 
-Output = Literal["depth_npy", "depth_tiff", "depth16", "depth_color", "sky", "camera", "points", "npz"]
-"""A per-image file kind."""
-OUTPUT_KINDS: tuple[str, ...] = get_args(Output)
-DEFAULT_OUTPUTS: tuple[str, ...] = ("depth_color", "sky", "camera")
-"""What is written per image when nothing is chosen: light files to look at and the camera; raw depth and the
-point cloud on request (``all``: every kind)."""
 DEPTH16_SCALE = 64.0
 """``depth16.png`` stores ``round(depth_m * 64)``: 1/64 m steps, 1000 m = 64000."""
-def check_outputs(outputs: Iterable[str] | str | None) -> list[str]:
-    """The chosen output kinds, in their order (default :data:`DEFAULT_OUTPUTS`).
-
-    Names may come one by one or comma-separated (``depth_npy,camera``); ``all`` is every kind. An unknown one
-    is refused in one line with the closest kind and the valid list.
-    """
-    given = DEFAULT_OUTPUTS if outputs is None else [outputs] if isinstance(outputs, str) else outputs
-    chosen: list[str] = []
-    for item in given:
-        for kind in (k.strip() for k in str(item).split(",")):
-            if kind == "all":
-                chosen += OUTPUT_KINDS
-            elif kind not in OUTPUT_KINDS:
-                close = difflib.get_close_matches(kind, OUTPUT_KINDS, n=1)
-                raise ValueError(f"unknown output {kind!r}{f' (did you mean {close[0]}?)' if close else ''}; "
-                                 f"choose from {', '.join(OUTPUT_KINDS)} or all")
-            elif kind:
-                chosen.append(kind)
-    return list(dict.fromkeys(chosen))
-
-
 def write_prediction(out: Path, prediction: Prediction, outputs: Iterable[str] = DEFAULT_OUTPUTS,
                      points_stride: int | None = None, points_max_depth: float | None = None,
                      depth_range: tuple[float, float] | None = None) -> list[Path]:

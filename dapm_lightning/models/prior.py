@@ -10,31 +10,21 @@ IGD feature sees and what inference reports; the losses keep training the networ
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Final, Literal, get_args
 
 import torch
 from torch import Tensor
 
 from dapm_lightning.geometry.igd import IGDSpec
 from dapm_lightning.geometry.pose import pose_bounds
+from dapm_lightning.options import EXACT_SIGMA as EXACT_SIGMA
+from dapm_lightning.options import IGD_BOUND_MARGIN as IGD_BOUND_MARGIN
+from dapm_lightning.options import PRIOR_MODES as PRIOR_MODES
+from dapm_lightning.options import PriorMode as PriorMode
 
 NETWORK_SPREAD_WITHOUT_BINS = 0.05
 """Normalised standard deviation assumed for a network without pose bins (about 4.5 m of height, 5.5° of pitch)."""
 MIN_NETWORK_SPREAD = 1e-3
 """Lower bound of the network's normalised standard deviation (a bins distribution can be one-hot)."""
-
-
-PriorMode = Literal["condition", "scale", "both"]
-"""How pose priors are used in prediction: ``condition`` (into the network, fused before its IGD feature),
-``scale`` (the network's depth fitted to the known pose's ground afterwards; any checkpoint) or ``both``."""
-PRIOR_MODES: Final[tuple[str, ...]] = get_args(PriorMode)
-EXACT_SIGMA: Final[tuple[float, float, float, float]] = (0.0, 0.0, 0.0, 0.0)
-"""The default telemetry σ (height m, pitch, roll, fov deg): the telemetry replaces the network's values."""
-
-
-IGD_BOUND_MARGIN: Final[float] = 0.1
-"""The IGD bound's margin: depth may exceed the flat ground of the known pose by 10 % (terrain up to 10 % of the
-slant range below the take-off level, the telemetry height's own error); docs/predict.md."""
 
 
 @dataclass(frozen=True)

@@ -15,19 +15,16 @@ import sys
 import warnings
 from collections.abc import Sequence
 
-from dapm_lightning.inference.inputs import DEFAULT_BATCH_SIZE, PredictSource
-from dapm_lightning.inference.run_folder import run_folder
-from dapm_lightning.inference.runtime import PRECISIONS, check_device
-from dapm_lightning.inference.sources import resolve_sources
-from dapm_lightning.inference.writers import (
+from dapm_lightning.options import (  # nothing heavy until the command line is parsed: --help answers at once
+    DEFAULT_BATCH_SIZE,
     DEFAULT_OUTPUTS,
+    EXACT_SIGMA,
+    IGD_BOUND_MARGIN,
     OUTPUT_KINDS,
-    PredictionFiles,
-    check_output_outside_source,
+    PRECISIONS,
+    PRIOR_MODES,
     check_outputs,
 )
-from dapm_lightning.models.prior import EXACT_SIGMA, IGD_BOUND_MARGIN, PRIOR_MODES
-from dapm_lightning.tools.progress import progress_bar, quiet_notes
 
 LIGHTNING_OPTIONS = ("--config", "--data", "--trainer", "--model", "--print_config", "--seed_everything")
 """Options that select the Lightning form of ``predict``."""
@@ -158,9 +155,15 @@ def _short_warning(message: Warning | str, category: type[Warning], filename: st
 
 def predict_main(argv: Sequence[str]) -> None:
     """``dapm-lightning predict SOURCE --ckpt_path CKPT [--out DIR] [--device cpu|cuda|auto] [--outputs ...]``."""
-    from dapm_lightning.inference.predictor import DAPMPredictor
-
     args = parse(argv)
+    from dapm_lightning.inference.inputs import PredictSource
+    from dapm_lightning.inference.predictor import DAPMPredictor
+    from dapm_lightning.inference.run_folder import run_folder
+    from dapm_lightning.inference.runtime import check_device
+    from dapm_lightning.inference.sources import resolve_sources
+    from dapm_lightning.inference.writers import PredictionFiles, check_output_outside_source
+    from dapm_lightning.tools.progress import progress_bar, quiet_notes
+
     quiet_notes(args.quiet)
     check_device(args.device, args.precision)  # before the model loads: gpu for cuda, 16 on the CPU
     warnings.formatwarning = _short_warning  # "warning: MESSAGE", not the source line that raised it

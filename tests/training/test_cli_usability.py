@@ -173,10 +173,12 @@ def test_quickstart_logs_and_checkpoints_follow_default_root_dir(tiny_uapd, tmp_
     assert Path(explicit.trainer.loggers[-1].save_dir) == tmp_path / "elsewhere"  # an explicit save_dir is kept
 
 
-def test_the_top_level_help_imports_no_torch():
-    """`dapm-lightning --help` answers at once: nothing heavy is imported for it (PyTorch alone takes seconds)."""
-    code = ("import sys; from dapm_lightning.cli import main; main(['--help']); "
-            "heavy = [m for m in ('torch', 'lightning', 'cv2') if m in sys.modules]; assert not heavy, heavy")
+@pytest.mark.parametrize("argv,shown", [(["--help"], "subcommands:"), (["predict", "--help"], "--telemetry FILE")])
+def test_help_imports_no_torch(argv, shown):
+    """`dapm-lightning --help` and `predict --help` answer at once: nothing heavy is imported for them (PyTorch
+    alone takes seconds to import on a small machine)."""
+    code = (f"import sys; from dapm_lightning.cli import main\ntry:\n    main({argv!r})\nexcept SystemExit:\n    pass\n"
+            "heavy = [m for m in ('torch', 'lightning', 'cv2', 'numpy') if m in sys.modules]; assert not heavy, heavy")
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert result.returncode == 0, result.stderr[-2000:]
-    assert "subcommands:" in result.stdout
+    assert shown in result.stdout
