@@ -14,15 +14,16 @@ import atexit
 import multiprocessing
 import os
 import signal
-import weakref
 from functools import partial
 from types import FrameType
 from typing import Any
 
 from lightning.fabric.utilities.seed import pl_worker_init_function
 
-_EXITING: weakref.WeakSet[Any] = weakref.WeakSet()
-"""One event per loader with workers, set when this process exits (:func:`_exiting`)."""
+_EXITING: list[Any] = []
+"""One event per loader with workers, set when this process exits (:func:`_exiting`). Kept for the process's life
+(a few bytes each): a worker can outlive its loader's Python objects (one whose shutdown it ignored while it
+was busy), and at exit it must still hear that this time SIGTERM is meant."""
 _AT_EXIT: list[bool] = []
 
 
@@ -64,7 +65,7 @@ def worker_init_fn(rank: int = 0) -> partial[None]:
         atexit.register(_exiting)
         _AT_EXIT.append(True)
     exiting = multiprocessing.Event()
-    _EXITING.add(exiting)
+    _EXITING.append(exiting)
     return partial(loader_worker_init, rank=rank, exiting=exiting)
 
 
