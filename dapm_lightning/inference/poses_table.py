@@ -51,8 +51,8 @@ def table_columns(rows: Iterable[dict[str, Any]]) -> list[str]:
     return [c for c in ordered if c in present or c in POSE_COLUMNS] + sorted(present - set(ordered))
 
 
-def write_poses(out: Path, rows: list[dict[str, Any]], suffix: str = "") -> Path:
-    """``poses{suffix}.csv`` and ``.json``, merged with the folder's earlier ones.
+def write_poses(out: Path, rows: list[dict[str, Any]]) -> Path:
+    """``poses.csv`` and ``.json``, merged with the folder's earlier ones.
 
     A row of the same name is replaced, the others are kept (a run added with ``--exist_ok`` adds to the table).
     The read, merge and rewrite hold a lock (:func:`~dapm_lightning.data.files.exclusive_lock`), so runs into
@@ -62,7 +62,7 @@ def write_poses(out: Path, rows: list[dict[str, Any]], suffix: str = "") -> Path
     Raises:
         WriteError: a table could not be written.
     """
-    path = out / f"poses{suffix}.csv"
+    path = out / "poses.csv"
     with exclusive_lock(path):
         merged: dict[str, dict[str, Any]] = {}
         if path.is_file():
@@ -80,7 +80,7 @@ def write_poses(out: Path, rows: list[dict[str, Any]], suffix: str = "") -> Path
             writer.writeheader()
             writer.writerows(merged.values())
         values = [{k: _number(v) for k, v in row.items()} for row in merged.values()]
-        write_text(out / f"poses{suffix}.json", json.dumps(values, indent=2) + "\n")
+        write_text(out / "poses.json", json.dumps(values, indent=2) + "\n")
     return path
 
 

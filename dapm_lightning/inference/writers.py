@@ -278,7 +278,7 @@ class PredictionFiles:
             self.contact_rows.append(contact_tiles(prediction))
         self.images += 1
 
-    def finish(self, suffix: str = "") -> str:
+    def finish(self) -> str:
         """Write the poses table (merged with the folder's) and the contact sheet; returns the summary line.
 
         The summary names only the files written: the per-image kinds the model gave, the tables and sheet.
@@ -287,9 +287,9 @@ class PredictionFiles:
         try:
             extra += [p.name for p in self.previews.finish()]
             if self.rows:
-                extra.append(write_poses(self._folder(), self.rows, suffix).name)
+                extra.append(write_poses(self._folder(), self.rows).name)
             if self.contact_rows:
-                path = write_image(self._folder() / f"contact_sheet{suffix}.png",
+                path = write_image(self._folder() / "contact_sheet.png",
                                    cv2.cvtColor(contact_sheet(self.contact_rows), cv2.COLOR_RGB2BGR))
                 extra.append(path.name)
         except BaseException as error:
