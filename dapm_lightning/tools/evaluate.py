@@ -26,6 +26,10 @@ TELEMETRY_NOISE = (3.0, 1.0, 1.0, 2.0)
 TELEMETRY_ROWS = tuple(f"{subset}/{mode}" for subset in TELEMETRY_SUBSETS for mode in ("cond", "scale"))
 BOUNDED_SUBSETS = ("full", "height")
 """The subsets that give the height, where the IGD bound applies (rows ``SUBSET/cond+bound``)."""
+TELEMETRY_IGD_ROW = "full/igd"
+"""The IGD of the noisy full telemetry alone (no network): what a model given that telemetry must beat."""
+GROUND_TOLERANCE = 0.03
+"""A pixel is flat ground when its true depth is within 3 % (about one 8-bit grey level) of the true pose's IGD."""
 
 
 def bound_row(subset: str, margin: float) -> str:
@@ -71,6 +75,30 @@ def scale_errors(pred: torch.Tensor, true: torch.Tensor) -> dict[str, float]:
     return {"height_rel": relative(pred[:, 0], true[:, 0]), "footprint_rel": relative(footprint(pred), footprint(true))}
 
 
+class GroundSplit:
+    """d1 of one row on the flat-ground pixels and on the others (objects), each per image then averaged.
+
+    Ground: the true depth within :data:`GROUND_TOLERANCE` of the true pose's IGD. Shows whether a row loses on the
+    ground it was told about or on what stands on it; keys ``d1_ground``, ``d1_objects``, ``ground_share``.
+    """
+
+    def __init__(self) -> None:
+        self.ground, self.objects = DepthMetrics(), DepthMetrics()
+        self.pixels = [0.0, 0.0]
+
+    def update(self, pred: torch.Tensor, depth: torch.Tensor, ground: torch.Tensor) -> None:
+        valid = (depth > MIN_DEPTH_M) & (depth < MAX_DEPTH_M)
+        zero = torch.zeros_like(depth)
+        self.ground.update(pred, torch.where(ground, depth, zero))
+        self.objects.update(pred, torch.where(ground, zero, depth))
+        self.pixels[0] += float((valid & ground).sum())
+        self.pixels[1] += float(valid.sum())
+
+    def compute(self) -> dict[str, float]:
+        return {"d1_ground": float(self.ground.compute()["d1"]), "d1_objects": float(self.objects.compute()["d1"]),
+                "ground_share": self.pixels[0] / max(self.pixels[1], 1.0)}
+
+
 @torch.no_grad()
 def evaluate(module: Any, root: Path, mean_pose: torch.Tensor, batch: int = 32,
              telemetry: bool = True, bound_margins: tuple[float, ...] = (IGD_BOUND_MARGIN,)
@@ -89,8 +117,10 @@ def evaluate(module: Any, root: Path, mean_pose: torch.Tensor, batch: int = 32,
     """
     data = UAPDDataset(root, "val")
     names = ["model", "scale_fixed", "mean_pose", "true_pose"]
+    names += [TELEMETRY_IGD_ROW] if telemetry else []
     names += [*TELEMETRY_ROWS, *bound_rows(bound_margins)] if module is not None and telemetry else []
     metrics = {name: (DepthMetrics(), PoseMetrics()) for name in names}
+    splits = {name: GroundSplit() for name in names if name not in ("scale_fixed", "mean_pose")}
     poses: dict[str, list[torch.Tensor]] = {"true": [], "model": [], "mean_pose": []}
     generator = torch.Generator().manual_seed(0)
     for start in range(0, len(data), batch):
@@ -107,9 +137,18 @@ def evaluate(module: Any, root: Path, mean_pose: torch.Tensor, batch: int = 32,
         true_igd = ideal_ground_depth(pose, tuple(depth.shape[-2:]), depth_kind="range")
         metrics["true_pose"][0].update(true_igd.float(), depth)
         metrics["true_pose"][1].update(pose, pose)
+        ground = ((depth / true_igd.float()) - 1).abs() < GROUND_TOLERANCE
+        splits["true_pose"].update(true_igd.float(), depth, ground)
+        if telemetry:  # its own draw, so that the rows with a model keep the telemetry they always had
+            noisy = telemetry_prior(pose, "full", torch.Generator().manual_seed(start + 1)).value.double()
+            noisy_igd = ideal_ground_depth(noisy, tuple(depth.shape[-2:]), depth_kind="range").float()
+            metrics[TELEMETRY_IGD_ROW][0].update(noisy_igd, depth)
+            metrics[TELEMETRY_IGD_ROW][1].update(noisy, pose)
+            splits[TELEMETRY_IGD_ROW].update(noisy_igd, depth, ground)
         if module is not None:
             out = module(image)
             metrics["model"][0].update(out.depth_m.float(), depth)
+            splits["model"].update(out.depth_m.float(), depth, ground)
             metrics["model"][1].update(out.pose_physical.double(), pose)
             metrics["scale_fixed"][0].update(median_scaled(out.depth_m.float(), depth), depth)
             metrics["scale_fixed"][1].update(out.pose_physical.double(), pose)
@@ -123,11 +162,13 @@ def evaluate(module: Any, root: Path, mean_pose: torch.Tensor, batch: int = 32,
                     used = apply_pose_prior(given, prior, way, spec).output
                     row = f"{subset}/{mode}"
                     metrics[row][0].update(used.depth_m.float(), depth)
+                    splits[row].update(used.depth_m.float(), depth, ground)
                     metrics[row][1].update(used.pose.double(), pose)
                     poses.setdefault(row, []).append(used.pose.double())
                     for margin in bound_margins if mode == "cond" and subset in BOUNDED_SUBSETS else ():
                         capped = bound_by_ground(used, prior, spec, margin)
                         metrics[bound_row(subset, margin)][0].update(capped.depth_m.float(), depth)
+                        splits[bound_row(subset, margin)].update(capped.depth_m.float(), depth, ground)
                         metrics[bound_row(subset, margin)][1].update(capped.pose.double(), pose)
     result = {}
     for name, (depth_m, pose_m) in metrics.items():
@@ -137,8 +178,10 @@ def evaluate(module: Any, root: Path, mean_pose: torch.Tensor, batch: int = 32,
                         **{k: float(v) for k, v in pose_m.compute().items()}}
         if poses.get(name):
             result[name].update(scale_errors(torch.cat(poses[name]), torch.cat(poses["true"])))
+        if name in splits:
+            result[name].update(splits[name].compute())
     return result
 
 
-__all__ = ["BOUNDED_SUBSETS", "TELEMETRY_NOISE", "TELEMETRY_ROWS", "TELEMETRY_SUBSETS", "bound_row", "bound_rows",
+__all__ = ["BOUNDED_SUBSETS", "GROUND_TOLERANCE", "TELEMETRY_IGD_ROW", "GroundSplit", "TELEMETRY_NOISE", "TELEMETRY_ROWS", "TELEMETRY_SUBSETS", "bound_row", "bound_rows",
            "evaluate", "median_scaled", "scale_errors", "telemetry_prior"]

@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from dapm_lightning.tools.evaluate import median_scaled, scale_errors
+from dapm_lightning.tools.evaluate import GroundSplit, median_scaled, scale_errors
 
 
 def test_median_scaled_removes_each_images_scale_only():
@@ -30,3 +30,14 @@ def test_scale_errors_separate_the_footprint_from_the_height():
     same_footprint[:, 3] = torch.rad2deg(2 * torch.atan(2 * torch.tan(torch.deg2rad(true[:, 3]) / 2)))
     errors = scale_errors(same_footprint, true)
     assert errors["height_rel"] == pytest.approx(1.0) and errors["footprint_rel"] == pytest.approx(0.0, abs=1e-9)
+
+
+def test_ground_split_scores_the_ground_and_what_stands_on_it_apart():
+    depth = torch.full((1, 1, 4, 4), 50.0)
+    ground = torch.zeros(1, 1, 4, 4, dtype=torch.bool)
+    ground[..., 2:, :] = True  # the lower half is flat ground
+    depth[..., 0, 0] = float("inf")  # sky counts in neither part
+    pred = torch.where(ground, depth, depth * 2)  # right on the ground, twice too far on the objects
+    split = GroundSplit()
+    split.update(pred, depth, ground)
+    assert split.compute() == pytest.approx({"d1_ground": 1.0, "d1_objects": 0.0, "ground_share": 8 / 15})
