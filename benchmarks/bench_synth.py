@@ -91,7 +91,8 @@ def _quickstart_config(train_root: Path, out: Path, epochs: int | None, batch_si
     return path
 
 
-COLUMNS = [("d1", "d1"), ("abs_rel", "AbsRel"), ("d1_ground", "d1 gnd"), ("d1_objects", "d1 obj"), ("height_median", "h m"), ("pitch_median", "pitch"),
+COLUMNS = [("d1", "d1"), ("abs_rel", "AbsRel"), ("d1_ground", "d1 gnd"), ("d1_objects", "d1 obj"),
+           ("height_median", "h m"), ("pitch_median", "pitch"),
            ("roll_median", "roll"), ("fov_median", "fov"), ("height_rel", "h rel"), ("footprint_rel", "foot rel")]
 
 

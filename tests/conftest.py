@@ -66,18 +66,31 @@ CONFIGS = REPO / "configs"
 QUICKSTART = REPO / "dapm_lightning" / "configs" / "quickstart.yaml"
 
 
-@pytest.fixture(scope="session")
-def checkpoint(tiny_uapd, tmp_path_factory):
-    work = tmp_path_factory.mktemp("predict_ckpt")
+def _one_step_quickstart(tiny_uapd: Path, work: Path, *extra: str) -> Path:
+    """The quickstart model after one training step on :func:`tiny_uapd` (``extra``: more fit arguments)."""
     cli = run_lightning_cli(["fit", "--config", str(QUICKSTART), "--data.class_path",
                              "dapm_lightning.data.datamodules.UAPDDataModule", "--data.init_args.root", str(tiny_uapd),
                              "--data.init_args.batch_size", "2", "--data.init_args.num_workers", "0",
                              "--trainer.max_steps", "1", "--trainer.limit_val_batches", "0",
                              "--trainer.logger", "false", "--trainer.callbacks", "[]",
-                             "--trainer.enable_checkpointing", "false", "--trainer.default_root_dir", str(work)])
+                             "--trainer.enable_checkpointing", "false", "--trainer.default_root_dir", str(work),
+                             *extra])
     path = work / "model.ckpt"
     cli.trainer.save_checkpoint(path)
     return path
+
+
+@pytest.fixture(scope="session")
+def checkpoint(tiny_uapd, tmp_path_factory):
+    """The quickstart model (depth relative to the IGD) after one step."""
+    return _one_step_quickstart(tiny_uapd, tmp_path_factory.mktemp("predict_ckpt"))
+
+
+@pytest.fixture(scope="session")
+def absolute_checkpoint(tiny_uapd, tmp_path_factory):
+    """The quickstart model with the paper's absolute depth (free to predict beyond the ground), after one step."""
+    return _one_step_quickstart(tiny_uapd, tmp_path_factory.mktemp("absolute_ckpt"),
+                                "--model.net.depth_parametrization", "absolute")
 
 
 

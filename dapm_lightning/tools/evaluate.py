@@ -183,5 +183,6 @@ def evaluate(module: Any, root: Path, mean_pose: torch.Tensor, batch: int = 32,
     return result
 
 
-__all__ = ["BOUNDED_SUBSETS", "GROUND_TOLERANCE", "TELEMETRY_IGD_ROW", "GroundSplit", "TELEMETRY_NOISE", "TELEMETRY_ROWS", "TELEMETRY_SUBSETS", "bound_row", "bound_rows",
-           "evaluate", "median_scaled", "scale_errors", "telemetry_prior"]
+__all__ = ["BOUNDED_SUBSETS", "GROUND_TOLERANCE", "TELEMETRY_IGD_ROW", "TELEMETRY_NOISE", "TELEMETRY_ROWS",
+           "TELEMETRY_SUBSETS", "GroundSplit", "bound_row", "bound_rows", "evaluate", "median_scaled", "scale_errors",
+           "telemetry_prior"]

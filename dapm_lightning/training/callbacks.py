@@ -8,6 +8,7 @@ from typing import Any
 import cv2
 import lightning as L
 import torch
+from lightning.pytorch.utilities import rank_zero_warn
 
 from dapm_lightning.models.teacher_forcing import predicted_share_at
 from dapm_lightning.training.module import DAPMModule
@@ -34,6 +35,17 @@ class IGDTeacherForcing(L.Callback):
     def share(self, step: int, total_steps: int) -> float:
         """The predicted share at ``step`` of ``total_steps``."""
         return predicted_share_at(step / max(1, total_steps), **self.schedule)
+
+    @property
+    def keeps_the_true_pose(self) -> bool:
+        """Whether the IGD sees the true pose throughout training (both shares 0)."""
+        return self.schedule["start_share"] == 0.0 and self.schedule["end_share"] == 0.0
+
+    def on_fit_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        if self.keeps_the_true_pose and _dapm_module(pl_module).prior_training.enabled:
+            rank_zero_warn("model.prior_training changes nothing here: IGDTeacherForcing keeps the IGD on the true "
+                           "pose throughout training (start_share and end_share 0), which replaces the fused pose. "
+                           "Turn the priors off, or let the share rise (end_share > 0) for them to act.")
 
     def on_train_batch_start(self, trainer: L.Trainer, pl_module: L.LightningModule, batch: Any,
                              batch_idx: int) -> None:

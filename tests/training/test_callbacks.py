@@ -1,3 +1,4 @@
+import warnings
 from types import SimpleNamespace
 
 import pytest
@@ -5,7 +6,7 @@ import torch
 
 from dapm_lightning.models import DAPMConfig
 from dapm_lightning.training.callbacks import IGDTeacherForcing
-from dapm_lightning.training.module import DAPMModule, OptimizerConfig, warmup_cosine
+from dapm_lightning.training.module import DAPMModule, OptimizerConfig, PriorTraining, warmup_cosine
 
 
 def test_teacher_forcing_schedule_start_middle_end():
@@ -19,6 +20,16 @@ def test_teacher_forcing_schedule_start_middle_end():
     assert late.share(900, 1000) == 1.0
     with pytest.raises(ValueError):
         IGDTeacherForcing(start_fraction=0.8, end_fraction=0.2)
+
+
+def test_priors_under_a_teacher_forcing_that_keeps_the_true_pose_are_flagged():
+    with_priors = DAPMModule(DAPMConfig(backbone="resnet18"), prior_training=PriorTraining(enabled=True))
+    with pytest.warns(UserWarning, match="prior_training changes nothing"):
+        IGDTeacherForcing(start_share=0.0, end_share=0.0).on_fit_start(SimpleNamespace(), with_priors)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        IGDTeacherForcing().on_fit_start(SimpleNamespace(), with_priors)  # the share rises: the priors act
+        IGDTeacherForcing(end_share=0.0).on_fit_start(SimpleNamespace(), DAPMModule(DAPMConfig(backbone="resnet18")))
 
 
 def test_callback_sets_share_and_eval_ignores_it(monkeypatch):
