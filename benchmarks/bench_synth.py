@@ -10,6 +10,13 @@ it on each family separately, beside the mean-pose and mean-pose-IGD baselines; 
 family is the transfer figure (target: every pose median at least 2x better than the mean pose,
 d1 >= 0.5, AbsRel <= 0.35). With noisy telemetry (rows ``SUBSET/cond``, ``SUBSET/scale``) and the IGD bound at
 each of ``--bound-margins`` (rows ``SUBSET/cond+bound[@MARGIN]``); ``--test-families`` limits the testing.
+Every row also splits its d1 into the flat-ground pixels and the rest (``d1_ground``, ``d1_objects``), and
+``full/igd`` is the IGD of the noisy full telemetry alone, what a model given that telemetry has to beat.
+
+``python -m benchmarks.bench_synth grid``: ``transfer`` with each family held out in turn, for each of
+``--seeds`` (the data, the test images and the training's seed), tested on the held-out family only; prints
+the d1 / AbsRel of every held-out family per telemetry row, their mean and the worst family, checks issue 31's
+targets, and writes ``grid.json`` and ``grid.md``.
 """
 
 from __future__ import annotations
@@ -29,6 +36,7 @@ import dapm_lightning
 from dapm_lightning.data.synthetic import FAMILIES, generate_uapd, is_current
 from dapm_lightning.geometry.constants import MAX_DEPTH_M, SKY_GREY
 from dapm_lightning.geometry.depth_codec import depth_to_grey
+from dapm_lightning.models.config import DEPTH_READOUTS
 from dapm_lightning.models.prior import IGD_BOUND_MARGIN
 from dapm_lightning.tools.evaluate import evaluate
 
@@ -133,11 +141,11 @@ def transfer(args: argparse.Namespace) -> dict[str, Any]:
     out.mkdir(parents=True, exist_ok=True)
     trained = [f for f in FAMILIES if f not in args.held_out]
     train_root = out / "train_data"
+    tested = args.test_families or list(FAMILIES)
     print(f"[1/3] rendering {args.train} + {args.val} images of {', '.join(trained)} and {args.test} test images "
-          f"of each family ({args.size}x{args.size})")
+          f"of {'each family' if len(tested) == len(FAMILIES) else ', '.join(tested)} ({args.size}x{args.size})")
     jobs = [(train_root, {"train": args.train, "val": args.val, "seed": args.seed,
                           "families": dict.fromkeys(trained, 1.0)})]
-    tested = args.test_families or list(FAMILIES)
     jobs += [(out / f"test_{family}", {"train": 0, "val": args.test, "seed": args.seed + 1000,
                                        "families": {family: 1.0}}) for family in FAMILIES if family in tested]
     for root, setting in jobs:  # sets already rendered with these settings are reused
@@ -147,13 +155,15 @@ def transfer(args: argparse.Namespace) -> dict[str, Any]:
     render_minutes = (time.time() - start) / 60
     mean_pose = torch.from_numpy(UAPDDataset(train_root, "train").poses.mean(axis=0)).double()
     module = None
+    readout = {"depth_readout": args.depth_readout} if args.depth_readout else None
     if args.checkpoint:
-        module = load_dapm_module(args.checkpoint).eval()
+        module = load_dapm_module(args.checkpoint, net_overrides=readout).eval()
     elif not args.skip_training:
         print(f"[2/3] training the quickstart model on {', '.join(trained)} ({render_minutes:.1f} min so far)")
         config = _quickstart_config(train_root, out, args.epochs, args.batch_size, args.teacher_forcing,
                                     args.seed)
-        fit = run_lightning_cli(["fit", "--config", str(config), *extra_fit_args(args)])
+        readout_args = ["--model.net.depth_readout", args.depth_readout] if args.depth_readout else []
+        fit = run_lightning_cli(["fit", "--config", str(config), *readout_args, *extra_fit_args(args)])
         best = best_or_last_checkpoint(fit.trainer)
         module = load_dapm_module(best).eval()
     train_minutes = (time.time() - start) / 60 - render_minutes
@@ -222,6 +232,13 @@ def grid_summary(results: dict[str, dict[int, dict[str, dict[str, float]]]]) -> 
     return summary
 
 
+def _earlier_checkpoint(run_out: Path) -> Path | None:
+    """The best checkpoint an earlier ``transfer`` run left in ``run_out`` (its last one if no best), or None."""
+    found = sorted(run_out.glob("csv/version_*/checkpoints/best-*.ckpt")) or sorted(
+        run_out.glob("csv/version_*/checkpoints/last.ckpt"))
+    return found[-1] if found else None
+
+
 def grid(args: argparse.Namespace) -> dict[str, Any]:
     """``transfer`` with each family held out in turn, for each seed: mean and worst family per telemetry row."""
     out = args.out.resolve()
@@ -229,12 +246,16 @@ def grid(args: argparse.Namespace) -> dict[str, Any]:
     minutes = []
     for seed in args.seeds:
         for family in args.families:
-            run = argparse.Namespace(**{**vars(args), "held_out": [family], "seed": seed,
-                                        "out": out / f"{family}_seed{seed}", "test_families": [family]})
+            run_out = out / f"{family}_seed{seed}"
+            checkpoint = _earlier_checkpoint(run_out) if args.reuse_checkpoints else None
+            if args.reuse_checkpoints and checkpoint is None:
+                raise SystemExit(f"--reuse-checkpoints: no checkpoint under {run_out}; train it first (drop the flag)")
+            run = argparse.Namespace(**{**vars(args), "held_out": [family], "seed": seed, "out": run_out,
+                                        "test_families": [family], "checkpoint": checkpoint})
             print(f"\n=== {family} held out, seed {seed} ===")
             report = transfer(run)
             results.setdefault(family, {})[seed] = report["results"][family]
-            minutes.append(report["train_minutes"])
+            minutes.append(0.0 if checkpoint else report["train_minutes"])
     summary = grid_summary(results)
     families = list(results)
     header = "| row | " + " | ".join(families) + " | mean | worst |"
@@ -314,6 +335,8 @@ def _training_arguments(p: argparse.ArgumentParser, out: str) -> None:
                    help="the IGD teacher forcing's predicted share at the start and end of its ramp (default: the "
                         "quickstart's)")
     p.add_argument("--workers", type=int, default=None)
+    p.add_argument("--depth-readout", choices=DEPTH_READOUTS, default=None,
+                   help="where the models tested read their depth (default: as trained; model.net.depth_readout)")
 
 
 def main(argv: Sequence[str] | None = None) -> None:
@@ -341,6 +364,8 @@ def main(argv: Sequence[str] | None = None) -> None:
     _training_arguments(p, "outputs/bench_synth_grid")
     p.add_argument("--families", nargs="+", default=list(FAMILIES), choices=FAMILIES, help="held out in turn")
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
+    p.add_argument("--reuse-checkpoints", action="store_true",
+                   help="test the checkpoint an earlier grid left in OUT/FAMILY_seedN instead of training")
     p.add_argument("fit_args", nargs=argparse.REMAINDER, help="after --: more `dapm-lightning fit` arguments")
     p.set_defaults(func=grid, skip_training=False, checkpoint=None)
     p = sub.add_parser("figure", help="a picture of every family (docs/figures/synthetic_samples.png)")

@@ -9,6 +9,10 @@ from typing import Any, Literal
 from dapm_lightning.geometry.igd import IGDSpec
 from dapm_lightning.models.init import WeightInit
 
+DepthReadout = Literal["head", "bins_mode"]
+DEPTH_READOUTS: tuple[str, ...] = ("head", "bins_mode")
+"""Where the output depth is read (:attr:`DAPMConfig.depth_readout`)."""
+
 
 def _architecture(default: Any) -> Any:
     """A field that changes the weights' shapes: a checkpoint must agree on it to be loaded."""
@@ -75,6 +79,13 @@ class DAPMConfig:
             :data:`~dapm_lightning.geometry.depth_codec.IGD_RATIO_RANGE` (1/1024 to 1.25), so nothing below the
             horizon is predicted farther than 1.25 times the flat ground of that pose. Needs both branches and a
             refinement head; the decoder's initial depth stays absolute (the pose branch reads it). docs/model.md.
+        depth_readout: where the output depth (``depth_m``) is read: ``"head"`` (default, the paper's: the
+            refinement head's regression over every bins stage) or ``"bins_mode"``: the most probable bin of the last
+            depth-bins stage, refined by the soft-argmax over it and its two neighbours. The head, trained by Eq. 17,
+            gives the mean of the depths it finds likely; where a pixel may be ground or an object (scenes unlike the
+            training's) that mean lies between the two and is neither; the mode is one of them. Changes no
+            weight: a checkpoint reads out either way (:func:`~dapm_lightning.training.checkpointing.load_dapm_module`
+            ``net_overrides``). Needs depth bins stages. docs/model.md.
         weight_init: ``"pytorch"`` (default: PyTorch's) or ``"authors"``: the depth decoder's convs
             Kaiming-normal (fan_out) with bias 0, the pose branch's linears Xavier-normal with bias 0.01 and
             its convs Kaiming-normal (fan_out); the depth bins heads and the IGD feature keep PyTorch's, as the
@@ -114,6 +125,7 @@ class DAPMConfig:
     linear_dropout: float = 0.0
     weight_init: WeightInit = "pytorch"
     depth_parametrization: Literal["absolute", "igd_ratio"] = _architecture("absolute")
+    depth_readout: DepthReadout = "head"
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "depth_bins", tuple(int(n) for n in self.depth_bins))
@@ -149,6 +161,12 @@ class DAPMConfig:
                 self.use_depth and self.use_pose and (self.depth_bins or self.use_igd_feature)):
             raise ValueError("model.net.depth_parametrization 'igd_ratio' needs both branches and a depth refinement "
                              "(depth_bins or use_igd_feature): the ratio is to the IGD of the predicted pose")
+        if self.depth_readout not in DEPTH_READOUTS:
+            raise ValueError(f"model.net.depth_readout must be one of {', '.join(DEPTH_READOUTS)}, "
+                             f"got {self.depth_readout!r}")
+        if self.depth_readout == "bins_mode" and not (self.use_depth and any(n > 2 for n in self.depth_bins)):
+            raise ValueError("model.net.depth_readout 'bins_mode' needs a depth-bins stage of more than 2 bins "
+                             f"(model.net.depth_bins, got {list(self.depth_bins)})")
         if self.head_stride not in (1, 2, 4, 8):
             raise ValueError(f"model.net.head_stride must be 1, 2, 4 or 8, got {self.head_stride}")
 

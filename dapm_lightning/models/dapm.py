@@ -24,7 +24,7 @@ from dapm_lightning.models.decoders import DepthDecoder, PoseDecoder
 from dapm_lightning.models.encoder import Encoder
 from dapm_lightning.models.igd_branch import IGDFeature
 from dapm_lightning.models.init import init_depth_decoder_like_authors, init_pose_like_authors
-from dapm_lightning.models.pqb import DepthPQB, EncoderPosePQB, PosePQB
+from dapm_lightning.models.pqb import DepthPQB, EncoderPosePQB, PosePQB, bins_mode
 from dapm_lightning.models.prior import PosePrior, bins_spread, fuse_pose
 from dapm_lightning.models.teacher_forcing import TeacherForcing
 from dapm_lightning.models.upsample import ConvexUpsample
@@ -44,6 +44,9 @@ class DepthPrediction(NamedTuple):
     ``igd_m``: with ``depth_parametrization: igd_ratio``, the IGD (metres, full resolution) of the pose the
     network used, which ``depth_norm`` is relative to (:func:`~dapm_lightning.geometry.depth_codec.encode_igd_ratio`);
     None: ``depth_norm`` is the absolute normalised log depth.
+    ``readout_norm``: with ``depth_readout: bins_mode``, the depth read from the last bins stage, full resolution, in
+    the space of ``depth_norm`` (``depth_m`` is its decoding); None: ``depth_m`` decodes ``depth_norm`` (the head's).
+    ``depth_norm`` stays the head's either way: it is what Eq. 17 trains.
     """
 
     depth_norm: Tensor
@@ -54,6 +57,7 @@ class DepthPrediction(NamedTuple):
     igd_norm: Tensor | None
     refined: bool
     igd_m: Tensor | None = None
+    readout_norm: Tensor | None = None
 
     def encode(self, depth_m: Tensor, max_depth: float) -> Tensor:
         """Metres ``[B, 1, H, W]`` in the space of ``depth_norm`` (targets of the loss and of the bins)."""
@@ -68,9 +72,9 @@ class DepthPrediction(NamedTuple):
         return decode_igd_ratio(norm, self.igd_m, max_depth)
 
     def log_depth_norm(self, max_depth: float) -> Tensor:
-        """The refined depth as absolute normalised log depth (``depth_norm`` itself in absolute space)."""
-        return self.depth_norm if self.igd_m is None else encode_log_depth(self.decode(self.depth_norm, max_depth),
-                                                                           max_depth)
+        """The output depth as absolute normalised log depth (the readout's; ``depth_norm`` in absolute space)."""
+        norm = self.depth_norm if self.readout_norm is None else self.readout_norm
+        return norm if self.igd_m is None else encode_log_depth(self.decode(norm, max_depth), max_depth)
 
 
 class PosePrediction(NamedTuple):
@@ -312,15 +316,24 @@ class DAPMNet(nn.Module):
             refined_logit = refined_logit + FLAT_GROUND_LOGIT
         elif self.config.depth_residual_priors:  # the authors' head: logit + initial depth + IGD (both in [0, 1])
             refined_logit = refined_logit + init_head + (0.0 if igd_norm is None else igd_norm)
-        refined = torch.sigmoid(refined_logit)
-        if self.upsample is not None:
-            refined = self.upsample(refined, feature, size)
-        elif refined.shape[-2:] != size:
-            refined = F.interpolate(refined, size=size, mode="bilinear", align_corners=False)
+        refined = self._to_size(torch.sigmoid(refined_logit), feature, size)
+        readout = None
+        if self.config.depth_readout == "bins_mode" and bin_logits:
+            readout = self._to_size(bins_mode(bin_logits[-1]).to(refined.dtype), feature, size)
         sky_logits = (None if sky_logit is None
                       else F.interpolate(sky_logit, size=size, mode="bilinear", align_corners=False))
-        depth_m = (decode_log_depth(refined, igd.max_depth) if igd_m is None
-                   else decode_igd_ratio(refined, igd_m, igd.max_depth))
+        output = refined if readout is None else readout
+        depth_m = (decode_log_depth(output, igd.max_depth) if igd_m is None
+                   else decode_igd_ratio(output, igd_m, igd.max_depth))
         if sky_logits is not None and self.config.sky_override:
             depth_m = torch.where(sky_logits > 0, torch.full_like(depth_m, igd.max_depth), depth_m)
-        return DepthPrediction(refined, depth_init, depth_m, sky_logits, tuple(bin_logits), igd_norm, True, igd_m)
+        return DepthPrediction(refined, depth_init, depth_m, sky_logits, tuple(bin_logits), igd_norm, True, igd_m,
+                               readout)
+
+    def _to_size(self, norm: Tensor, feature: Tensor, size: tuple[int, int]) -> Tensor:
+        """A ``[B, 1, h, w]`` map in [0, 1] at head resolution to the image size (the convex upsampling's)."""
+        if self.upsample is not None:
+            return self.upsample(norm, feature, size)
+        if norm.shape[-2:] != size:
+            return F.interpolate(norm, size=size, mode="bilinear", align_corners=False)
+        return norm

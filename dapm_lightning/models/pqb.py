@@ -27,6 +27,25 @@ def expected_value(logits: Tensor, dim: int = 1) -> Tensor:
     return (softmax(logits, dim=dim) * centres.view(shape)).sum(dim=dim, keepdim=True)
 
 
+def bins_mode(logits: Tensor, dim: int = 1) -> Tensor:
+    """The most probable bin of a stage, refined: the soft-argmax over it and its two neighbours, in [0, 1].
+
+    Where the distribution has two modes (ground, or an object standing on it), the full soft-argmax
+    (:func:`expected_value`) lies between them; this stays at the stronger one, with sub-bin precision from its
+    neighbours. ``[B, n, ...]`` logits -> ``[B, 1, ...]`` (``dim`` kept as size 1).
+    """
+    n = logits.shape[dim]
+    shape = [1] * logits.ndim
+    shape[dim] = 3
+    best = logits.argmax(dim=dim, keepdim=True)
+    window = best + torch.arange(-1, 2, device=logits.device).view(shape)
+    inside = (window >= 0) & (window < n)
+    local = torch.gather(logits, dim, window.clamp(0, n - 1))
+    local = torch.where(inside, local, torch.full_like(local, float("-inf")))
+    centres = (window.to(logits.dtype) + 0.5) / n
+    return (softmax(local, dim=dim) * centres).sum(dim=dim, keepdim=True)
+
+
 class BinsBlock(nn.Module):
     """Concatenated inputs -> 1x1 then 3x3 conv-BN-ReLU (fuse, then spatial context) -> 1x1 conv to logits."""
 

@@ -38,6 +38,7 @@ from dapm_lightning.training.checkpoint_files import (
     remove_unfinished_saves,
     save_atomically,
 )
+from dapm_lightning.models.config import DAPMConfig
 from dapm_lightning.training.module import DAPMModule
 
 EXIT_SIGTERM = 128 + signal.SIGTERM
@@ -197,7 +198,8 @@ def check_dapm_checkpoint(checkpoint: Any, source: str | Path) -> None:
     raise NotADAPMCheckpointError(f"{source}: not a dapm-lightning checkpoint ({what}).\n{fix}.")
 
 
-def load_dapm_module(path: str | Path, map_location: Any = "cpu") -> DAPMModule:
+def load_dapm_module(path: str | Path, map_location: Any = "cpu",
+                     net_overrides: Mapping[str, Any] | None = None) -> DAPMModule:
     """A :class:`~dapm_lightning.training.module.DAPMModule` from a checkpoint file, with the checkpoint's settings.
 
     Loads with :func:`read_checkpoint` (``weights_only=True``: tensors and plain values only). Errors, each
@@ -211,6 +213,8 @@ def load_dapm_module(path: str | Path, map_location: Any = "cpu") -> DAPMModule:
             read into memory.
         map_location: where the tensors go (``"cpu"``, ``"cuda:0"``, a ``torch.device``, a function or
             mapping as in ``torch.load``); the module is moved there.
+        net_overrides: network settings to change that change no weight (e.g. ``{"depth_readout": "bins_mode"}``);
+            an architecture setting (:meth:`~dapm_lightning.models.config.DAPMConfig.architecture_fields`) is refused.
 
     Returns:
         The module, in training mode as Lightning's ``load_from_checkpoint`` returns it (call ``.eval()``).
@@ -223,6 +227,12 @@ def load_dapm_module(path: str | Path, map_location: Any = "cpu") -> DAPMModule:
     settings = {k: v for k, v in checkpoint["hyper_parameters"].items() if k in accepted and k != "self"}
     # the weights come from the checkpoint: no ImageNet download (or local weights file) for the backbone
     settings["net"] = {**settings["net"], "pretrained": False, "weights_path": None}
+    if net_overrides:
+        architecture = sorted(set(net_overrides) & set(DAPMConfig.architecture_fields()))
+        if architecture:
+            raise ValueError(f"net_overrides cannot change {architecture}: the weights of {path} are built for "
+                             "the checkpoint's values")
+        settings["net"] = {**settings["net"], **net_overrides}
     module = DAPMModule(**settings)
     module.on_load_checkpoint(checkpoint)
     try:

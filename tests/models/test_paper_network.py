@@ -64,8 +64,9 @@ def test_paper_configs_and_variant_overlay_say_what_the_code_builds():
     assert {k: getattr(DAPMConfig(), k) for k in EFFICIENT_NETWORK} == dict(EFFICIENT_NETWORK)  # the defaults
     quick = yaml.safe_load(QUICKSTART.read_text())["model"]["net"]
     # the rest: the efficient defaults; the quickstart's depth is relative to the IGD (issue 31), the paper's absolute
-    assert set(quick) == {"backbone", "pretrained", "decoder_channels", "depth_parametrization"}
+    assert set(quick) == {"backbone", "pretrained", "decoder_channels", "depth_parametrization", "depth_readout"}
     assert quick["depth_parametrization"] == "igd_ratio" and DAPMConfig().depth_parametrization == "absolute"
+    assert quick["depth_readout"] == "bins_mode" and DAPMConfig().depth_readout == "head"
 
 
 @pytest.mark.parametrize("branches", [{}, {"use_pose": False, "use_igd_feature": False},
