@@ -88,9 +88,10 @@ def checkpoint(tiny_uapd, tmp_path_factory):
 
 @pytest.fixture(scope="session")
 def absolute_checkpoint(tiny_uapd, tmp_path_factory):
-    """The quickstart model with the paper's absolute depth (free to predict beyond the ground), after one step."""
+    """The quickstart model with the paper's absolute depth read from the head (free to predict beyond the ground),
+    after one step."""
     return _one_step_quickstart(tiny_uapd, tmp_path_factory.mktemp("absolute_ckpt"),
-                                "--model.net.depth_parametrization", "absolute")
+                                "--model.net.depth_parametrization", "absolute", "--model.net.depth_readout", "head")
 
 
 
