@@ -29,6 +29,7 @@ from lightning.pytorch.utilities import rank_zero_warn
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 from torch import Tensor
 
+from dapm_lightning.models.config import DAPMConfig
 from dapm_lightning.training.checkpoint_files import (
     CheckpointReadError,
     UnsafeCheckpointIOError,
@@ -38,7 +39,6 @@ from dapm_lightning.training.checkpoint_files import (
     remove_unfinished_saves,
     save_atomically,
 )
-from dapm_lightning.models.config import DAPMConfig
 from dapm_lightning.training.module import DAPMModule
 
 EXIT_SIGTERM = 128 + signal.SIGTERM
