@@ -132,11 +132,14 @@ def quantize_int8(float_path: str | Path, int8_path: str | Path, calibration: Se
     int8_path.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory() as folder:
         inline, prepared = Path(folder) / "float.onnx", Path(folder) / "prepared.onnx"
-        onnx.save(onnx.load(str(float_path)), str(inline))  # weights inside (the exporter may write NAME.onnx.data)
+        float_model = onnx.load(str(float_path))
+        onnx.save(float_model, str(inline))  # weights inside (the exporter may write NAME.onnx.data)
+        # chosen on the export: its nodes name their module; the pre-processing keeps node names but may drop that
+        in_scope = set(quantised_nodes(float_model.graph.node, scopes))
         quantization.quant_pre_process(str(inline), str(prepared), skip_symbolic_shape=True)  # shapes
         model = onnx.load(str(prepared), load_external_data=False)
         input_names = [i.name for i in model.graph.input]
-        chosen = quantised_nodes(model.graph.node, scopes)
+        chosen = [n.name for n in model.graph.node if n.name in in_scope]
         if not chosen:
             raise ValueError(f"{float_path}: no node of {', '.join(scopes)} found (not a dapm-lightning export?)")
         # a LayerNormalization's scale is 1-D: its channels are on axis 0 (the default, 1, is out of range)

@@ -80,8 +80,8 @@ class DAPMConfig:
             horizon is predicted farther than 1.25 times the flat ground of that pose. Needs both branches and a
             refinement head; the decoder's initial depth stays absolute (the pose branch reads it). docs/model.md.
         depth_readout: where the output depth (``depth_m``) is read: ``"head"`` (default, the paper's: the
-            refinement head's regression over every bins stage) or ``"bins_mode"``: the most probable bin of the last
-            depth-bins stage, refined by the soft-argmax over it and its two neighbours. The head, trained by Eq. 17,
+            refinement head's regression over every bins stage) or ``"bins_mode"``: the mode of the last depth-bins
+            stage: the soft-argmax over the heaviest window of three bins, chosen smoothly (continuous in the logits). The head, trained by Eq. 17,
             gives the mean of the depths it finds likely; where a pixel may be ground or an object (scenes unlike the
             training's) that mean lies between the two and is neither; the mode is one of them. Changes no
             weight: a checkpoint reads out either way (:func:`~dapm_lightning.training.checkpointing.load_dapm_module`

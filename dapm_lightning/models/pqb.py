@@ -27,23 +27,33 @@ def expected_value(logits: Tensor, dim: int = 1) -> Tensor:
     return (softmax(logits, dim=dim) * centres.view(shape)).sum(dim=dim, keepdim=True)
 
 
-def bins_mode(logits: Tensor, dim: int = 1) -> Tensor:
-    """The most probable bin of a stage, refined: the soft-argmax over it and its two neighbours, in [0, 1].
+MODE_SHARPNESS = 16.0
+"""How sharply :func:`bins_mode` prefers the heaviest window: two windows blend only where their masses are within
+about 15 % (``exp(-16 * 0.14) = 1/9``), where a hard argmax would be broken by rounding noise. Sharper amplifies
+bf16 noise in an undertrained model's near-uniform bins (measured: 16 keeps bf16 within 1 % of float32 there)."""
 
-    Where the distribution has two modes (ground, or an object standing on it), the full soft-argmax
-    (:func:`expected_value`) lies between them; this stays at the stronger one, with sub-bin precision from its
-    neighbours. ``[B, n, ...]`` logits -> ``[B, 1, ...]`` (``dim`` kept as size 1).
+
+def bins_mode(logits: Tensor, dim: int = 1, sharpness: float | None = None) -> Tensor:
+    """The most probable part of a stage's distribution, in [0, 1]: a mode that stays continuous in the logits.
+
+    Every bin's window (it and its two neighbours) has a mass and a local soft-argmax; the readout is the local
+    soft-argmax of the heaviest window, chosen smoothly (weights ``mass ** sharpness``, :data:`MODE_SHARPNESS`). Where the distribution has
+    two modes (ground, or an object standing on it), the full soft-argmax (:func:`expected_value`) lies between
+    them; this stays at the stronger one with sub-bin precision, and where two windows are nearly tied it moves
+    between them continuously, so an exported, bf16 or int8 model reads out what the eager one does (a hard argmax
+    flips on rounding noise). ``[B, n, ...]`` logits -> ``[B, 1, ...]`` (``dim`` kept as size 1).
     """
-    n = logits.shape[dim]
-    shape = [1] * logits.ndim
-    shape[dim] = 3
-    best = logits.argmax(dim=dim, keepdim=True)
-    window = best + torch.arange(-1, 2, device=logits.device).view(shape)
-    inside = (window >= 0) & (window < n)
-    local = torch.gather(logits, dim, window.clamp(0, n - 1))
-    local = torch.where(inside, local, torch.full_like(local, float("-inf")))
-    centres = (window.to(logits.dtype) + 0.5) / n
-    return (softmax(local, dim=dim) * centres).sum(dim=dim, keepdim=True)
+    probabilities = softmax(logits.movedim(dim, -1), dim=-1)
+    centres = bin_centers(probabilities.shape[-1], probabilities)
+
+    def window_sum(x: Tensor) -> Tensor:
+        padded = nn.functional.pad(x, (1, 1))
+        return padded[..., :-2] + padded[..., 1:-1] + padded[..., 2:]
+
+    mass = window_sum(probabilities).clamp_min(torch.finfo(probabilities.dtype).tiny)
+    local_mean = window_sum(probabilities * centres) / mass
+    choice = softmax((MODE_SHARPNESS if sharpness is None else sharpness) * torch.log(mass), dim=-1)
+    return (choice * local_mean).sum(dim=-1, keepdim=True).movedim(-1, dim)
 
 
 class BinsBlock(nn.Module):

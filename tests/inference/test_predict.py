@@ -255,10 +255,7 @@ def test_cli_predict_honours_precision_and_a_video_source(checkpoint, tmp_path, 
         VideoFramesDataset(video, None, keep_rgb=True))).rgb)
     bf16 = np.load(out / "clip_f000000_depth.npy")
     assert bf16.dtype == np.float32 and not np.array_equal(bf16, fp32.depth_m)  # bf16 ran, not float32
-    relative = np.abs(bf16 / fp32.depth_m - 1)
-    # the quickstart reads the depth from the most probable bin: where two bins of this one-step model are nearly
-    # equal, bf16 may pick the other (a tenth of the pixels here); the rest agree as closely as the head's did
-    assert np.median(relative) < 0.01 and (relative < 0.1).mean() > 0.85
+    np.testing.assert_allclose(bf16, fp32.depth_m, rtol=0.1)  # the bins-mode readout is continuous, as the head
 
 
 @pytest.mark.slow
