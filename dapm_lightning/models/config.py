@@ -85,7 +85,8 @@ class DAPMConfig:
             logits). The head, trained by Eq. 17, gives the mean of the depths it finds likely; where a pixel may be
             ground or an object (scenes unlike the training's) that mean lies between the two and is neither; the
             mode is one of them. Changes no weight: a checkpoint reads out either way
-            (:func:`~dapm_lightning.training.checkpointing.load_dapm_module` ``net_overrides``). Needs depth bins stages. docs/model.md.
+            (:func:`~dapm_lightning.training.checkpointing.load_dapm_module` ``net_overrides``). Needs depth bins
+            stages. docs/model.md.
         weight_init: ``"pytorch"`` (default: PyTorch's) or ``"authors"``: the depth decoder's convs
             Kaiming-normal (fan_out) with bias 0, the pose branch's linears Xavier-normal with bias 0.01 and
             its convs Kaiming-normal (fan_out); the depth bins heads and the IGD feature keep PyTorch's, as the

@@ -41,7 +41,8 @@ def bins_mode(logits: Tensor, dim: int = 1, sharpness: float | None = None) -> T
     Where the distribution has two modes (ground, or an object standing on it), the full soft-argmax
     (:func:`expected_value`) lies between them; this stays at the stronger one with sub-bin precision, and where two
     windows are nearly tied it moves between them continuously, so an exported, bf16 or int8 model reads out what
-    the eager one does (a hard argmax flips on rounding noise). ``[B, n, ...]`` logits -> ``[B, 1, ...]`` (``dim`` kept as size 1).
+    the eager one does (a hard argmax flips on rounding noise). ``[B, n, ...]`` logits -> ``[B, 1, ...]`` (``dim``
+    kept as size 1).
     """
     probabilities = softmax(logits.movedim(dim, -1), dim=-1)
     centres = bin_centers(probabilities.shape[-1], probabilities)
