@@ -4,6 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 OUT ?= outputs/quickstart
+CKPT_OUT ?= outputs/checkpoint_demo
 WHEELS ?= wheels
 INT8_CKPT ?= $(lastword $(wildcard $(OUT)/tensorboard/version_*/checkpoints/best-*.ckpt))
 
@@ -17,8 +18,9 @@ $(STAMP): pyproject.toml constraints.txt
 
 install: $(STAMP)
 
+# CKPT=models/dapm-synthetic-r18-256 (or any checkpoint): test that model instead of training one
 demo: $(STAMP)
-	$(BIN)/python -m dapm_lightning.tools.quickstart --out $(OUT)
+	$(BIN)/python -m dapm_lightning.tools.quickstart $(if $(CKPT),--out $(CKPT_OUT) --checkpoint $(CKPT),--out $(OUT))
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q

@@ -1,6 +1,8 @@
 """The README's main job: synthetic data -> train a small DAPM on the CPU -> test -> metrics vs baselines -> pictures.
 
-``python -m dapm_lightning.tools.quickstart --out outputs/quickstart`` (what ``make demo`` runs).
+``python -m dapm_lightning.tools.quickstart --out outputs/quickstart`` (what ``make demo`` runs). With
+``--checkpoint PATH`` (``make demo CKPT=PATH``) nothing is trained: the checkpoint (a file or a split checkpoint folder
+such as ``models/dapm-synthetic-r18-256``) is tested on freshly rendered images at its training size instead.
 """
 
 from __future__ import annotations
@@ -12,15 +14,19 @@ import time
 import warnings
 from pathlib import Path
 
+import cv2
 import torch
 
+from dapm_lightning.data.synthetic.generate import generate_uapd, is_current
 from dapm_lightning.data.uapd import UAPDDataset
 from dapm_lightning.geometry.constants import POSE_KEYS
 from dapm_lightning.geometry.igd import ideal_ground_depth
 from dapm_lightning.metrics import DepthMetrics, PoseMetrics
 from dapm_lightning.tools.evaluate import evaluate
+from dapm_lightning.training.checkpoint_files import split_checkpoint_card
 from dapm_lightning.training.checkpointing import best_or_last_checkpoint, load_dapm_module
 from dapm_lightning.training.lightning_cli import run_lightning_cli
+from dapm_lightning.training.visualize import depth_panel
 
 DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "quickstart.yaml"
 ROWS = [("depth", "d1", "higher"), ("depth", "abs_rel", "lower"), ("depth", "rmse", "lower"),
@@ -52,9 +58,35 @@ def with_telemetry(checkpoint: str, root: Path) -> dict[str, dict[str, float]]:
     default margin; returns the depth metrics and those of the pose used.
     """
     module = load_dapm_module(checkpoint).eval()
-    rows = evaluate(module, root, torch.zeros(4, dtype=torch.float64), telemetry=True)["full/cond+bound"]
-    return {"depth": {k: v for k, v in rows.items() if k in ("d1", "d2", "d3", "abs_rel", "rmse", "sq_rel")},
-            "pose": {k: v for k, v in rows.items() if k.startswith(("height_", "pitch_", "roll_", "fov_"))}}
+    return _grouped(evaluate(module, root, torch.zeros(4, dtype=torch.float64), telemetry=True)["full/cond+bound"])
+
+
+def _grouped(row: dict[str, float]) -> dict[str, dict[str, float]]:
+    """One row of :func:`~dapm_lightning.tools.evaluate.evaluate` as ``{"depth": ..., "pose": ...}``."""
+    return {"depth": {k: v for k, v in row.items() if k in ("d1", "d2", "d3", "abs_rel", "rmse", "sq_rel")},
+            "pose": {k: v for k, v in row.items() if k.startswith(("height_", "pitch_", "roll_", "fov_"))}}
+
+
+def evaluate_checkpoint(checkpoint: str, root: Path, out: Path, mean_pose: torch.Tensor, panel_images: int = 4
+                    ) -> tuple[dict[str, dict[str, float]], dict[str, dict[str, float]], Path]:
+    """A trained checkpoint on ``root/val`` without training: its own figures, those given telemetry, a panel.
+
+    The figures are the test's (:func:`~dapm_lightning.tools.evaluate.evaluate`'s ``model`` row: the same depth and
+    pose metrics on the same images) and :func:`with_telemetry`'s; the panel of the first ``panel_images`` images
+    (RGB | true depth | predicted | IGD of the predicted pose | error) is written to ``out/panels/test_val.png``.
+    """
+    module = load_dapm_module(checkpoint).eval()
+    with torch.no_grad():
+        rows = evaluate(module, root, mean_pose, telemetry=True)
+        samples = [UAPDDataset(root, "val")[i] for i in range(panel_images)]
+        image = torch.stack([s["image"] for s in samples])
+        panel = depth_panel(image, torch.stack([s["depth"] for s in samples]), module(image), panel_images,
+                            module.net_config.igd)
+    path = out / "panels" / "test_val.png"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if not cv2.imwrite(str(path), cv2.cvtColor(panel, cv2.COLOR_RGB2BGR)):
+        raise OSError(f"{path}: could not write the panel")
+    return _grouped(rows["model"]), _grouped(rows["full/cond+bound"]), path
 
 
 def report(model: dict[str, dict[str, float]], base: dict[str, dict[str, float]],
@@ -87,7 +119,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--data-root", type=Path, default=None, help="synthetic data cache (default OUT/data)")
     parser.add_argument("--max-epochs", type=int, default=None, help="override the config's trainer.max_epochs")
     parser.add_argument("--train-size", type=int, default=None, help="override the synthetic training set size")
+    parser.add_argument("--checkpoint", default=None,
+                        help="test this trained checkpoint (a file or a split checkpoint folder) instead of training")
+    parser.add_argument("--image-size", type=int, default=None,
+                        help="with --checkpoint: the images' size (default: the split checkpoint's card, else 64)")
+    parser.add_argument("--render-seed", type=int, default=1,
+                        help="with --checkpoint: the seed of the images rendered (default 1; the quickstart and the "
+                             "shipped model train on seed 0)")
+    parser.add_argument("--val-size", type=int, default=200, help="with --checkpoint: the test images")
     args = parser.parse_args(argv)
+    if args.checkpoint:
+        return main_checkpoint(args)
     warnings.filterwarnings("ignore", message="LightningCLI's args parameter")  # we call the CLI from Python
     warnings.filterwarnings("ignore", message=".*treespec, LeafSpec.*")
     start = time.time()
@@ -142,8 +184,42 @@ def main(argv: list[str] | None = None) -> int:
     return 0 if not failures else 1
 
 
+def main_checkpoint(args: argparse.Namespace) -> int:
+    """The quickstart without training: ``args.checkpoint`` tested on rendered images beside the baselines."""
+    start = time.time()
+    out = args.out.resolve()
+    out.mkdir(parents=True, exist_ok=True)
+    size = args.image_size or int(split_checkpoint_card(args.checkpoint).get("image_size", 64))
+    data_root = (args.data_root or out / f"data_{size}_seed{args.render_seed}").resolve()
+    chosen = {"train": args.train_size or 500, "val": args.val_size, "size": size, "seed": args.render_seed}
+    print(f"[1/3] synthetic UAPD-format data in {data_root}: {chosen['val']} test images at {size}x{size}, "
+          f"render seed {args.render_seed} ({chosen['train']} training images for the mean-pose baseline)")
+    if not is_current(data_root, **{**chosen, "size": (size, size)}):
+        generate_uapd(data_root, **chosen)
+    base = baselines(data_root)
+    print(f"[2/3] testing {args.checkpoint} (no training)")
+    model, telemetry, panel = evaluate_checkpoint(args.checkpoint, data_root, out,
+                                              torch.tensor(base["mean_pose"]["pose"], dtype=torch.float64))
+    print("[3/3] baselines on the same images")
+    table, failures = report(model, base, telemetry)
+    summary = {"model": model, "baselines": base, "with_telemetry": telemetry, "checkpoint": str(args.checkpoint),
+               "data": {**chosen, "root": str(data_root)}, "minutes": (time.time() - start) / 60,
+               "beats_baselines": not failures, "not_beaten": failures}
+    (out / "metrics.json").write_text(json.dumps(summary, indent=2) + "\n")
+    print(f"\n{args.checkpoint} vs baselines on {chosen['val']} rendered images (depth in metres). Baselines: depth "
+          "= IGD of the mean training pose, pose = the mean training pose. +telem.: the model given each image's "
+          "telemetry (noise of 3 m, 1 deg, 1 deg, 2 deg) through its IGD.\n")
+    print(table)
+    print("\n" + ("The model beats both baselines on depth d1, AbsRel and every pose median."
+                  if not failures else f"NOT beaten: {', '.join(failures)}"))
+    print(f"\nOutputs in {out}:\n  metrics.json       all figures above\n  {panel.relative_to(out)}  "
+          "RGB | true depth | predicted | IGD of predicted pose | error")
+    print(f"Took {(time.time() - start) / 60:.1f} min.")
+    return 0 if not failures else 1
+
+
 if __name__ == "__main__":
     raise SystemExit(main())
 
 
-__all__ = ["baselines", "main", "report", "with_telemetry"]
+__all__ = ["baselines", "main", "main_checkpoint", "report", "evaluate_checkpoint", "with_telemetry"]

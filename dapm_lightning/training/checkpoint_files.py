@@ -5,6 +5,8 @@ holds pickled code is refused (:class:`UnsafeCheckpointError`) without running i
 the run's folder first (:func:`fetch_checkpoint`, named by a hash of the whole address). :func:`save_atomically`
 writes a temporary file in the checkpoint's own folder, fsyncs it, then renames it over the target, so the previous
 file stays complete until the new one is; :func:`remove_unfinished_saves` clears what a killed save left.
+:func:`split_checkpoint` stores a checkpoint as a folder of parts (each under a hosting limit, e.g. a Git host's
+file size) with a manifest of their SHA-256 sums; :func:`read_checkpoint` reads such a folder like a file.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ from __future__ import annotations
 import errno
 import hashlib
 import io
+import json
 import os
 import re
 import secrets
@@ -301,6 +304,88 @@ def fetch_checkpoint(url: str, folder: str | Path) -> Path:
     return path
 
 
+SPLIT_MANIFEST = "parts.json"
+"""The manifest of a split checkpoint folder (:func:`split_checkpoint`)."""
+
+
+def split_checkpoint(source: str | Path, folder: str | Path, part_bytes: int = 15 << 20,
+                     card: Mapping[str, Any] | None = None) -> list[Path]:
+    """Write the checkpoint file ``source`` as ``folder/checkpoint.partNN`` files of at most ``part_bytes`` each.
+
+    ``folder/parts.json`` lists the parts with their sizes and SHA-256 sums, the whole file's size and sum, and
+    ``card`` (plain values describing the model, e.g. its training command). :func:`read_checkpoint` joins and checks
+    them. Returns the files written (the parts, then the manifest).
+    """
+    data = Path(source).read_bytes()
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    parts = []
+    for index, start in enumerate(range(0, len(data), part_bytes)):
+        chunk = data[start:start + part_bytes]
+        path = folder / f"checkpoint.part{index:02d}"
+        _atomic_write(path, lambda stream, chunk=chunk: stream.write(chunk), "write a checkpoint part")
+        parts.append({"name": path.name, "bytes": len(chunk), "sha256": hashlib.sha256(chunk).hexdigest()})
+    manifest = {"bytes": len(data), "sha256": hashlib.sha256(data).hexdigest(), "parts": parts,
+                "card": dict(card or {})}
+    text = json.dumps(manifest, indent=2) + "\n"
+    _atomic_write(folder / SPLIT_MANIFEST, lambda stream: stream.write(text.encode()), "write the manifest")
+    return [folder / p["name"] for p in parts] + [folder / SPLIT_MANIFEST]
+
+
+def is_split_checkpoint(path: str | Path) -> bool:
+    """Whether ``path`` is a local folder written by :func:`split_checkpoint`."""
+    return not is_remote(path) and (local_path(path) / SPLIT_MANIFEST).is_file()
+
+
+def split_checkpoint_card(path: str | Path) -> dict[str, Any]:
+    """The ``card`` of a split checkpoint folder's manifest (empty for any other path)."""
+    if not is_split_checkpoint(path):
+        return {}
+    card = json.loads((local_path(path) / SPLIT_MANIFEST).read_text()).get("card", {})
+    return dict(card) if isinstance(card, dict) else {}
+
+
+def join_split_checkpoint(path: str | Path) -> bytes:
+    """The checkpoint file a split folder holds, each part and the whole checked against the manifest.
+
+    Raises FileNotFoundError (a part missing) or :class:`CheckpointReadError` (a part or the manifest damaged),
+    each naming the file and the fix.
+    """
+    folder = local_path(path)
+    fix = (f"Fix: restore the folder as it was published (e.g. `git checkout -- {folder}`, or copy it again "
+           "whole); every part listed in parts.json is needed")
+    try:
+        manifest = json.loads((folder / SPLIT_MANIFEST).read_text())
+        parts = [(str(p["name"]), int(p["bytes"]), str(p["sha256"])) for p in manifest["parts"]]
+        whole = str(manifest["sha256"])
+    except (ValueError, KeyError, TypeError) as error:
+        raise CheckpointReadError(f"{folder / SPLIT_MANIFEST}: not a split checkpoint manifest ({error}). {fix}"
+                                  ) from error
+    chunks = []
+    for name, size, digest in parts:
+        part = folder / name
+        if not part.is_file():
+            raise FileNotFoundError(f"{part}: a part of the split checkpoint {folder} is missing. {fix}")
+        chunk = part.read_bytes()
+        if len(chunk) != size or hashlib.sha256(chunk).hexdigest() != digest:
+            raise CheckpointReadError(f"{part}: damaged ({len(chunk)} bytes, {size} expected, or another SHA-256 "
+                                      f"than parts.json lists). {fix}")
+        chunks.append(chunk)
+    data = b"".join(chunks)
+    if hashlib.sha256(data).hexdigest() != whole:
+        raise CheckpointReadError(f"{folder}: the joined parts do not match parts.json's SHA-256. {fix}")
+    return data
+
+
+def join_split_checkpoint_file(path: str | Path, folder: str | Path) -> Path:
+    """:func:`join_split_checkpoint` written atomically to ``folder/NAME-SHA8.ckpt`` (kept if already there)."""
+    data = join_split_checkpoint(path)
+    target = Path(folder) / f"{local_path(path).resolve().name}-{hashlib.sha256(data).hexdigest()[:8]}.ckpt"
+    if not (target.is_file() and target.stat().st_size == len(data)):
+        _atomic_write(target, lambda stream: stream.write(data), "write the joined checkpoint", lambda: len(data))
+    return target
+
+
 def _refused_globals(source: str | Path | bytes) -> list[str]:
     """The pickled globals of a checkpoint that ``weights_only`` loading refuses ([] if none or unreadable)."""
     allowed = {f"{getattr(g, '__module__', '')}.{getattr(g, '__qualname__', g)}" for g in SAFE_GLOBALS}
@@ -319,7 +404,7 @@ def read_checkpoint(path: str | Path, map_location: Any = "cpu") -> dict[str, An
     memory (never through torch hub's cache, which is keyed by the file's name). No pickled code runs.
 
     Args:
-        path: the checkpoint.
+        path: the checkpoint: a file, a split checkpoint folder (:func:`split_checkpoint`) or a remote file.
         map_location: where tensors go, as in ``torch.load``.
 
     Returns:
@@ -334,6 +419,8 @@ def read_checkpoint(path: str | Path, map_location: Any = "cpu") -> dict[str, An
     source: Path | bytes
     if is_remote(path):
         source = b"".join(_remote_chunks(str(path)))
+    elif is_split_checkpoint(path):
+        source = join_split_checkpoint(path)
     else:
         source = local_path(path)
         if not source.is_file():

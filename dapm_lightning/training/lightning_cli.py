@@ -24,6 +24,8 @@ from dapm_lightning.training.checkpoint_files import (
     UnsafeCheckpointError,
     fetch_checkpoint,
     is_remote,
+    is_split_checkpoint,
+    join_split_checkpoint_file,
     local_path,
     read_checkpoint,
     remove_unfinished_saves,
@@ -223,7 +225,8 @@ class DAPMCLI(LightningCLI):
 
         ``last``: the newest complete checkpoint of the run (:meth:`_resolve_last`). An address (``http(s)://``,
         another fsspec path): downloaded into ``DEFAULT_ROOT_DIR/fetched/`` (every time, named after the whole
-        address) and read from there like a local file; a ``file://`` path is the local file. The file is read
+        address) and read from there like a local file; a ``file://`` path is the local file; a split checkpoint folder
+        (``checkpoint_files.split_checkpoint``) is joined, checked, into ``DEFAULT_ROOT_DIR/fetched/``. The file is read
         once, safely (``weights_only``: a file holding pickled code is refused without running it, a damaged
         one is named), checked to be a dapm-lightning checkpoint, and for ``fit`` of the same architecture; its
         ``hyper_parameters`` then override the configuration's model, as LightningCLI does. ``fit`` also removes
@@ -247,6 +250,9 @@ class DAPMCLI(LightningCLI):
             trainer = config.get("trainer") or {}
             fetched_from = str(ckpt_path)
             ckpt_path = str(fetch_checkpoint(fetched_from, Path(trainer.get("default_root_dir") or ".") / FETCHED))
+        elif ckpt_path and is_split_checkpoint(ckpt_path):  # Lightning reads a file: join the parts into one
+            root = Path((config.get("trainer") or {}).get("default_root_dir") or ".")
+            ckpt_path = str(join_split_checkpoint_file(ckpt_path, root / FETCHED))
         elif ckpt_path and str(ckpt_path).startswith("file://"):
             ckpt_path = str(local_path(ckpt_path))
         if not ckpt_path or not Path(ckpt_path).is_file():

@@ -1,5 +1,10 @@
 """The quickstart's report: the model beside its baselines and beside itself given telemetry."""
 
+import json
+from pathlib import Path
+
+import cv2
+
 from dapm_lightning.tools.quickstart import ROWS, baselines, report, with_telemetry
 
 
@@ -16,3 +21,26 @@ def test_report_has_a_telemetry_column_from_the_real_model(checkpoint, tiny_uapd
     depth_d1 = next(r for r in rows if r.startswith("depth d1"))
     assert depth_d1.split()[-1] == f"{telemetry['depth']['d1']:.3f}"
     assert "depth d1" in failures  # equal to the baseline is not beating it
+
+
+def test_a_trained_checkpoint_is_tested_without_training(checkpoint, tmp_path, capsys):
+    from dapm_lightning.data.uapd import UAPDDataset
+    from dapm_lightning.tools.quickstart import main
+    from dapm_lightning.training.checkpoint_files import split_checkpoint
+
+    folder = tmp_path / "model"
+    split_checkpoint(checkpoint, folder, part_bytes=1 << 20, card={"image_size": 32})
+    out = tmp_path / "demo"
+    code = main(["--out", str(out), "--checkpoint", str(folder), "--train-size", "4", "--val-size", "4",
+                 "--render-seed", "3"])
+    printed = capsys.readouterr().out
+    summary = json.loads((out / "metrics.json").read_text())
+    assert code == (0 if summary["beats_baselines"] else 1)
+    data = Path(summary["data"]["root"])
+    assert data == out / "data_32_seed3" and len(UAPDDataset(data, "val")) == 4  # the card's size, a new seed
+    assert UAPDDataset(data, "val")[0]["image"].shape[-2:] == (32, 32)
+    panel = cv2.imread(str(out / "panels" / "test_val.png"))
+    assert panel is not None and panel.shape[0] >= 4 * 32  # one row per image
+    assert f"{summary['model']['depth']['d1']:9.3f}" in printed and "+telem." in printed
+    assert summary["with_telemetry"]["pose"]["height_median"] < 6.0  # the noisy telemetry's pose, used
+    assert "(no training)" in printed and not (out / "tensorboard").exists()

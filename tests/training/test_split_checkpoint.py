@@ -1,0 +1,83 @@
+"""A checkpoint stored as a folder of parts (a Git host's file limit): read like a file by every loader, and a missing
+or damaged part named with the fix, never loaded half."""
+
+import json
+import shutil
+
+import pytest
+import torch
+
+from dapm_lightning.training.checkpoint_files import (
+    SPLIT_MANIFEST,
+    CheckpointReadError,
+    read_checkpoint,
+    split_checkpoint,
+    split_checkpoint_card,
+)
+from dapm_lightning.training.checkpointing import load_dapm_module
+from dapm_lightning.training.lightning_cli import run_lightning_cli
+from tests.conftest import QUICKSTART
+
+UAPD = ["--data.class_path", "dapm_lightning.data.datamodules.UAPDDataModule", "--data.init_args.batch_size", "2",
+        "--data.init_args.num_workers", "0", "--trainer.enable_progress_bar", "false", "--trainer.logger", "false"]
+
+
+@pytest.fixture()
+def split(checkpoint, tmp_path):
+    """The one-step quickstart checkpoint in parts of 1 MB."""
+    folder = tmp_path / "model"
+    files = split_checkpoint(checkpoint, folder, part_bytes=1 << 20, card={"image_size": 32, "note": "test"})
+    return folder, files
+
+
+def test_parts_join_to_the_same_checkpoint_and_load_as_a_module(checkpoint, split):
+    folder, files = split
+    parts, manifest = files[:-1], files[-1]
+    assert manifest.name == SPLIT_MANIFEST and len(parts) == -(-checkpoint.stat().st_size // (1 << 20)) > 1
+    assert all(p.stat().st_size <= 1 << 20 for p in parts)
+    assert b"".join(p.read_bytes() for p in parts) == checkpoint.read_bytes()
+    assert split_checkpoint_card(folder) == {"image_size": 32, "note": "test"}
+    assert split_checkpoint_card(checkpoint) == {}
+    whole, joined = read_checkpoint(checkpoint), read_checkpoint(folder)
+    assert whole["global_step"] == joined["global_step"]
+    assert all(torch.equal(whole["state_dict"][k], v) for k, v in joined["state_dict"].items())
+    module, original = load_dapm_module(folder).eval(), load_dapm_module(checkpoint).eval()
+    image = torch.rand(1, 3, 32, 32)
+    with torch.no_grad():
+        assert torch.equal(module(image).depth_m, original(image).depth_m)
+
+
+def test_a_missing_or_damaged_part_is_named_with_the_fix(split):
+    folder, files = split
+    first = files[0]
+    data = first.read_bytes()
+    first.write_bytes(data[:-1] + bytes([data[-1] ^ 1]))  # one bit flipped
+    with pytest.raises(CheckpointReadError, match=f"{first}: damaged.*git checkout -- {folder}"):
+        read_checkpoint(folder)
+    first.unlink()
+    with pytest.raises(FileNotFoundError, match=f"{first}: a part of the split checkpoint {folder} is missing"):
+        load_dapm_module(folder)
+    (folder / SPLIT_MANIFEST).write_text("{not json")
+    with pytest.raises(CheckpointReadError, match="not a split checkpoint manifest"):
+        read_checkpoint(folder)
+
+
+def test_a_manifest_that_lies_about_the_whole_is_refused(split):
+    folder, _ = split
+    manifest = json.loads((folder / SPLIT_MANIFEST).read_text())
+    manifest["sha256"] = "0" * 64
+    (folder / SPLIT_MANIFEST).write_text(json.dumps(manifest))
+    with pytest.raises(CheckpointReadError, match="joined parts do not match"):
+        read_checkpoint(folder)
+
+
+def test_the_cli_tests_a_split_folder(split, tiny_uapd, tmp_path, monkeypatch):
+    folder, _ = split
+    shutil.copytree(folder, tmp_path / "copy")
+    monkeypatch.chdir(tmp_path)
+    cli = run_lightning_cli(["test", "--config", str(QUICKSTART), *UAPD, "--data.init_args.root", str(tiny_uapd),
+                             "--trainer.default_root_dir", str(tmp_path / "run"), "--ckpt_path", "copy"])
+    joined = tmp_path / "run" / "fetched"
+    assert [p.name for p in joined.iterdir()][0].startswith("copy-")  # joined once, beside the run
+    assert cli.trainer.ckpt_path.startswith(str(joined))
+    assert "test_depth_d1" in cli.trainer.callback_metrics
