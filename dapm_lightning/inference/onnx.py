@@ -29,6 +29,7 @@ from dapm_lightning.geometry.constants import POSE_KEYS, POSE_UNITS, SKY_PROBABI
 from dapm_lightning.inference.inputs import SIZE_MULTIPLE, network_size
 from dapm_lightning.models.config import DAPMConfig
 from dapm_lightning.models.prior import PosePrior
+from dapm_lightning.training.checkpoint_files import is_split_checkpoint, join_split_checkpoint
 
 PRIOR_INPUTS = ("prior", "prior_known", "prior_sigma")
 """The exported inputs of a model with a pose branch, after ``image``: the values (finite; any value where
@@ -138,7 +139,8 @@ def export_metadata(net: nn.Module, train_image_size: tuple[int, int] | None = N
                              + ("; prior [B, 4] (height m, pitch, roll, fov deg), prior_known [B, 4] bool, "
                                 "prior_sigma [B, 4]" if config.use_pose else "")}
     if source is not None:
-        values["dapm.source_sha256"] = hashlib.sha256(Path(source).read_bytes()).hexdigest()
+        data = join_split_checkpoint(source) if is_split_checkpoint(source) else Path(source).read_bytes()
+        values["dapm.source_sha256"] = hashlib.sha256(data).hexdigest()  # a split folder: of the joined file
     return values
 
 
@@ -202,9 +204,32 @@ def export_onnx(net: nn.Module, path: str | Path, size: tuple[int, int], *, chec
             with torch.no_grad():
                 expected = reference(*inputs)
             got = session.run(None, {name: value.numpy() for name, value in zip(model.input_names, inputs)})
-            rows.append({"shape": shape, **{name: float(np.abs(g - e.numpy()).max())
-                                            for name, g, e in zip(model.names, got, expected)}})
+            row: dict[str, Any] = {"shape": shape, **{name: float(np.abs(g - e.numpy()).max())
+                                                      for name, g, e in zip(model.names, got, expected)}}
+            if "depth_m" in model.names:
+                depth, reference_depth = got[model.names.index("depth_m")], expected[model.names.index("depth_m")]
+                relative = np.abs(depth - reference_depth.numpy()) / np.maximum(reference_depth.numpy(), 1e-3)
+                row[DEPTH_SHARE_OFF] = float((relative > 0.01).mean())
+            rows.append(row)
     return rows
+
+
+DEPTH_SHARE_OFF = "depth_share_off_1pct"
+"""Key of an :func:`export_onnx` row: the share of pixels whose ONNX depth differs from PyTorch's by more than 1 %."""
+EXPORT_TOLERANCES = {False: {DEPTH_SHARE_OFF: 1e-3, "sky_prob": 0.01, "pose": 0.05, "pose_network": 0.05},
+                     True: {DEPTH_SHARE_OFF: 1e-2, "sky_prob": 0.15, "pose": 0.5, "pose_network": 0.5}}
+"""The most an exported model may differ from PyTorch on :func:`export_onnx`'s checks, float32 (False) and float16
+(True): the share of depth pixels off by more than 1 %, the sky probability, the pose (m or deg)."""
+
+
+def export_mismatches(rows: Sequence[Mapping[str, Any]], fp16: bool = False) -> list[str]:
+    """The checks of :func:`export_onnx` that exceed :data:`EXPORT_TOLERANCES`, each as a sentence."""
+    failures = []
+    for key, limit in EXPORT_TOLERANCES[fp16].items():
+        worst = max((row for row in rows if key in row), key=lambda row: row[key], default=None)
+        if worst is not None and worst[key] > limit:
+            failures.append(f"{key} {worst[key]:.3g} > {limit:g} at {tuple(worst['shape'])}")
+    return failures
 
 
 def ensure_exported(module: nn.Module, path: Path) -> Path:
@@ -214,5 +239,11 @@ def ensure_exported(module: nn.Module, path: Path) -> Path:
         trained = getattr(module, "train_image_size", None)
         size = network_size(int(trained[0]), int(trained[1]), (int(trained[0]), int(trained[1]))) if trained \
             else (64, 64)
-        export_onnx(net, path, size, checks=1, dynamic=True, metadata=export_metadata(net, trained))
+        failures = export_mismatches(export_onnx(net, path, size, checks=1, dynamic=True,
+                                                 metadata=export_metadata(net, trained)))
+        if failures:  # never run a model that disagrees with the network it came from
+            for written in (path, path.with_name(path.name + ".data")):
+                written.unlink(missing_ok=True)
+            raise RuntimeError(f"{path}: the exported model disagrees with PyTorch ({'; '.join(failures)}); removed. "
+                               "Fix: predict with the PyTorch runtime, and report this as a bug of the export")
     return path

@@ -291,7 +291,8 @@ class DAPMNet(nn.Module):
             return DepthPrediction(depth_init, depth_init, decode_log_depth(depth_init, igd.max_depth), None, (),
                                    None, False)
         stride = self.config.head_stride
-        head_size = (max(1, -(-size[0] // stride)), max(1, -(-size[1] // stride)))
+        # ceil division of positive sizes only: ONNX's integer Div truncates, so -(-H // s) exports as a floor
+        head_size = (max(1, (size[0] + stride - 1) // stride), max(1, (size[1] + stride - 1) // stride))
         feature = self.to_head(F.interpolate(depth_feature, size=head_size, mode="bilinear", align_corners=False))
         init_head = F.interpolate(depth_coarse, size=head_size, mode="bilinear", align_corners=False)
         ratio = self.config.depth_parametrization == "igd_ratio"

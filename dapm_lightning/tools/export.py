@@ -5,7 +5,9 @@ prior_sigma), DAPM(D) (depth_m, sky_prob) and DAPM(P) (pose). Batch, height and 
 (any size: the predict path feeds the same network size as PyTorch). The file carries the network's settings
 and training size as metadata, so `dapm-lightning predict SOURCE --ckpt_path MODEL.onnx` needs nothing else.
 After writing, onnxruntime and PyTorch run the same random inputs at two sizes and the largest difference of
-each output is printed. --fp16 true stores the weights and runs the network in half precision with float32
+each output is printed; beyond the tolerances (float32: 0.1 % of depth pixels off by more than 1 %, sky
+probability 0.01, pose 0.05 m or deg; float16: 1 %, 0.15, 0.5) the file is removed and the export fails, unless
+--force true. --fp16 true stores the weights and runs the network in half precision with float32
 input and outputs. --int8 true also writes an int8 model for CPUs and edge boards (onnxruntime static QDQ
 quantisation of the encoder, depth decoder and depth heads, per-channel weights; the pose branch and the
 metric decoding stay float32), calibrated on synthetic renders at the training size (and some at the export
@@ -22,7 +24,20 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from dapm_lightning.inference.inputs import checkpoint_network_size, network_size
-from dapm_lightning.inference.onnx import export_metadata, export_onnx, write_metadata
+from dapm_lightning.inference.onnx import (
+    DEPTH_SHARE_OFF,
+    EXPORT_TOLERANCES,
+    export_metadata,
+    export_mismatches,
+    export_onnx,
+    write_metadata,
+)
+
+
+class ExportMismatch(RuntimeError):
+    """The exported model's outputs disagree with PyTorch's beyond :data:`EXPORT_TOLERANCES` (no file kept)."""
+
+    explained = True
 
 
 class Int8Refused(RuntimeError):
@@ -50,7 +65,9 @@ def export(ckpt_path: Path, out: Path | None = None, height: int | None = None, 
         calibration_images: synthetic renders at the training size that calibrate the int8 ranges (a quarter
             as many more at the export size when it differs).
         verdict_images: held-out renders at the export size on which int8 is measured against float32.
-        force: keep the int8 model even when it fails the verdict.
+        force: keep the exported model even when it disagrees with PyTorch beyond
+            :data:`~dapm_lightning.inference.onnx.EXPORT_TOLERANCES`, and the int8 model even when it fails the
+            verdict.
         threads: onnxruntime threads for the verdict's timing (default 1: steady on a busy machine; 0: onnxruntime's).
     """
     from dapm_lightning.training.checkpointing import load_dapm_module
@@ -72,7 +89,7 @@ def export(ckpt_path: Path, out: Path | None = None, height: int | None = None, 
                 "dapm.precision": "float16" if fp16 else "float32"}
     rows = export_onnx(module.net.eval(), float_out, (height, width), checks=checks, dynamic=dynamic, fp16=fp16,
                        metadata=metadata)
-    names = [k for k in rows[0] if k != "shape"]
+    names = [k for k in rows[0] if k not in ("shape", DEPTH_SHARE_OFF)]
     shape = "[batch, 3, height, width]" if dynamic else f"[1, 3, {height}, {width}]"
     data = float_out.with_name(float_out.name + ".data")
     weights = f"; weights in {data.name}: keep it beside the .onnx file" if data.is_file() else ""
@@ -81,7 +98,20 @@ def export(ckpt_path: Path, out: Path | None = None, height: int | None = None, 
           f"float RGB in [0, 1]; outputs {', '.join(names)}")
     for row in rows:
         print(f"  check {tuple(row['shape'])}: max |onnxruntime - PyTorch fp32|: "
-              + ", ".join(f"{n} {row[n]:.3g}" for n in names))
+              + ", ".join(f"{n} {row[n]:.3g}" for n in names)
+              + (f"; depth pixels off by > 1 %: {row[DEPTH_SHARE_OFF]:.2%}" if DEPTH_SHARE_OFF in row else ""))
+    failures = export_mismatches(rows, fp16)
+    if failures and not force:
+        for path in (float_out, data):
+            path.unlink(missing_ok=True)
+        raise ExportMismatch(
+            f"{float_out}: onnxruntime's outputs disagree with PyTorch's ({'; '.join(failures)}; the limits: "
+            f"{', '.join(f'{k} {v:g}' for k, v in EXPORT_TOLERANCES[fp16].items())}), so the file was removed.\n"
+            "Fix: this is a bug of the export (an operator exported with other semantics): report it with the "
+            "sizes above; exporting at a fixed size (--dynamic false --height H --width W) may avoid it; "
+            "--force true keeps the file anyway.")
+    if failures:
+        print(f"kept anyway (--force true): {float_out} disagrees with PyTorch ({'; '.join(failures)})")
     if int8:
         _int8(float_out, out, trained, (height, width), calibration_images, verdict_images, force, threads,
               {**metadata, "dapm.precision": "int8"})

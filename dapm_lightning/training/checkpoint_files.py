@@ -319,17 +319,26 @@ def split_checkpoint(source: str | Path, folder: str | Path, part_bytes: int = 1
     data = Path(source).read_bytes()
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    parts = []
+    parts: list[dict[str, Any]] = []
+    written = []
     for index, start in enumerate(range(0, len(data), part_bytes)):
         chunk = data[start:start + part_bytes]
         path = folder / f"checkpoint.part{index:02d}"
-        _atomic_write(path, lambda stream, chunk=chunk: stream.write(chunk), "write a checkpoint part")
+        _atomic_write(path, _writer(chunk), "write a checkpoint part")
         parts.append({"name": path.name, "bytes": len(chunk), "sha256": hashlib.sha256(chunk).hexdigest()})
+        written.append(path)
     manifest = {"bytes": len(data), "sha256": hashlib.sha256(data).hexdigest(), "parts": parts,
                 "card": dict(card or {})}
-    text = json.dumps(manifest, indent=2) + "\n"
-    _atomic_write(folder / SPLIT_MANIFEST, lambda stream: stream.write(text.encode()), "write the manifest")
-    return [folder / p["name"] for p in parts] + [folder / SPLIT_MANIFEST]
+    _atomic_write(folder / SPLIT_MANIFEST, _writer((json.dumps(manifest, indent=2) + "\n").encode()),
+                  "write the manifest")
+    return [*written, folder / SPLIT_MANIFEST]
+
+
+def _writer(data: bytes) -> Callable[[IO[bytes]], None]:
+    """A writer of ``data`` for :func:`_atomic_write`."""
+    def write(stream: IO[bytes]) -> None:
+        stream.write(data)
+    return write
 
 
 def is_split_checkpoint(path: str | Path) -> bool:
@@ -382,7 +391,7 @@ def join_split_checkpoint_file(path: str | Path, folder: str | Path) -> Path:
     data = join_split_checkpoint(path)
     target = Path(folder) / f"{local_path(path).resolve().name}-{hashlib.sha256(data).hexdigest()[:8]}.ckpt"
     if not (target.is_file() and target.stat().st_size == len(data)):
-        _atomic_write(target, lambda stream: stream.write(data), "write the joined checkpoint", lambda: len(data))
+        _atomic_write(target, _writer(data), "write the joined checkpoint", lambda: len(data))
     return target
 
 
