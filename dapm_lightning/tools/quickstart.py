@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
 import time
 import warnings
 from pathlib import Path
@@ -22,8 +23,9 @@ from dapm_lightning.data.uapd import UAPDDataset
 from dapm_lightning.geometry.constants import POSE_KEYS
 from dapm_lightning.geometry.igd import ideal_ground_depth
 from dapm_lightning.metrics import DepthMetrics, PoseMetrics
+from dapm_lightning.tools.errors import debug_requested, run_reporting_errors
 from dapm_lightning.tools.evaluate import evaluate
-from dapm_lightning.training.checkpoint_files import split_checkpoint_card
+from dapm_lightning.training.checkpoint_files import is_remote, local_path, split_checkpoint_card
 from dapm_lightning.training.checkpointing import best_or_last_checkpoint, load_dapm_module
 from dapm_lightning.training.lightning_cli import run_lightning_cli
 from dapm_lightning.training.visualize import depth_panel
@@ -68,7 +70,7 @@ def _grouped(row: dict[str, float]) -> dict[str, dict[str, float]]:
 
 
 def evaluate_checkpoint(checkpoint: str, root: Path, out: Path, mean_pose: torch.Tensor, panel_images: int = 4
-                    ) -> tuple[dict[str, dict[str, float]], dict[str, dict[str, float]], Path]:
+                        ) -> tuple[dict[str, dict[str, float]], dict[str, dict[str, float]], Path]:
     """A trained checkpoint on ``root/val`` without training: its own figures, those given telemetry, a panel.
 
     The figures are the test's (:func:`~dapm_lightning.tools.evaluate.evaluate`'s ``model`` row: the same depth and
@@ -187,6 +189,8 @@ def main(argv: list[str] | None = None) -> int:
 def main_checkpoint(args: argparse.Namespace) -> int:
     """The quickstart without training: ``args.checkpoint`` tested on rendered images beside the baselines."""
     start = time.time()
+    if not is_remote(args.checkpoint) and not local_path(args.checkpoint).exists():
+        raise FileNotFoundError(f"{args.checkpoint}: no such checkpoint file or folder")  # before any rendering
     out = args.out.resolve()
     out.mkdir(parents=True, exist_ok=True)
     size = args.image_size or int(split_checkpoint_card(args.checkpoint).get("image_size", 64))
@@ -196,11 +200,11 @@ def main_checkpoint(args: argparse.Namespace) -> int:
           f"render seed {args.render_seed} ({chosen['train']} training images for the mean-pose baseline)")
     if not is_current(data_root, **{**chosen, "size": (size, size)}):
         generate_uapd(data_root, **chosen)
+    print("[2/3] baselines on the test images")
     base = baselines(data_root)
-    print(f"[2/3] testing {args.checkpoint} (no training)")
+    print(f"[3/3] testing {args.checkpoint} (no training)")
     model, telemetry, panel = evaluate_checkpoint(args.checkpoint, data_root, out,
-                                              torch.tensor(base["mean_pose"]["pose"], dtype=torch.float64))
-    print("[3/3] baselines on the same images")
+                                                  torch.tensor(base["mean_pose"]["pose"], dtype=torch.float64))
     table, failures = report(model, base, telemetry)
     summary = {"model": model, "baselines": base, "with_telemetry": telemetry, "checkpoint": str(args.checkpoint),
                "data": {**chosen, "root": str(data_root)}, "minutes": (time.time() - start) / 60,
@@ -219,7 +223,8 @@ def main_checkpoint(args: argparse.Namespace) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    debug, arguments = debug_requested(sys.argv[1:])
+    raise SystemExit(run_reporting_errors(lambda: main(arguments), debug))
 
 
 __all__ = ["baselines", "main", "main_checkpoint", "report", "evaluate_checkpoint", "with_telemetry"]

@@ -44,3 +44,13 @@ def test_a_trained_checkpoint_is_tested_without_training(checkpoint, tmp_path, c
     assert f"{summary['model']['depth']['d1']:9.3f}" in printed and "+telem." in printed
     assert summary["with_telemetry"]["pose"]["height_median"] < 6.0  # the noisy telemetry's pose, used
     assert "(no training)" in printed and not (out / "tensorboard").exists()
+
+
+def test_a_missing_checkpoint_stops_before_rendering(tmp_path):
+    import pytest
+
+    from dapm_lightning.tools.quickstart import main
+
+    with pytest.raises(FileNotFoundError, match="nope: no such checkpoint file or folder"):
+        main(["--out", str(tmp_path / "demo"), "--checkpoint", str(tmp_path / "nope")])
+    assert not (tmp_path / "demo").exists()
