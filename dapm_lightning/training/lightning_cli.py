@@ -39,6 +39,13 @@ from dapm_lightning.training.checkpointing import (
 from dapm_lightning.training.module import DAPMModule
 from dapm_lightning.training.quiet import quiet_lightning
 
+
+class WeightsOnlyCheckpointError(ValueError):
+    """``fit --ckpt_path`` given a checkpoint without training state (e.g. a shipped model's weights)."""
+
+    explained = True
+
+
 TRAINER_DEFAULTS = {"plugins": [{"class_path": "dapm_lightning.training.checkpointing.SafeCheckpointIO"}]}
 """Checkpoints load with ``weights_only=True`` and save atomically. A ``--trainer.plugins`` value replaces this list:
 :meth:`DAPMCLI.instantiate_trainer` then puts the safe I/O back (``enforce_safe_checkpoint_io``)."""
@@ -238,7 +245,7 @@ class DAPMCLI(LightningCLI):
         config = self.config[subcommand]
         if subcommand == "fit" and getattr(rank_zero_only, "rank", 0) == 0:
             remove_unfinished_saves(self._run_folders(config, current_directory=False)[0])
-        ckpt_path = config.get("ckpt_path")
+        ckpt_path = given = config.get("ckpt_path")
         checkpoint: Any = None
         fetched_from: str | None = None
         if ckpt_path == "last":
@@ -268,6 +275,11 @@ class DAPMCLI(LightningCLI):
                 where = f"{fetched_from} (fetched into {ckpt_path}, now removed)"
                 raise type(error)(str(error).replace(str(ckpt_path), where, 1)) from error
         check_dapm_checkpoint(checkpoint, ckpt_path)  # another model's, a bare state dict: what it is, the fix
+        if subcommand == "fit" and "optimizer_states" not in checkpoint:
+            raise WeightsOnlyCheckpointError(
+                f"{given}: holds the model's weights only (no optimizer or loop state), so `fit` "
+                "cannot resume from it.\nFix: use it with `predict`, `test`, `validate` or `export`; to resume a "
+                "training, pass that run's last.ckpt (or --ckpt_path last).")
         saved = checkpoint.get("hyper_parameters", {}).get("net")
         net = config.get("model", {}).get("net")
         if subcommand == "fit" and saved is not None and net is not None:

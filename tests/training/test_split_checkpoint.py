@@ -81,3 +81,18 @@ def test_the_cli_tests_a_split_folder(split, tiny_uapd, tmp_path, monkeypatch):
     assert [p.name for p in joined.iterdir()][0].startswith("copy-")  # joined once, beside the run
     assert cli.trainer.ckpt_path.startswith(str(joined))
     assert "test_depth_d1" in cli.trainer.callback_metrics
+
+
+def test_fit_refuses_to_resume_from_weights_only(checkpoint, tiny_uapd, tmp_path, monkeypatch):
+    from dapm_lightning.training.checkpoint_files import read_checkpoint as read
+    from dapm_lightning.training.lightning_cli import WeightsOnlyCheckpointError
+
+    full = read(checkpoint)
+    torch.save({k: full[k] for k in ("state_dict", "hyper_parameters", "epoch", "global_step")},
+               tmp_path / "weights.pt")
+    split_checkpoint(tmp_path / "weights.pt", tmp_path / "shipped")
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(WeightsOnlyCheckpointError, match="^shipped: holds the model's weights only"):
+        run_lightning_cli(["fit", "--config", str(QUICKSTART), *UAPD, "--data.init_args.root", str(tiny_uapd),
+                           "--trainer.default_root_dir", str(tmp_path / "run"), "--trainer.max_steps", "1",
+                           "--ckpt_path", "shipped"])
