@@ -76,6 +76,10 @@ def test_the_kit_runs_end_to_end_on_the_cpu(tmp_path):
     for row in report["inference"]:
         assert row["fps"] > 0 and row["x_table7"] == pytest.approx(row["fps"] / 24.1)
         assert row["max_depth_rel_change"] < 0.2, row  # every variant computes the same network
+        if row["variant"] == "eager bf16":
+            assert row["max_depth_rel_change_to_bf16"] == 0.0, row  # its own reference
+        if row["variant"] == "compile bf16 channels-last":  # ran in bf16: nearer eager bf16 than eager fp32
+            assert row["max_depth_rel_change_to_bf16"] <= row["max_depth_rel_change"] + 1e-3, row
     learning = report["learning"]
     assert learning["steps"] > 0 and 0 <= learning["d1"] <= 1 and math.isfinite(learning["roll_median"])
     markdown = (tmp_path / "bench_gpu.md").read_text()
