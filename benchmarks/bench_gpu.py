@@ -400,10 +400,9 @@ def markdown(report: dict[str, Any]) -> str:
               "| network | variant | batch | FPS | x Table 7 | setup s | max depth change | to eager bf16 |",
               "| --- | --- | --- | --- | --- | --- | --- | --- |"]
     for r in report["inference"]:
-        to_bf16 = r.get("max_depth_rel_change_to_bf16")
         lines.append(f"| {r['network']} | {r['variant']} | {r['batch']} | {r['fps']:.1f} | {r['x_table7']:.2f} | "
                      f"{r['setup_s']:.1f} | {r['max_depth_rel_change']:.1%} | "
-                     f"{'-' if to_bf16 is None else f'{to_bf16:.1%}'} |")
+                     f"{r['max_depth_rel_change_to_bf16']:.1%} |")
     lines += ["", "max depth change: the largest relative depth difference to eager fp32; to eager bf16: to eager "
                   "bf16 (a bf16 variant near fp32 and far from eager bf16 did not run in bf16)."]
     learning = report["learning"]

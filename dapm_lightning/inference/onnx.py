@@ -232,6 +232,17 @@ def export_mismatches(rows: Sequence[Mapping[str, Any]], fp16: bool = False) -> 
     return failures
 
 
+def weights_file(path: str | Path) -> Path:
+    """Where the exporter puts a large model's weights: ``NAME.onnx.data`` beside ``NAME.onnx``."""
+    return Path(path).with_name(Path(path).name + ".data")
+
+
+def remove_exported(path: str | Path) -> None:
+    """Delete an exported model: the graph and its weights file, where they exist."""
+    for written in (Path(path), weights_file(path)):
+        written.unlink(missing_ok=True)
+
+
 def ensure_exported(module: nn.Module, path: Path) -> Path:
     """``path``, exported from ``module`` (dynamic sizes, checked, with its metadata) when it does not exist."""
     if not path.is_file():
@@ -242,8 +253,7 @@ def ensure_exported(module: nn.Module, path: Path) -> Path:
         failures = export_mismatches(export_onnx(net, path, size, checks=1, dynamic=True,
                                                  metadata=export_metadata(net, trained)))
         if failures:  # never run a model that disagrees with the network it came from
-            for written in (path, path.with_name(path.name + ".data")):
-                written.unlink(missing_ok=True)
+            remove_exported(path)
             raise RuntimeError(f"{path}: the exported model disagrees with PyTorch ({'; '.join(failures)}); removed. "
                                "Fix: predict with the PyTorch runtime, and report this as a bug of the export")
     return path

@@ -30,6 +30,8 @@ from dapm_lightning.inference.onnx import (
     export_metadata,
     export_mismatches,
     export_onnx,
+    remove_exported,
+    weights_file,
     write_metadata,
 )
 
@@ -91,7 +93,7 @@ def export(ckpt_path: Path, out: Path | None = None, height: int | None = None, 
                        metadata=metadata)
     names = [k for k in rows[0] if k not in ("shape", DEPTH_SHARE_OFF)]
     shape = "[batch, 3, height, width]" if dynamic else f"[1, 3, {height}, {width}]"
-    data = float_out.with_name(float_out.name + ".data")
+    data = weights_file(float_out)
     weights = f"; weights in {data.name}: keep it beside the .onnx file" if data.is_file() else ""
     precision = "float16 inside, float32 input and outputs" if fp16 else "float32"
     print(f"wrote {float_out} ({precision}{weights}) in {time.perf_counter() - start:.0f} s: input 'image' {shape} "
@@ -102,8 +104,7 @@ def export(ckpt_path: Path, out: Path | None = None, height: int | None = None, 
               + (f"; depth pixels off by > 1 %: {row[DEPTH_SHARE_OFF]:.2%}" if DEPTH_SHARE_OFF in row else ""))
     failures = export_mismatches(rows, fp16)
     if failures and not force:
-        for path in (float_out, data):
-            path.unlink(missing_ok=True)
+        remove_exported(float_out)
         raise ExportMismatch(
             f"{float_out}: onnxruntime's outputs disagree with PyTorch's ({'; '.join(failures)}; the limits: "
             f"{', '.join(f'{k} {v:g}' for k, v in EXPORT_TOLERANCES[fp16].items())}), so the file was removed.\n"

@@ -198,7 +198,7 @@ def main_checkpoint(args: argparse.Namespace) -> int:
     chosen = {"train": args.train_size or 500, "val": args.val_size, "size": size, "seed": args.render_seed}
     print(f"[1/3] synthetic UAPD-format data in {data_root}: {chosen['val']} test images at {size}x{size}, "
           f"render seed {args.render_seed} ({chosen['train']} training images for the mean-pose baseline)")
-    if not is_current(data_root, **{**chosen, "size": (size, size)}):
+    if not is_current(data_root, **chosen):
         generate_uapd(data_root, **chosen)
     print("[2/3] baselines on the test images")
     base = baselines(data_root)
