@@ -92,11 +92,12 @@ class DepthPanelLogger(L.Callback):
         panel = depth_panel(image, batch["depth"][: self.max_images], out, self.max_images,
                             _dapm_module(pl_module).net_config.igd)
         step = trainer.global_step
+        log_dir = trainer.log_dir  # a broadcast under DDP: every rank asks, or rank 0 waits for the others forever
         experiment = getattr(trainer.logger, "experiment", None)
         if experiment is not None and hasattr(experiment, "add_image"):
             experiment.add_image(f"panels/{tag}", panel, step, dataformats="HWC")
         if trainer.is_global_zero:
-            folder = Path(self.output_dir or trainer.log_dir or ".") / "panels"
+            folder = Path(self.output_dir or log_dir or ".") / "panels"
             folder.mkdir(parents=True, exist_ok=True)
             path = folder / f"{tag}_step{step:06d}.png"
             cv2.imwrite(str(path), cv2.cvtColor(panel, cv2.COLOR_RGB2BGR))

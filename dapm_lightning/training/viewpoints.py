@@ -107,11 +107,12 @@ class ViewpointBreakdown(L.Callback):
         if records.shape[0] == 0:
             return
         self.table = viewpoint_table(records.cpu(), self.bins)
+        log_dir = trainer.log_dir  # a broadcast under DDP: every rank asks, or rank 0 waits for the others forever
         if trainer.is_global_zero:
             values = {f"test_view_{r['component']}_bin{r['bin']}_{k}": r[k]
                       for r in self.table for k in ("d1", "error")}
             for logger in trainer.loggers:  # to the loggers only: the console table stays readable
                 logger.log_metrics(values, step=trainer.global_step)
-            folder = Path(self.output_dir or trainer.log_dir or ".")
+            folder = Path(self.output_dir or log_dir or ".")
             folder.mkdir(parents=True, exist_ok=True)
             self.figure = plot_viewpoints(self.table, folder / "viewpoints.png")

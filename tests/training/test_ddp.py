@@ -44,6 +44,12 @@ def test_ddp_two_cpu_processes_match_single_process(tmp_path):
     assert {"val_pose_roll_median", "val_depth_abs_rel", "val_loss", "val_loss_pd"} <= set(keys)
     for key in keys:
         assert double["metrics"][key] == pytest.approx(single["metrics"][key], rel=1e-5, abs=1e-6), key
+    # `test` with the quickstart's loggers, panels and viewpoint figure: their rank-0 writes once asked
+    # trainer.log_dir (a broadcast) on rank 0 alone, and the two processes waited for each other forever
+    tested = run(tmp_path, "test", "test", *common, "--trainer.devices", "2", "--trainer.strategy", "ddp",
+                 "--trainer.default_root_dir", str(tmp_path / "test_run"), "--ckpt_path", str(ckpt))
+    assert tested["metrics"]["test_depth_d1"] == pytest.approx(single["metrics"]["val_depth_d1"], rel=1e-5)
+    assert list((tmp_path / "test_run").rglob("viewpoints.png")) and list((tmp_path / "test_run").rglob("panels/*.png"))
 
 
 ALL_CONFIGS = [f"{folder}/{p.name}" for folder in ("paper", "ablations", "variants")
