@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import shutil
 import signal
+import tempfile
 from pathlib import Path
 
 import cv2
@@ -19,6 +20,30 @@ TINY_HW = (24, 40)  # non-square, so an H/W swap fails
 # Ctrl-C as in a terminal: a suite started as a background job inherits SIGINT ignored, and so would the processes
 # the Ctrl-C tests start; Python's own handler here gives this process and (reset on exec) its children the default
 signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
+SUITE_DISK_GIB = 1.5  # the peak of the fast or the slow tier: checkpoints of 190 MB, a passed test's folder removed
+
+
+def _free_temporary_disk(config) -> tuple[Path, float]:
+    folder = Path(config.option.basetemp or tempfile.gettempdir())
+    while not folder.exists():
+        folder = folder.parent
+    return folder, shutil.disk_usage(folder).free / 2**30
+
+
+def pytest_report_header(config) -> str:
+    folder, free = _free_temporary_disk(config)
+    return f"free disk for temporary files ({folder}): {free:.1f} GiB (the suite needs ~{SUITE_DISK_GIB})"
+
+
+def pytest_configure(config) -> None:
+    """Too little disk is named up front: "no space left" failures are then the machine, not the code."""
+    folder, free = _free_temporary_disk(config)
+    if free < SUITE_DISK_GIB:
+        config.issue_config_time_warning(pytest.PytestConfigWarning(
+            f"only {free:.1f} GiB free in {folder}; the suite needs ~{SUITE_DISK_GIB} GiB at its peak: free space "
+            "there, or point TMPDIR (or --basetemp) at a larger disk"), stacklevel=2)
 
 
 def write_pair(root: Path, split: str, name: str, pose, seed: int = 0, size=TINY_HW) -> None:
