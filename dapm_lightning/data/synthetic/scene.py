@@ -5,7 +5,8 @@ on the generator state only. The ground is an infinite plane at ``z = 0`` (it re
 what covers it (roads, lots, fields, water, forest floor) is a function of ``(x, y)`` described by
 ``Scene.layout`` and evaluated per pixel by :mod:`.shading`. The families live in :mod:`.urban`
 (downtown, suburb, industrial), :mod:`.rural` (farmland, forest) and :mod:`.water` (coast, lake,
-river, in front of any of them); what they place is described in :mod:`.objects`. This module draws
+river, in front of any of them); what they place is described in :mod:`.objects`, and the tall structures
+any family but downtown may hold in :mod:`.landmarks`. This module draws
 the family, the camera position, the sun and the picture's look, and keeps everything out of the water.
 """
 
@@ -17,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from dapm_lightning.data.synthetic.landmarks import add_landmarks
 from dapm_lightning.data.synthetic.objects import (
     BUILDING,
     CLASS_NAMES,
@@ -132,7 +134,14 @@ def sample_scene(rng: np.random.Generator, family: str | None = None,
         water = sample_water(rng, cam, math.radians(yaw_deg), big=False)
     if water is not None:
         add_boats(out, rng, water, cam)
-    objects = out.objects()
+    elevation = math.radians(rng.uniform(8, 75))
+    azimuth = rng.uniform(0, 2 * math.pi)
+    sun = np.array([math.cos(elevation) * math.cos(azimuth), math.cos(elevation) * math.sin(azimuth),
+                    math.sin(elevation)])
+    look, texture_seed = _look(rng), int(rng.integers(1 << 30))
+    # landmarks draw from a stream of their own, last: the rest of the scene is what it was without them
+    objects = add_landmarks(out.objects(), np.random.default_rng(rng.integers(1 << 62)), cam,
+                            math.radians(yaw_deg), base, layout)
     if water is not None and len(objects):  # nothing but boats stands in the water
         corners = [(objects.lo[:, 0], objects.lo[:, 1]), (objects.hi[:, 0], objects.hi[:, 1]),
                    (objects.lo[:, 0], objects.hi[:, 1]), (objects.hi[:, 0], objects.lo[:, 1])]
@@ -141,8 +150,4 @@ def sample_scene(rng: np.random.Generator, family: str | None = None,
             wet |= water_mask(cx, cy, water)[1] > -3
         objects = objects.select(~wet | (objects.mat == M_BOAT))
     layout["water"] = water
-    elevation = math.radians(rng.uniform(8, 75))
-    azimuth = rng.uniform(0, 2 * math.pi)
-    sun = np.array([math.cos(elevation) * math.cos(azimuth), math.cos(elevation) * math.sin(azimuth),
-                    math.sin(elevation)])
-    return Scene(family, cam, yaw_deg, objects, layout, _look(rng), sun, int(rng.integers(1 << 30)))
+    return Scene(family, cam, yaw_deg, objects, layout, look, sun, texture_seed)

@@ -85,8 +85,8 @@ def _grid(rng: np.random.Generator, cam: tuple[float, float], bx: tuple[float, f
             "seed": int(rng.integers(1 << 30)), **{k: shares.get(k, 0.0) for k in ("plaza", "park", "parking", "yard")}}
 
 
-def _on_road(x: np.ndarray, y: np.ndarray,
-             grid: dict[str, Any]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def on_road(x: np.ndarray, y: np.ndarray,
+            grid: dict[str, Any]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Offsets from the nearest road centre lines (along x and y) and whether a point is on a road."""
     gx = np.mod(x - grid["ox"], grid["bx"])
     gy = np.mod(y - grid["oy"], grid["by"])
@@ -101,7 +101,7 @@ def _road_traffic(out: Collector, rng: np.random.Generator, grid: dict[str, Any]
     """Vehicles in the lanes of a street grid and pedestrians on its pavements, near the camera."""
     x = cam[0] + rng.uniform(-reach, reach, count)
     y = cam[1] + rng.uniform(-reach, reach, count)
-    gx, gy, road_x, road_y = _on_road(x, y, grid)
+    gx, gy, road_x, road_y = on_road(x, y, grid)
     lane = grid["road"] / 4
     vertical = road_x & ~road_y  # a road running along y (constant x)
     horizontal = road_y & ~road_x
@@ -112,7 +112,7 @@ def _road_traffic(out: Collector, rng: np.random.Generator, grid: dict[str, Any]
     if people:
         px = cam[0] + rng.uniform(-reach / 2, reach / 2, people)
         py = cam[1] + rng.uniform(-reach / 2, reach / 2, people)
-        gx, gy, _, _ = _on_road(px, py, grid)
+        gx, gy, _, _ = on_road(px, py, grid)
         half, walk = grid["road"] / 2, grid["walk"]
         on_walk = (((np.abs(gx) > half + 0.3) & (np.abs(gx) < half + walk - 0.3))
                    | ((np.abs(gy) > half + 0.3) & (np.abs(gy) < half + walk - 0.3)))
