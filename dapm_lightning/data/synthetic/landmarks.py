@@ -16,7 +16,16 @@ from typing import Any
 
 import numpy as np
 
-from dapm_lightning.data.synthetic.objects import BOX, BUILDING, M_FACADE, M_GLASS, M_HALL, M_UNIT, Objects
+from dapm_lightning.data.synthetic.objects import (
+    BOX,
+    BUILDING,
+    M_FACADE,
+    M_GLASS,
+    M_HALL,
+    M_UNIT,
+    Collector,
+    Objects,
+)
 from dapm_lightning.data.synthetic.rural import road_distance
 from dapm_lightning.data.synthetic.urban import on_road
 
@@ -105,10 +114,8 @@ def add_landmarks(objects: Objects, rng: np.random.Generator, cam: tuple[float, 
     for i in range(n):
         inside |= ((objects.lo[:, 0] < x1[i] + 2) & (objects.hi[:, 0] > x0[i] - 2)
                    & (objects.lo[:, 1] < y1[i] + 2) & (objects.hi[:, 1] > y0[i] - 2))
-    kept = objects.select(~inside)
-    added = Objects(prim=np.full(n, BOX, np.int8), lo=np.stack([x0, y0, np.zeros(n)], -1),
-                    hi=np.stack([x1, y1, height], -1), eave=height.copy(), cls=np.full(n, BUILDING, np.uint8),
-                    mat=mat, color=np.clip(color, 0, 1), roof=roof,
-                    floor_h=storey, window=window)
-    return Objects(**{name: np.concatenate([getattr(kept, name), getattr(added, name)])
-                      for name in Objects.__dataclass_fields__})
+    out = Collector()
+    out.add_objects(objects.select(~inside))
+    out.add(BOX, np.stack([x0, y0, np.zeros(n)], -1), np.stack([x1, y1, height], -1), BUILDING, mat,
+            np.clip(color, 0, 1), roof, floor_h=storey, window=window)
+    return out.objects()

@@ -79,6 +79,11 @@ class Collector:
             "floor_h": np.broadcast_to(np.asarray(floor_h, float), (n,)).copy(),
             "window": np.broadcast_to(np.asarray(window, float), (n,)).copy()})
 
+    def add_objects(self, objects: Objects) -> None:
+        """The rows of a table already built, as they are."""
+        if len(objects):
+            self.parts.append({name: getattr(objects, name) for name in objects.__dataclass_fields__})
+
     def objects(self) -> Objects:
         if not self.parts:
             return Objects()
