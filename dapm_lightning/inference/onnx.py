@@ -156,6 +156,10 @@ def write_metadata(path: str | Path, metadata: Mapping[str, str]) -> None:
     onnx.save(model, str(path))
 
 
+MAX_EXPORT_SIDE = 8192
+"""The largest height or width an exported graph takes (and may be exported at)."""
+
+
 def export_onnx(net: nn.Module, path: str | Path, size: tuple[int, int], *, checks: int = 3, seed: int = 0,
                 dynamic: bool = True, fp16: bool = False,
                 metadata: Mapping[str, str] | None = None) -> list[dict[str, Any]]:
@@ -186,8 +190,8 @@ def export_onnx(net: nn.Module, path: str | Path, size: tuple[int, int], *, chec
     dynamic_shapes = None
     if dynamic:
         batch = torch.export.Dim("batch", min=1, max=4096)
-        height = torch.export.Dim("height", min=SIZE_MULTIPLE, max=8192)
-        width = torch.export.Dim("width", min=SIZE_MULTIPLE, max=8192)
+        height = torch.export.Dim("height", min=SIZE_MULTIPLE, max=MAX_EXPORT_SIDE)
+        width = torch.export.Dim("width", min=SIZE_MULTIPLE, max=MAX_EXPORT_SIDE)
         dynamic_shapes = {"image": {0: batch, 2: height, 3: width}}
         dynamic_shapes.update({name: {0: batch} for name in model.input_names[1:]})
     with torch.no_grad(), warnings.catch_warnings():  # the network's export-time ops: models.blocks

@@ -19,18 +19,21 @@ Settings can come from a YAML file (--config FILE; --print_config shows one).
 
 from __future__ import annotations
 
+import os
+import shutil
+import tempfile
 import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from dapm_lightning.inference.inputs import checkpoint_network_size, network_size
+from dapm_lightning.inference.inputs import SIZE_MULTIPLE, checkpoint_network_size, network_size
 from dapm_lightning.inference.onnx import (
     DEPTH_SHARE_OFF,
     EXPORT_TOLERANCES,
+    MAX_EXPORT_SIDE,
     export_metadata,
     export_mismatches,
     export_onnx,
-    remove_exported,
     weights_file,
     write_metadata,
 )
@@ -75,39 +78,51 @@ def export(ckpt_path: Path, out: Path | None = None, height: int | None = None, 
     from dapm_lightning.training.checkpointing import load_dapm_module
 
     ckpt_path = Path(ckpt_path)
+    if int8 and fp16:
+        raise ValueError("--int8 quantises the float32 model: leave --fp16 out")
+    check_export_size(height, width)
+    suffix = "_fp16" if fp16 else "_int8" if int8 else ""
+    out = Path(out) if out else ckpt_path.with_name(ckpt_path.stem + suffix + ".onnx")
+    check_export_path(out, ckpt_path)
+    float_out = out.with_name(out.stem.removesuffix("_int8") + ".onnx") if int8 else out
+    if float_out == out:
+        float_out = out.with_name(out.stem + "_float32.onnx") if int8 else out
     module = load_dapm_module(ckpt_path, map_location="cpu")
     trained = checkpoint_network_size(module)
     if height is None or width is None:
         height, width = network_size(height or trained[0], width or trained[1], None)
-    if int8 and fp16:
-        raise ValueError("--int8 quantises the float32 model: leave --fp16 out")
-    suffix = "_fp16" if fp16 else "_int8" if int8 else ""
-    out = Path(out) if out else ckpt_path.with_name(ckpt_path.stem + suffix + ".onnx")
-    float_out = out.with_name(out.stem.removesuffix("_int8") + ".onnx") if int8 else out
-    if float_out == out:
-        float_out = out.with_name(out.stem + "_float32.onnx") if int8 else out
     start = time.perf_counter()
     metadata = {**export_metadata(module.net, module.train_image_size, ckpt_path),
                 "dapm.precision": "float16" if fp16 else "float32"}
-    rows = export_onnx(module.net.eval(), float_out, (height, width), checks=checks, dynamic=dynamic, fp16=fp16,
-                       metadata=metadata)
+    float_out.parent.mkdir(parents=True, exist_ok=True)
+    # written beside the target first, moved into place once checked: a failed export leaves an earlier one whole
+    staging = Path(tempfile.mkdtemp(prefix=f".{float_out.name}.", dir=float_out.parent))
+    try:
+        rows = export_onnx(module.net.eval(), staging / float_out.name, (height, width), checks=checks,
+                           dynamic=dynamic, fp16=fp16, metadata=metadata)
+        failures = export_mismatches(rows, fp16)
+        if not failures or force:
+            _move_exported(staging / float_out.name, float_out)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
     names = [k for k in rows[0] if k not in ("shape", DEPTH_SHARE_OFF)]
     shape = "[batch, 3, height, width]" if dynamic else f"[1, 3, {height}, {width}]"
+    kept = not failures or force
     data = weights_file(float_out)
-    weights = f"; weights in {data.name}: keep it beside the .onnx file" if data.is_file() else ""
+    weights = f"; weights in {data.name}: keep it beside the .onnx file" if data.is_file() and kept else ""
     precision = "float16 inside, float32 input and outputs" if fp16 else "float32"
-    print(f"wrote {float_out} ({precision}{weights}) in {time.perf_counter() - start:.0f} s: input 'image' {shape} "
-          f"float RGB in [0, 1]; outputs {', '.join(names)}")
+    print(f"{'wrote' if kept else 'exported, not written:'} {float_out} ({precision}{weights}) in "
+          f"{time.perf_counter() - start:.0f} s: input 'image' {shape} float RGB in [0, 1]; outputs {', '.join(names)}")
     for row in rows:
         print(f"  check {tuple(row['shape'])}: max |onnxruntime - PyTorch fp32|: "
               + ", ".join(f"{n} {row[n]:.3g}" for n in names)
               + (f"; depth pixels off by > 1 %: {row[DEPTH_SHARE_OFF]:.2%}" if DEPTH_SHARE_OFF in row else ""))
-    failures = export_mismatches(rows, fp16)
-    if failures and not force:
-        remove_exported(float_out)
+    if not kept:
+        earlier = f" (the earlier {float_out.name} there is left as it was)" if float_out.is_file() else ""
         raise ExportMismatch(
             f"{float_out}: onnxruntime's outputs disagree with PyTorch's ({'; '.join(failures)}; the limits: "
-            f"{', '.join(f'{k} {v:g}' for k, v in EXPORT_TOLERANCES[fp16].items())}), so the file was removed.\n"
+            f"{', '.join(f'{k} {v:g}' for k, v in EXPORT_TOLERANCES[fp16].items())}), so it was not written"
+            f"{earlier}.\n"
             "Fix: this is a bug of the export (an operator exported with other semantics): report it with the "
             "sizes above; exporting at a fixed size (--dynamic false --height H --width W) may avoid it; "
             "--force true keeps the file anyway.")
@@ -152,6 +167,35 @@ def _int8(float_out: Path, out: Path, trained: tuple[int, int], size: tuple[int,
     print("\n".join(verdict.lines()))
     if not verdict.passed:
         print(f"kept anyway (--force true): {out} is less accurate than {float_out}")
+
+
+def check_export_size(height: int | None, width: int | None) -> None:
+    """Refuse an example input smaller than the encoder's stride or larger than an exported graph takes."""
+    for name, side in (("--height", height), ("--width", width)):
+        if side is not None and not SIZE_MULTIPLE <= side <= MAX_EXPORT_SIDE:
+            raise ValueError(f"{name} {side}: an exported model takes sides of {SIZE_MULTIPLE} to {MAX_EXPORT_SIDE} "
+                             f"pixels (at least the encoder's stride).\nFix: give {name} in that range, or leave it "
+                             "out for the checkpoint's training size.")
+
+
+def check_export_path(out: Path, ckpt_path: Path) -> None:
+    """Refuse an ``--out`` that is a folder, does not end in .onnx, or is the checkpoint itself."""
+    if out.is_dir():
+        raise ValueError(f"--out {out} is a folder.\nFix: give the file to write, e.g. --out "
+                         f"{out / (ckpt_path.stem + '.onnx')}")
+    if out.suffix.lower() != ".onnx" or out.resolve() == ckpt_path.resolve():
+        raise ValueError(f"--out {out}: an exported model is written to a file ending in .onnx (an existing one "
+                         f"is replaced, and nothing else is).\nFix: --out {out.with_suffix('.onnx')}")
+
+
+def _move_exported(staged: Path, final: Path) -> None:
+    """Move an export (its graph and, where there is one, its weights file) from ``staged`` to ``final``."""
+    staged_data, final_data = weights_file(staged), weights_file(final)
+    if staged_data.is_file():
+        os.replace(staged_data, final_data)
+    else:
+        final_data.unlink(missing_ok=True)  # an earlier export's weights, not this graph's
+    os.replace(staged, final)
 
 
 def export_main(argv: Sequence[str]) -> None:

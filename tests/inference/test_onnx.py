@@ -92,6 +92,54 @@ def test_cli_export_settings_from_a_config_file(tmp_path, capsys):
     assert info.value.code == 1 and "model.ckpt: no such checkpoint file" in capsys.readouterr().err
 
 
+SHIPPED = Path(__file__).resolve().parents[2] / "models" / "dapm-synthetic-r18-256"
+
+
+def test_export_refuses_an_out_it_would_wrongly_replace_and_sizes_it_cannot_export(tmp_path, capsys):
+    """Checked before the checkpoint is read: a user's checkpoint given as --out stays whole."""
+    ckpt = tmp_path / "model.ckpt"
+    ckpt.write_bytes(b"precious")
+    for argv, message in ((["--out", str(ckpt)], "model.ckpt: an exported model is written to a file ending in .onnx"),
+                          (["--out", str(tmp_path / "notes.txt")], "Fix: --out " + str(tmp_path / "notes.onnx")),
+                          (["--out", str(tmp_path)], "is a folder.\nFix: give the file to write"),
+                          (["--height", "16"], "--height 16: an exported model takes sides of 32 to 8192"),
+                          (["--width", "9000"], "--width 9000: an exported model takes sides of 32 to 8192")):
+        with pytest.raises(SystemExit) as info:
+            main(["export", "--ckpt_path", str(ckpt), *argv])
+        err = capsys.readouterr().err
+        assert info.value.code == 1 and message in err and "Traceback" not in err, (argv, err)
+    assert ckpt.read_bytes() == b"precious" and sorted(p.name for p in tmp_path.iterdir()) == ["model.ckpt"]
+
+
+@pytest.mark.parametrize("mismatch", [False, True])
+def test_export_replaces_an_earlier_one_only_once_checked(tmp_path, capsys, monkeypatch, mismatch):
+    """The export is written beside the target and moved there once it passes: one that fails leaves the earlier
+    file and its weights as they were; one that passes replaces both (and drops weights its graph does not use)."""
+    import dapm_lightning.tools.export as export_tool
+
+    def fake_export(net, path, size, **kwargs):
+        path.write_bytes(b"new graph")
+        if not mismatch:
+            (path.parent / (path.name + ".data")).write_bytes(b"new weights")
+        row = {"shape": (1, *size), "depth_m": 1e-4, "sky_prob": 0.5 if mismatch else 1e-6, "pose": 1e-4}
+        return [row]
+    monkeypatch.setattr(export_tool, "export_onnx", fake_export)
+    out = tmp_path / "shipped.onnx"
+    out.write_bytes(b"earlier graph")
+    (tmp_path / "shipped.onnx.data").write_bytes(b"earlier weights")
+    if mismatch:
+        with pytest.raises(export_tool.ExportMismatch, match="so it was not written .the earlier shipped.onnx there "
+                                                             "is left as it was"):
+            export_tool.export(SHIPPED, out, height=64, width=64)
+        assert "exported, not written:" in capsys.readouterr().out
+        assert out.read_bytes() == b"earlier graph"
+        assert (tmp_path / "shipped.onnx.data").read_bytes() == b"earlier weights"
+    else:
+        assert export_tool.export(SHIPPED, out, height=64, width=64) == out
+        assert out.read_bytes() == b"new graph" and (tmp_path / "shipped.onnx.data").read_bytes() == b"new weights"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["shipped.onnx", "shipped.onnx.data"]  # no staging left
+
+
 @pytest.mark.slow
 def test_cli_export(checkpoint, tmp_path, capsys):
     out = tmp_path / "model.onnx"
@@ -120,6 +168,7 @@ def test_the_shipped_model_exports_exactly_at_odd_sizes(tmp_path, capsys, monkey
     main(["export", "--ckpt_path", str(shipped), "--out", str(out), "--checks", "1"])
     printed = capsys.readouterr().out
     assert out.is_file() and "(2, 243, 277)" in printed and "depth pixels off by > 1 %: 0.00%" in printed
+    exported = out.read_bytes()
     import dapm_lightning.tools.export as export_tool
 
     real = export_tool.export_onnx
@@ -131,6 +180,6 @@ def test_the_shipped_model_exports_exactly_at_odd_sizes(tmp_path, capsys, monkey
     with pytest.raises(export_tool.ExportMismatch, match=r"(?s)shipped.onnx: onnxruntime's outputs disagree.*sky_prob "
                                                          r"0.1 > 0.01.*--force true keeps"):
         export_tool.export(shipped, out, checks=1)
-    assert not out.exists() and not (tmp_path / "shipped.onnx.data").exists()  # a wrong model is not left behind
+    assert out.read_bytes() == exported  # the earlier, right export is left whole; the wrong one is not written
     assert export_tool.export(shipped, out, checks=1, force=True) == out and out.is_file()
     assert "kept anyway (--force true)" in capsys.readouterr().out
