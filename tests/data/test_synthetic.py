@@ -202,3 +202,25 @@ def test_lens_distortion_warps_image_and_depth_alike(tmp_path):
     names = UAPDDataset(root, "train").names
     assert all("lensk" in parse_uapd_filename(n) for n in names)
     assert json.loads((root / "synth.json").read_text())["distortion"] is True
+
+
+def test_the_synthetic_module_says_what_it_renders_and_what_it_replaces(tmp_path, capsys):
+    """A set rendered with other settings is re-rendered with a warning naming what changed, not silently."""
+    import warnings
+
+    from dapm_lightning.data.datamodules import SyntheticDataModule
+
+    def prepare(train: int) -> list[str]:
+        dm = SyntheticDataModule(root=str(tmp_path / "s"), train_size=train, val_size=1, image_size=16,
+                                 render_workers=1, num_workers=0)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            dm.prepare_data()
+        return [str(w.message) for w in caught]
+
+    assert prepare(1) == [] and "s: rendering 1 + 1 synthetic images at 16 px" in capsys.readouterr().out
+    assert prepare(1) == [] and capsys.readouterr().out == ""  # current: nothing rendered, nothing said
+    replaced = prepare(2)
+    assert len(replaced) == 1 and "rendering it again (2 + 1 synthetic images at 16 px)" in replaced[0]
+    assert "(train 1 -> 2)" in replaced[0] and "another data.init_args.root" in replaced[0]
+    assert len(list((tmp_path / "s" / "train" / "rgb").iterdir())) == 2

@@ -18,6 +18,7 @@ from dapm_lightning.data.synthetic.generate import (
     render_sample,
     sample_pose,
     settings,
+    settings_changes,
     shard_range,
     uapd_name,
 )
@@ -39,4 +40,5 @@ from dapm_lightning.data.synthetic.scene import (
 
 __all__ = ["BUILDING", "CLASS_NAMES", "FAMILIES", "GENERATOR_VERSION", "GROUND", "PERSON", "SKY", "TREE", "VEHICLE",
            "WATER", "Scene", "generate_uapd", "image_seed", "is_current", "normalize_families", "render_sample",
+           "settings_changes",
            "render_scene", "sample_pose", "sample_scene", "settings", "shard_range", "uapd_name"]

@@ -105,6 +105,20 @@ def is_current(root: str | Path, **kwargs: Any) -> bool:
         return False
 
 
+def settings_changes(root: str | Path, **kwargs: Any) -> str:
+    """What differs between ``root/synth.json`` and these settings, e.g. ``"train 8 -> 2000, val 4 -> 200"``.
+
+    Empty when they agree; ``"no readable synth.json"`` when there is none to compare.
+    """
+    try:
+        have = json.loads((Path(root) / "synth.json").read_text())
+    except (json.JSONDecodeError, OSError):
+        return "no readable synth.json"
+    have.setdefault("distortion", False)
+    want = json.loads(json.dumps(settings(**kwargs)))
+    return ", ".join(f"{key} {have.get(key)} -> {value}" for key, value in want.items() if have.get(key) != value)
+
+
 def shard_range(count: int, shard: tuple[int, int]) -> range:
     """Indices of shard ``k`` of ``n`` (0-based) among ``count`` jobs: contiguous, sizes differing by at most 1."""
     k, n = shard
