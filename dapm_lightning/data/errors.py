@@ -12,8 +12,10 @@ from typing import Any
 class DatasetError(ValueError):
     """A data set has problems; ``problems`` lists every one as ``"<file>: <what is wrong>"``."""
 
-    def __init__(self, root: object, problems: Sequence[str], *, shown: int = 50) -> None:
+    def __init__(self, root: object, problems: Sequence[str], *, shown: int = 50, fix: str | None = None) -> None:
         self.problems = list(problems)
+        self.fix = fix
+        """The fix when it is not to correct or leave out the files listed (a missing folder, a wrong root)."""
         listed = "\n  ".join(self.problems[:shown])
         more = f"\n  ... and {len(self.problems) - shown} more" if len(self.problems) > shown else ""
         super().__init__(f"{root}: {len(self.problems)} problem(s) found:\n  {listed}{more}")

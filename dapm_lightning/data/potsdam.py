@@ -81,7 +81,9 @@ class PotsdamCrops:
             if not folder.is_dir():
                 hint = (f" (the ISPRS download's folder for product {self.product!r}; set product to the one "
                         "you unpacked)" if self.isprs and folder == self.height_dir else "")
-                raise DatasetError(self.root, [f"{folder}: missing folder{hint}"])
+                raise DatasetError(self.root, [f"{folder}: missing folder{hint}"], fix=(
+                    "Fix: give data.init_args.root the unpacked ISPRS Potsdam download (2_Ortho_RGB/ beside "
+                    "1_DSM_normalisation/ or 1_DSM/), or a folder of rgb/ and height/ tiles (docs/data.md)."))
         pattern = self.height_patterns[self.kind]
         rgb = {_tile_id(m): p for p in sorted(self.rgb_dir.iterdir()) if (m := self.rgb_pattern.search(p.name))}
         height = {_tile_id(m): p for p in sorted(self.height_dir.iterdir())

@@ -259,10 +259,18 @@ class UAPDDataset(SkipsBadFiles, torch.utils.data.Dataset[Sample]):
     def _scan(self, on_bad_file: str) -> tuple[list[str], np.ndarray, list[dict[str, Any]], list[str], list[str]]:
         split_dir = self.root / self.split
         rgb_dir, depth_dir = split_dir / self.rgb_dir, split_dir / self.depth_dir
+        layout = f"ROOT/{self.split}/{{{self.rgb_dir},{self.depth_dir}}}/NAME.png"
+        if not self.root.is_dir():
+            raise DatasetError(self.root, [f"{self.root}: no such folder"], fix=(
+                f"Fix: give data.init_args.root the folder of a UAPD-format set ({layout}; relative paths start "
+                "from the current directory); `dapm-lightning synth --out ROOT` renders a synthetic one."))
         for folder in (split_dir, rgb_dir, depth_dir):
             if not folder.is_dir():
-                raise DatasetError(self.root, [f"{folder}: missing folder (expected ROOT/{self.split}/"
-                                               f"{{{self.rgb_dir},{self.depth_dir}}}/NAME.png)"])
+                found = sorted(p.name + "/" for p in folder.parent.iterdir() if p.is_dir())
+                raise DatasetError(self.root, [f"{folder}: missing folder (expected {layout}; {folder.parent} "
+                                               f"holds {', '.join(found) if found else 'no folder'})"], fix=(
+                    f"Fix: put the {self.split} split in {layout}, or give data.init_args.root the folder that holds "
+                    "it (UAPD's layout: docs/data.md)."))
         files = {folder: sorted(folder.iterdir()) for folder in (rgb_dir, depth_dir)}
         rgb = {p.name: p for p in files[rgb_dir] if p.suffix.lower() == ".png"}
         depth = {p.name: p for p in files[depth_dir] if p.suffix.lower() == ".png"}

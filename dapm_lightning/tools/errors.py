@@ -57,8 +57,9 @@ def describe(error: BaseException) -> tuple[str, bool]:
     """``(message, expected)`` for an exception: ``expected`` is False for what looks like a bug."""
     name, message = _unwrap(error)
     if _is_dataset_error(error, name):
-        fix = ("Fix: correct or remove the files listed (`dapm-lightning doctor ROOT` reports on a whole data "
-               "set), or leave them out with --data.init_args.on_bad_file skip.")
+        fix = getattr(error, "fix", None) or (
+            "Fix: correct or remove the files listed (`dapm-lightning doctor ROOT` reports on a whole data set), or "
+            "leave them out with --data.init_args.on_bad_file skip.")
         return f"{message}\n{fix}", True
     if isinstance(error, _PATH_ERRORS):
         fix = f"Fix: check the path (relative paths start from the current directory, {os.getcwd()})."

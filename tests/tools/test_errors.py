@@ -19,7 +19,14 @@ def test_missing_data_folder(tmp_path, capsys, monkeypatch):
                           "dapm_lightning.data.datamodules.UAPDDataModule", "--data.init_args.root",
                           str(tmp_path / "nowhere"), "--trainer.logger", "false"], capsys)
     assert code == 1
-    assert f"{tmp_path / 'nowhere' / 'train'}: missing folder" in err and "Fix:" in err and "--debug" in err
+    assert f"{tmp_path / 'nowhere'}: no such folder" in err and "Fix: give data.init_args.root" in err
+    assert "--debug" in err and "on_bad_file" not in err  # no files to leave out: the root is wrong
+    (tmp_path / "nosplit" / "val" / "rgb").mkdir(parents=True)
+    code, err = run_main(["fit", "--config", str(QUICKSTART), "--data.class_path",
+                          "dapm_lightning.data.datamodules.UAPDDataModule", "--data.init_args.root",
+                          str(tmp_path / "nosplit"), "--trainer.logger", "false"], capsys)
+    assert code == 1 and f"{tmp_path / 'nosplit' / 'train'}: missing folder" in err and "holds val/" in err
+    assert "Fix: put the train split in ROOT/train/{rgb,depth}/NAME.png" in err and "on_bad_file" not in err
 
 
 def test_missing_and_damaged_checkpoints_and_sources(checkpoint, tmp_path, capsys, monkeypatch):
