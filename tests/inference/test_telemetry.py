@@ -253,6 +253,14 @@ def test_csv_names_with_and_without_extension_empty_cells_and_missing_column(tmp
     assert rows["DJI_0002"].source == "flight.csv line 4"  # file line numbers, header = line 1
 
 
+def test_an_srt_given_as_the_images_csv_says_it_goes_with_a_video(tmp_path):
+    srt = tmp_path / "DJI_0001.SRT"
+    srt.write_text("1\n00:00:00,000 --> 00:00:00,033\n[rel_alt: 50.0 abs_alt: 120.0]\n\n")
+    with pytest.raises(TelemetryError, match=r"DJI_0001.SRT: a DJI SRT gives the telemetry of the video .*"
+                                             r"or give images a CSV: the first line must be the header `name,"):
+        read_telemetry_csv(srt)
+
+
 def test_csv_columns_in_any_order_bom_and_extra_column_warning(tmp_path):
     csv_path = tmp_path / "t.csv"
     csv_path.write_text("\ufefffov_deg, Name ,lat,pitch_deg\n71.6,a.jpg,22.5,-45\n", encoding="utf-8")

@@ -68,6 +68,10 @@ def read_telemetry_csv(path: StrPath) -> dict[str, PoseTelemetry]:
             raise TelemetryError(f"{path}: the file is empty; {header_hint}")
         columns = [c.strip().lower() for c in header]
         if "name" not in columns:
+            if path.suffix.lower() == ".srt":
+                raise TelemetryError(f"{path}: a DJI SRT gives the telemetry of the video it was recorded with, "
+                                     "not of images; predict that video (its SRT beside it is found, or give it "
+                                     f"as --telemetry), or give images a CSV: {header_hint}")
             hint = " (it looks ';'-separated: save it comma-separated)" if ";" in ",".join(header) else ""
             raise TelemetryError(f"{path}: no `name` column in the header {','.join(header)!r}{hint}; {header_hint}")
         for col in set(columns):
