@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -102,7 +103,24 @@ def read_image(path: Path) -> np.ndarray:
     raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if raw is None:
         raise ValueError(f"{path}: cannot be decoded as an image (damaged, or not an image)")
+    if jpeg_cut_short(path):
+        warnings.warn(f"{path}: the JPEG stops before its end marker (cut short while copying?): the picture below "
+                      "the cut is grey and its depth means nothing. Fix: copy the file again.", stacklevel=2)
     return to_rgb8(raw, str(path))
+
+
+def jpeg_cut_short(path: Path) -> bool:
+    """Whether a JPEG file (by its first bytes) lacks the end-of-image marker at its end.
+
+    OpenCV decodes such a file, the missing rows grey, with no more than a libjpeg line on stderr naming no file.
+    """
+    with open(path, "rb") as stream:
+        if stream.read(2) != b"\xff\xd8":
+            return False
+        stream.seek(0, 2)
+        stream.seek(max(0, stream.tell() - 4096))
+        tail = stream.read().rstrip(b"\x00\r\n\t ")  # padding some writers leave after the marker
+    return not tail.endswith(b"\xff\xd9")
 
 
 def image_size(path: Path) -> tuple[int, int]:

@@ -95,3 +95,24 @@ def test_one_line_predict_takes_an_unquoted_glob_a_list_and_a_video(checkpoint, 
     assert {p.name: p.read_bytes() for p in lightning.iterdir()} == expected
     assert [r["name"] for r in json.loads((one_line / "poses.json").read_text())][:2] == ["DJI_0002",
                                                                                           "DJI_0003_f000000"]
+
+
+def test_a_jpeg_cut_short_is_read_with_a_warning_naming_it(tmp_path):
+    """OpenCV decodes a truncated JPEG, the missing rows grey, saying so only in a libjpeg line naming no file."""
+    import warnings
+
+    from dapm_lightning.inference.pixels import jpeg_cut_short, read_image
+
+    rng = np.random.default_rng(0)
+    ok, data = cv2.imencode(".jpg", rng.integers(0, 255, (64, 64, 3), dtype=np.uint8))
+    whole, cut = tmp_path / "whole.jpg", tmp_path / "cut.jpg"
+    whole.write_bytes(data.tobytes() + b"\x00\x00")  # padding after the end marker is not a cut
+    cut.write_bytes(data.tobytes()[: len(data) // 2])
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        assert read_image(whole).shape == (64, 64, 3) and read_image(cut).shape == (64, 64, 3)
+    messages = [str(w.message) for w in caught]
+    assert len(messages) == 1 and messages[0].startswith(f"{cut}: the JPEG stops before its end marker")
+    png = tmp_path / "p.png"
+    cv2.imwrite(str(png), np.zeros((8, 8, 3), np.uint8))
+    assert not jpeg_cut_short(whole) and jpeg_cut_short(cut) and not jpeg_cut_short(png)
