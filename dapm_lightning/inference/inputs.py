@@ -250,6 +250,13 @@ class PredictSource:
     sensor_width_mm: float | None = None
     strict_telemetry: bool = False
 
+    def __post_init__(self) -> None:
+        if self.telemetry is not None and not Path(self.telemetry).is_file():
+            what = "a folder, not a file" if Path(self.telemetry).is_dir() else "no such file"
+            raise FileNotFoundError(f"--telemetry {self.telemetry}: {what} (the flight's telemetry: a CSV, or a "
+                                    "video's SRT).\nFix: give the file's path (relative paths start from the "
+                                    f"current directory, {Path.cwd()}), or leave --telemetry out.")
+
 
 def _video_telemetry(video: VideoFramesDataset, source: PredictSource) -> flight.TelemetryReport | None:
     """The video's priors (and their provenance) from its SRT and / or a CSV naming its frames; the report."""

@@ -116,3 +116,15 @@ def test_a_jpeg_cut_short_is_read_with_a_warning_naming_it(tmp_path):
     png = tmp_path / "p.png"
     cv2.imwrite(str(png), np.zeros((8, 8, 3), np.uint8))
     assert not jpeg_cut_short(whole) and jpeg_cut_short(cut) and not jpeg_cut_short(png)
+
+
+def test_a_telemetry_file_that_is_not_there_is_named_as_the_telemetry(tmp_path):
+    from dapm_lightning.inference.inputs import PredictSource
+    from dapm_lightning.tools.errors import describe
+
+    for given, what in ((tmp_path / "nosuch.csv", "no such file"), (tmp_path, "a folder, not a file")):
+        with pytest.raises(FileNotFoundError) as info:
+            PredictSource([str(tmp_path)], telemetry=given)
+        message, expected = describe(info.value)
+        assert message.startswith(f"--telemetry {given}: {what}") and expected
+        assert message.count("Fix:") == 1 and "or leave --telemetry out" in message
