@@ -15,6 +15,7 @@ shows one).
 from __future__ import annotations
 
 import math
+import os
 import sys
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
@@ -306,8 +307,8 @@ def doctor(root: Path, splits: list[str] | None = None, depth_kind: DepthKind = 
 
     Returns:
         the exit status: 0 clean, 1 a broken file or a flagged sample, 2 no data set at ROOT (ROOT is not a
-        folder, holds no split folder, or a split asked for has neither rgb/ nor depth/); the reason is then
-        printed to stderr.
+        folder, holds no split folder, or a split asked for has neither rgb/ nor depth/) or a ``json`` path that
+        cannot be written (checked before the scan); the reason is then printed to stderr.
     """
     root = Path(root)
     problem = None
@@ -322,6 +323,8 @@ def doctor(root: Path, splits: list[str] | None = None, depth_kind: DepthKind = 
         elif missing:
             problem = (f"{root}: no split {', '.join(missing)} (a folder with rgb/ and depth/); "
                        f"splits found: {', '.join(found) or 'none'}")
+    if problem is None and json is not None:
+        problem = _unwritable_report(Path(json))
     if problem is not None:
         print(f"error: {problem}", file=sys.stderr)
         return EXIT_NOT_A_DATA_SET
@@ -335,6 +338,16 @@ def doctor(root: Path, splits: list[str] | None = None, depth_kind: DepthKind = 
         where = f"report: {json}; "
     print(f"\n{where}{'no problems found' if not bad else f'{bad} problem(s)'}")
     return EXIT_PROBLEMS if bad else EXIT_CLEAN
+
+
+def _unwritable_report(path: Path) -> str | None:
+    """Why the JSON report could not be written to ``path`` (checked before the scan), or None."""
+    if path.is_dir():
+        return f"--json {path} is a folder (give the report's file, e.g. {path / 'doctor.json'})"
+    folder = next((p for p in (path.parent, *path.parent.parents) if p.exists()), Path.cwd())
+    if not folder.is_dir() or not os.access(folder, os.W_OK | os.X_OK):
+        return f"--json {path}: {folder} cannot be written (give a file in a folder you can write)"
+    return None
 
 
 def doctor_main(argv: Sequence[str]) -> int:

@@ -162,6 +162,16 @@ def test_a_root_that_is_not_a_data_set_exits_2(synthetic, tmp_path, capsys):
     assert info.value.code == 2
 
 
+def test_a_report_path_that_cannot_be_written_exits_2_before_the_scan(synthetic, tmp_path, capsys):
+    under_a_file = tmp_path / "notes.txt"
+    under_a_file.write_text("mine")
+    for json_path, message in ((tmp_path, "is a folder"), (under_a_file / "r.json", "cannot be written")):
+        assert doctor_main([str(synthetic), "--json", str(json_path)]) == 2
+        captured = capsys.readouterr()
+        assert f"--json {json_path}" in captured.err and message in captured.err and captured.out == ""
+    assert under_a_file.read_text() == "mine"
+
+
 def test_cli_doctor_exit_status_and_settings_file(synthetic, tmp_path, capsys):
     config = tmp_path / "doctor.yaml"
     config.write_text(f"depth_kind: planar\nsplits: [val]\njson: {tmp_path / 'planar.json'}\n")
