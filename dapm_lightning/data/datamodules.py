@@ -17,7 +17,7 @@ from dapm_lightning.data.errors import SkippedFile
 from dapm_lightning.data.potsdam import PotsdamCrops, PotsdamDataset
 from dapm_lightning.data.sample import Sample
 from dapm_lightning.data.samplers import EpochShuffleSampler
-from dapm_lightning.data.synthetic import generate_uapd, is_current, settings_changes
+from dapm_lightning.data.synthetic import generate_uapd, settings_changes
 from dapm_lightning.data.transforms import Augmentation, train_transform
 from dapm_lightning.data.uapd import UAPDDataset
 from dapm_lightning.data.workers import worker_init_fn
@@ -213,16 +213,18 @@ class SyntheticDataModule(UAPDDataModule):
         self.render_workers = render_workers
 
     def prepare_data(self) -> None:
-        if not is_current(self.root, **self.render_settings):  # synth.json records every setting and the version
-            settings = self.render_settings
-            what = f"{settings['train']} + {settings['val']} synthetic images at {settings['size']} px"
-            if (Path(self.root) / "synth.json").is_file():
-                warnings.warn(f"{self.root}: rendering it again ({what}): it holds a synthetic set of other settings "
-                              f"({settings_changes(self.root, **settings)}), whose images are replaced. To keep "
-                              "a set, give this run another data.init_args.root.", stacklevel=2)
-            else:
-                print(f"{self.root}: rendering {what}", flush=True)
-            generate_uapd(self.root, workers=self.render_workers, **self.render_settings)
+        settings = self.render_settings
+        changes = settings_changes(self.root, **settings)  # synth.json records every setting and the version
+        if not changes:
+            return
+        what = f"{settings['train']} + {settings['val']} synthetic images at {settings['size']} px"
+        if (Path(self.root) / "synth.json").is_file():
+            warnings.warn(f"{self.root}: rendering it again ({what}): it holds a synthetic set of other settings "
+                          f"({changes}), whose images are replaced. To keep a set, give this run another "
+                          "data.init_args.root.", stacklevel=2)
+        else:
+            print(f"{self.root}: rendering {what}", flush=True)
+        generate_uapd(self.root, workers=self.render_workers, **settings)
 
 
 class PotsdamDataModule(DAPMDataModule):

@@ -101,13 +101,13 @@ def export(ckpt_path: Path, out: Path | None = None, height: int | None = None, 
         rows = export_onnx(module.net.eval(), staging / float_out.name, (height, width), checks=checks,
                            dynamic=dynamic, fp16=fp16, metadata=metadata)
         failures = export_mismatches(rows, fp16)
-        if not failures or force:
+        kept = not failures or force
+        if kept:
             _move_exported(staging / float_out.name, float_out)
     finally:
         shutil.rmtree(staging, ignore_errors=True)
     names = [k for k in rows[0] if k not in ("shape", DEPTH_SHARE_OFF)]
     shape = "[batch, 3, height, width]" if dynamic else f"[1, 3, {height}, {width}]"
-    kept = not failures or force
     data = weights_file(float_out)
     weights = f"; weights in {data.name}: keep it beside the .onnx file" if data.is_file() and kept else ""
     precision = "float16 inside, float32 input and outputs" if fp16 else "float32"

@@ -94,15 +94,7 @@ def settings(*, train: int, val: int, size: int | tuple[int, int], seed: int,
 
 def is_current(root: str | Path, **kwargs: Any) -> bool:
     """Whether ``root/synth.json`` records exactly these settings (see :func:`settings`)."""
-    info = Path(root) / "synth.json"
-    if not info.is_file():
-        return False
-    try:
-        have = json.loads(info.read_text())
-        have.setdefault("distortion", False)  # written before the option existed: undistorted
-        return have == json.loads(json.dumps(settings(**kwargs)))
-    except (json.JSONDecodeError, OSError):
-        return False
+    return settings_changes(root, **kwargs) == ""
 
 
 def settings_changes(root: str | Path, **kwargs: Any) -> str:
@@ -114,9 +106,12 @@ def settings_changes(root: str | Path, **kwargs: Any) -> str:
         have = json.loads((Path(root) / "synth.json").read_text())
     except (json.JSONDecodeError, OSError):
         return "no readable synth.json"
-    have.setdefault("distortion", False)
+    have.setdefault("distortion", False)  # written before the option existed: undistorted
     want = json.loads(json.dumps(settings(**kwargs)))
-    return ", ".join(f"{key} {have.get(key)} -> {value}" for key, value in want.items() if have.get(key) != value)
+    absent = object()
+    keys = [*want, *(key for key in have if key not in want)]
+    return ", ".join(f"{key} {have.get(key)} -> {want.get(key)}" for key in keys
+                     if have.get(key, absent) != want.get(key, absent))
 
 
 def shard_range(count: int, shard: tuple[int, int]) -> range:
