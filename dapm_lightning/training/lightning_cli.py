@@ -13,6 +13,7 @@ from typing import Any, NoReturn
 
 import lightning as L
 import torch
+import yaml
 from lightning.pytorch.callbacks import DeviceStatsMonitor, LearningRateMonitor
 from lightning.pytorch.cli import LightningArgumentParser, LightningCLI, SaveConfigCallback
 from lightning.pytorch.utilities import rank_zero_info, rank_zero_only
@@ -84,6 +85,8 @@ class DAPMArgumentParser(LightningArgumentParser):
 
     requested_subcommand: str | None = None
     """The subcommand on the command line (set by :class:`DAPMCLI`), for the ``--help`` an error points to."""
+    config_files: tuple[str, ...] = ()
+    """The ``--config`` files on the command line (set by :class:`DAPMCLI`), for naming one that is not YAML."""
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         kwargs.setdefault("allow_abbrev", False)
@@ -94,8 +97,25 @@ class DAPMArgumentParser(LightningArgumentParser):
             super().error(message, ex)
         parser = getattr(ex, "subcommand_parser", None) or self
         subcommand = getattr(parser, "subcommand", None) or self.requested_subcommand
+        if "Problems parsing config" in message and (broken := unreadable_yaml(self.config_files)):
+            message = broken
         print(short_parse_error(message, option_strings(parser), subcommand), file=sys.stderr)
         sys.exit(EXIT_USAGE)
+
+
+def unreadable_yaml(paths: Sequence[str]) -> str | None:
+    """``FILE: not valid YAML (line L, column C): PROBLEM`` and the fix, for the first of ``paths`` that is not."""
+    for path in paths:
+        try:
+            yaml.safe_load(Path(path).read_text())
+        except yaml.MarkedYAMLError as error:
+            mark = error.problem_mark
+            where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark is not None else ""
+            return (f"{path}: not valid YAML{where}: {error.problem or error}\n"
+                    f"  fix: correct the file there (indentation with spaces, a ':' after each key, brackets closed)")
+        except (OSError, UnicodeDecodeError, yaml.YAMLError):
+            continue  # not there or not text: the parser's own message says so
+    return None
 
     def validate(self, *args: Any, **kwargs: Any) -> None:
         namespace = args[0] if args else kwargs.get("namespace", kwargs.get("cfg"))
@@ -225,6 +245,11 @@ class DAPMCLI(LightningCLI):
         words = sys.argv[1:] if args is None else list(args) if isinstance(args, (list, tuple)) else []
         if isinstance(parser, DAPMArgumentParser):
             parser.requested_subcommand = next((w for w in words if w in SUBCOMMANDS), None)
+            configs = tuple([b for a, b in zip(words, words[1:]) if a == "--config"]
+                            + [w.split("=", 1)[1] for w in words if w.startswith("--config=")])
+            subcommands = getattr(parser, "_subcommands_action", None)
+            for each in [parser, *getattr(subcommands, "_name_parser_map", {}).values()]:  # a subcommand reports
+                each.config_files = configs
         super().parse_arguments(parser, args)
 
     def _parse_ckpt_path(self) -> None:

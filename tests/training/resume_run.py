@@ -5,11 +5,14 @@ SIGINT) or 120 s, after writing MARKER_FILE: WHERE "train" (the default) after t
 validation after STEP after its first batch, "valend" at the end of that validation before its metrics are gathered
 across processes; with RANK, only that process pauses (the others run on, into the gathering).
 RECORD_IMAGES=PREFIX writes PREFIX<rank>.json: per epoch, a digest of every training image as the model received
-it (after augmentation)."""
+it (after augmentation). SIGUSR1 prints every thread's stack (every process of the run registers it: a test that
+waits too long sends it to the whole process group before killing it)."""
 
+import faulthandler
 import hashlib
 import json
 import os
+import signal
 import sys
 import time
 from pathlib import Path
@@ -60,6 +63,7 @@ class RecordImages(L.Callback):
 
 
 if __name__ == "__main__":
+    faulthandler.register(signal.SIGUSR1, all_threads=True)  # DDP processes run this script too; workers inherit it
     weights, args = sys.argv[1], sys.argv[2:]
     ckpt = None
     if "--ckpt_path" in args:

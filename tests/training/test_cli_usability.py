@@ -105,6 +105,17 @@ def test_unknown_options_are_a_few_lines_with_the_closest(capsys, tmp_path, monk
     assert code == 2 and "trainer.max_stpes" in err and "did you mean --trainer.max_steps?" in err, err
 
 
+@pytest.mark.parametrize("subcommand", ["fit", "test"])
+def test_a_config_that_is_not_yaml_is_named_with_its_line(subcommand, capsys, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    broken = tmp_path / "broken.yaml"
+    broken.write_text("trainer:\n  max_steps: 3\n   devices: [1,\n")
+    code, err = run_main([subcommand, "--config", str(QUICKSTART), f"--config={broken}"], capsys)
+    assert code == 2 and len(err.splitlines()) <= 4, err
+    assert f"{broken}: not valid YAML (line 3, column 11)" in err and "fix: correct the file" in err, err
+    assert "<unicode string>" not in err and f"dapm-lightning {subcommand} --help" in err
+
+
 @pytest.mark.parametrize("option", [["--trainer.max_step", "3"], ["--model.net.backbon", "resnet18"]])
 def test_abbreviated_options_are_refused(option, capsys, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)

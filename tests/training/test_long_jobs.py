@@ -75,8 +75,37 @@ def terminate_job(process):
     os.killpg(process.pid, signal.SIGTERM)
 
 
+def _group_alive(pgid):
+    try:
+        os.killpg(pgid, 0)
+    except ProcessLookupError:
+        return False
+    return True
+
+
+def give_up(process, why):
+    """Fail with every process's stacks (SIGUSR1: resume_run.py's faulthandler) and the run's output; kill the run."""
+    if _group_alive(process.pid):
+        os.killpg(process.pid, signal.SIGUSR1)
+        time.sleep(3)
+        os.killpg(process.pid, signal.SIGKILL)
+    out, _ = process.communicate()
+    pytest.fail(f"{why}; the run's output (stacks of its processes at the end):\n{out[-12000:]}")
+
+
 def finish(process, timeout=240):
-    out, _ = process.communicate(timeout=timeout)
+    """The run's exit status and output, once it and every process it started (DDP ranks, loader workers) ended."""
+    try:
+        out, _ = process.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        give_up(process, f"the run did not end in {timeout} s")
+    deadline = time.time() + 30
+    while _group_alive(process.pid):  # processes left behind by a run that has ended are a bug of their own
+        if time.time() > deadline:
+            os.killpg(process.pid, signal.SIGKILL)
+            pytest.fail(f"processes of the run still alive 30 s after it ended (status {process.returncode}):\n"
+                        f"{out[-3000:]}")
+        time.sleep(0.1)
     return process.returncode, out
 
 
@@ -85,7 +114,8 @@ def wait_for(path, process, timeout=180):
     while not path.exists():
         if process.poll() is not None:
             pytest.fail(f"run ended before the marker:\n{process.stdout.read()[-3000:]}")
-        assert time.time() < deadline, "marker never appeared"
+        if time.time() > deadline:
+            give_up(process, f"{path.name} not written in {timeout} s")
         time.sleep(0.1)
 
 
