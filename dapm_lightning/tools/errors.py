@@ -69,6 +69,11 @@ def describe(error: BaseException) -> tuple[str, bool]:
     if "not a readable checkpoint" in message:
         return (f"{message}\nFix: copy the checkpoint again (a file cut short by a full disk or an interrupted "
                 "transfer cannot be read) or pick another one, e.g. the run's last.ckpt."), True
+    if "EADDRINUSE" in message:  # DDP's rendezvous port (torch's DistNetworkError)
+        port = os.environ.get("MASTER_PORT")
+        held = f"MASTER_PORT={port} is" if port else "the port is"
+        return (f"{name}: {message}\nFix: {held} taken by another program or run on this machine: unset "
+                "MASTER_PORT (Lightning then picks a free port) or set it to a free one."), True
     if isinstance(error, (ValueError, KeyError)) or name == "ValueError":
         return message, True
     if isinstance(error, (RuntimeError, ImportError, OSError)) or name == "MisconfigurationException":

@@ -39,6 +39,7 @@ from dapm_lightning.training.checkpointing import (
 )
 from dapm_lightning.training.module import DAPMModule
 from dapm_lightning.training.quiet import quiet_lightning
+from dapm_lightning.training.signals import stop_started_processes
 
 
 class WeightsOnlyCheckpointError(ValueError):
@@ -102,6 +103,12 @@ class DAPMArgumentParser(LightningArgumentParser):
         print(short_parse_error(message, option_strings(parser), subcommand), file=sys.stderr)
         sys.exit(EXIT_USAGE)
 
+    def validate(self, *args: Any, **kwargs: Any) -> None:
+        namespace = args[0] if args else kwargs.get("namespace", kwargs.get("cfg"))
+        if namespace is not None:
+            loggers_follow_root_dir(namespace)
+        super().validate(*args, **kwargs)
+
 
 def unreadable_yaml(paths: Sequence[str]) -> str | None:
     """``FILE: not valid YAML (line L, column C): PROBLEM`` and the fix, for the first of ``paths`` that is not."""
@@ -116,12 +123,6 @@ def unreadable_yaml(paths: Sequence[str]) -> str | None:
         except (OSError, UnicodeDecodeError, yaml.YAMLError):
             continue  # not there or not text: the parser's own message says so
     return None
-
-    def validate(self, *args: Any, **kwargs: Any) -> None:
-        namespace = args[0] if args else kwargs.get("namespace", kwargs.get("cfg"))
-        if namespace is not None:
-            loggers_follow_root_dir(namespace)
-        super().validate(*args, **kwargs)
 
 
 def option_strings(parser: Any) -> list[str]:
@@ -251,6 +252,22 @@ class DAPMCLI(LightningCLI):
             for each in [parser, *getattr(subcommands, "_name_parser_map", {}).values()]:  # a subcommand reports
                 each.config_files = configs
         super().parse_arguments(parser, args)
+
+    def _run_subcommand(self, subcommand: str) -> None:
+        """Run it; when it fails here, stop the DDP processes this one started (they would wait for it).
+
+        A stop by SIGTERM or Ctrl-C (``SystemExit``) is not a failure: every process stops after the same step
+        and exits on its own.
+        """
+        try:
+            super()._run_subcommand(subcommand)
+        except SystemExit:
+            raise
+        except BaseException:
+            if killed := stop_started_processes(getattr(self, "trainer", None)):
+                print(f"stopped the {len(killed)} other training process(es) of this run (pid "
+                      f"{', '.join(map(str, killed))}): they were waiting for this one", file=sys.stderr)
+            raise
 
     def _parse_ckpt_path(self) -> None:
         """Find, fetch and check ``--ckpt_path`` before anything is built, and take the checkpoint's settings.

@@ -77,6 +77,30 @@ class SigtermAgreement:
             raise SIGTERMException
 
 
+def stop_started_processes(trainer: L.Trainer | None) -> list[int]:
+    """Kill the DDP processes this one started (Lightning's subprocess launcher) that still run; their ids.
+
+    For a run that failed in this process (rank 0 of a job Lightning launched on one machine): the others would
+    wait for it in their next collective until the process group's timeout (30 minutes), or for ever while
+    connecting to it. Lightning kills them on Ctrl-C, and kills this process when one of them fails, but not
+    the others when this one fails. Processes started by a cluster (SLURM, torchrun) are left to it.
+
+    Args:
+        trainer: the trainer of the failed run (None: nothing to do).
+
+    Returns:
+        The process ids killed (SIGKILL, as Lightning kills them: one hanging in a collective ignores SIGTERM).
+    """
+    launcher = getattr(getattr(trainer, "strategy", None), "launcher", None)
+    killed = []
+    for process in list(getattr(launcher, "procs", None) or []):
+        if process.poll() is None:
+            process.kill()
+            process.wait()
+            killed.append(process.pid)
+    return killed
+
+
 def sigterm_received(trainer: L.Trainer, agreement: SigtermAgreement | None) -> bool:
     """Whether this process got SIGTERM, whichever handler noted it (Lightning's or ``agreement``'s).
 
@@ -90,4 +114,4 @@ def sigterm_received(trainer: L.Trainer, agreement: SigtermAgreement | None) -> 
     return bool(trainer.received_sigterm or (agreement is not None and agreement.received))
 
 
-__all__ = ["SigtermAgreement", "sigterm_received"]
+__all__ = ["SigtermAgreement", "sigterm_received", "stop_started_processes"]

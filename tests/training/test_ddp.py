@@ -84,3 +84,37 @@ def test_every_shipped_config_trains_under_two_process_ddp(tmp_path, tiny_potsda
         assert result["last_ckpt_step"] == 2, config  # last.ckpt holds the final step, between two periodic saves
         assert not result["find_unused"], config
         assert not result["unsynced"], (config, result["unsynced"])
+
+
+def test_a_run_that_fails_on_rank_0_leaves_no_process_behind(tmp_path):
+    """Rank 0 cannot open its rendezvous port (MASTER_PORT held by another program): the run ends with the error
+    and kills the process it started, which would otherwise wait to connect for 30 minutes."""
+    import os
+    import signal
+    import socket
+    import time
+
+    root = generate_uapd(tmp_path / "data", train=4, val=2, size=(24, 32), seed=3, workers=1)
+    held = socket.socket()
+    held.bind(("", 0))
+    held.listen()
+    env = dict(os.environ, MASTER_PORT=str(held.getsockname()[1]), MASTER_ADDR="127.0.0.1")
+    process = subprocess.Popen(
+        [sys.executable, "-m", "dapm_lightning", "fit", "--config", str(QUICKSTART), "--data.class_path",
+         "dapm_lightning.data.datamodules.UAPDDataModule", "--data.init_args.root", str(root),
+         "--data.init_args.num_workers", "0", "--trainer.accelerator", "cpu", "--trainer.devices", "2",
+         "--trainer.strategy", "ddp", "--trainer.max_steps", "2", "--trainer.logger", "false"],
+        cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
+    try:
+        out, _ = process.communicate(timeout=120)  # the output closes when every process holding it has ended
+    except subprocess.TimeoutExpired:
+        os.killpg(process.pid, signal.SIGKILL)
+        pytest.fail(f"the run or a process it started was still running after 120 s:\n{process.communicate()[0]}")
+    finally:
+        held.close()
+    assert process.returncode == 1 and "address already in use" in out.lower(), out[-3000:]
+    assert "stopped the 1 other training process(es) of this run" in out, out[-3000:]
+    assert f"Fix: MASTER_PORT={env['MASTER_PORT']} is taken" in out and "Traceback" not in out, out[-3000:]
+    time.sleep(1)
+    with pytest.raises(ProcessLookupError):
+        os.killpg(process.pid, 0)
