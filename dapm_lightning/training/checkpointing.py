@@ -20,6 +20,7 @@ from types import FrameType
 from typing import Any
 
 import lightning as L
+from lightning.fabric.plugins.environments.lightning import LightningEnvironment
 from lightning.fabric.plugins.io.checkpoint_io import CheckpointIO
 from lightning.fabric.plugins.io.torch_io import TorchCheckpointIO
 from lightning.pytorch.callbacks import ModelCheckpoint
@@ -374,6 +375,20 @@ def resolve_last_checkpoint(roots: Iterable[str | Path], folders: Iterable[str |
     return None
 
 
+def started_by_lightning(trainer: L.Trainer) -> bool:
+    """Whether this process is one Lightning's launcher started beside the main one (``devices: N`` on a machine).
+
+    Lightning's watcher in the main process kills every process, the main one included, as soon as one of
+    those it started exits with a status other than 0. After a stop by SIGTERM or Ctrl-C they all exit, each
+    when it is done; one that exits with 143 before the main one would get the main process killed (status
+    -9 instead of 143, so a job script would not requeue). Those processes therefore exit 0 after such a stop;
+    the main process, whose status the shell and the job script see, exits 143 or 130. Processes a cluster
+    starts (SLURM, torchrun) keep 143 and 130: the cluster reads each one's status.
+    """
+    environment = getattr(trainer.strategy, "cluster_environment", None)
+    return trainer.local_rank != 0 and type(environment) is LightningEnvironment
+
+
 class CheckpointOnSigterm(L.Callback):
     """On SIGTERM (SLURM pre-emption) or SIGINT (Ctrl-C), save ``last.ckpt`` and exit with status 143 or 130.
 
@@ -455,6 +470,8 @@ class CheckpointOnSigterm(L.Callback):
             self._save_last(trainer)
         # the process exits with it once every callback's on_exception ran
         exception.code = EXIT_SIGINT if self._stopped_by == signal.SIGINT else EXIT_SIGTERM
+        if started_by_lightning(trainer):
+            exception.code = 0  # see started_by_lightning: the main process reports the status
 
     def teardown(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
         """Give SIGINT back to the handler it had before ``fit``."""

@@ -5,9 +5,11 @@ SIGINT) or 120 s, after writing MARKER_FILE: WHERE "train" (the default) after t
 validation after STEP after its first batch, "valend" at the end of that validation before its metrics are gathered
 across processes; with RANK, only that process pauses (the others run on, into the gathering).
 RECORD_IMAGES=PREFIX writes PREFIX<rank>.json: per epoch, a digest of every training image as the model received
-it (after augmentation). SIGUSR1 prints every thread's stack (every process of the run registers it: a test that
+it (after augmentation). SLOW_EXIT=SECONDS: the main process waits that long at exit (as one with more to
+write than the others would). SIGUSR1 prints every thread's stack (every process of the run registers it: a test that
 waits too long sends it to the whole process group before killing it)."""
 
+import atexit
 import faulthandler
 import hashlib
 import json
@@ -64,6 +66,8 @@ class RecordImages(L.Callback):
 
 if __name__ == "__main__":
     faulthandler.register(signal.SIGUSR1, all_threads=True)  # DDP processes run this script too; workers inherit it
+    if os.environ.get("SLOW_EXIT") and "LOCAL_RANK" not in os.environ:  # the main process: slow to exit
+        atexit.register(time.sleep, float(os.environ["SLOW_EXIT"]))
     weights, args = sys.argv[1], sys.argv[2:]
     ckpt = None
     if "--ckpt_path" in args:

@@ -56,12 +56,13 @@ def job_config(tmp_path, name, every_step=True):
     return ["--config", str(QUICKSTART), "--config", str(path)]
 
 
-def start(tmp_path, name, data, extra=(), pause=None, every_step=True):
+def start(tmp_path, name, data, extra=(), pause=None, every_step=True, slow_exit=None):
     """A run of resume_run.py in a process group of its own; ``pause``: a step, or "STEP,WHERE[,RANK]" (resume_run.py).
     """
     step, _, where = str(pause).partition(",")
     marker = f"{step},{tmp_path / (name + '.marker')}" + (f",{where}" if where else "")
-    env = dict(os.environ, PAUSE_AT=marker if pause else "", RECORD_IMAGES=str(tmp_path / f"{name}_images_rank"))
+    env = dict(os.environ, PAUSE_AT=marker if pause else "", RECORD_IMAGES=str(tmp_path / f"{name}_images_rank"),
+               SLOW_EXIT=str(slow_exit or ""))
     cmd = [sys.executable, str(HERE / "resume_run.py"), str(tmp_path / f"{name}.pt"),
            *job_config(tmp_path, name, every_step),
            "--data.class_path", "dapm_lightning.data.datamodules.UAPDDataModule", "--data.init_args.root", str(data),
@@ -398,7 +399,9 @@ def test_two_process_ddp_resumes_mid_epoch_exactly(data16, tmp_path):
     assert code == 0, out[-3000:]
     assert torch.load(tmp_path / "stopped" / "last.ckpt", weights_only=True)["global_step"] == 6
 
-    terminated = start(tmp_path, "termed", data16, extra=DDP, pause=3)
+    # the main process 7 s slower to exit than the other: Lightning's watcher (polling every 5 s) must not take
+    # the other's exit for a failure and kill it (status -9: a job script would not requeue)
+    terminated = start(tmp_path, "termed", data16, extra=DDP, pause=3, slow_exit=7)
     wait_for(tmp_path / "termed.marker", terminated)
     terminated.send_signal(signal.SIGTERM)
     code, out = finish(terminated, timeout=400)
@@ -408,7 +411,7 @@ def test_two_process_ddp_resumes_mid_epoch_exactly(data16, tmp_path):
     position = next(v for k, v in saved.items() if k.endswith("DataModule"))
     assert position == {"epoch": 0, "samples_seen": 3 * 2 * 2}  # global: 3 batches of 2 on each of 2 processes
 
-    interrupted = start(tmp_path, "ctrl_c", data16, extra=DDP, pause=3)  # Ctrl-C to the main process: passed on
+    interrupted = start(tmp_path, "ctrl_c", data16, extra=DDP, pause=3, slow_exit=7)  # Ctrl-C to the main: passed on
     wait_for(tmp_path / "ctrl_c.marker", interrupted)
     interrupted.send_signal(signal.SIGINT)
     code, out = finish(interrupted, timeout=400)
