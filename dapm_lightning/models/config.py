@@ -87,6 +87,11 @@ class DAPMConfig:
             mode is one of them. Changes no weight: a checkpoint reads out either way
             (:func:`~dapm_lightning.training.checkpointing.load_dapm_module` ``net_overrides``). Needs depth bins
             stages. docs/model.md.
+        pose_prior_input: the pose branch is told the telemetry (a pose prior: which components are known, their
+            normalised values and σ; zeros when nothing is) in its decoder's pooled inputs and its refinement head,
+            so that a known component informs the others (the height the FoV, the FoV the height, ...). Off by
+            default and in the paper configs (the paper has no telemetry); trained by ``model.prior_training``.
+            The depth branch is told the telemetry through the IGD of the fused pose either way. docs/model.md.
         weight_init: ``"pytorch"`` (default: PyTorch's) or ``"authors"``: the depth decoder's convs
             Kaiming-normal (fan_out) with bias 0, the pose branch's linears Xavier-normal with bias 0.01 and
             its convs Kaiming-normal (fan_out); the depth bins heads and the IGD feature keep PyTorch's, as the
@@ -127,6 +132,7 @@ class DAPMConfig:
     weight_init: WeightInit = "pytorch"
     depth_parametrization: Literal["absolute", "igd_ratio"] = _architecture("absolute")
     depth_readout: DepthReadout = "head"
+    pose_prior_input: bool = _architecture(False)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "depth_bins", tuple(int(n) for n in self.depth_bins))
@@ -168,6 +174,9 @@ class DAPMConfig:
         if self.depth_readout == "bins_mode" and not (self.use_depth and any(n > 2 for n in self.depth_bins)):
             raise ValueError("model.net.depth_readout 'bins_mode' needs a depth-bins stage of more than 2 bins "
                              f"(model.net.depth_bins, got {list(self.depth_bins)})")
+        if self.pose_prior_input and not self.use_pose:
+            raise ValueError("model.net.pose_prior_input needs the pose branch (use_pose): it tells the telemetry to "
+                             "the pose decoder")
         if self.head_stride not in (1, 2, 4, 8):
             raise ValueError(f"model.net.head_stride must be 1, 2, 4 or 8, got {self.head_stride}")
 

@@ -25,7 +25,7 @@ from dapm_lightning.models.encoder import Encoder
 from dapm_lightning.models.igd_branch import IGDFeature
 from dapm_lightning.models.init import init_depth_decoder_like_authors, init_pose_like_authors
 from dapm_lightning.models.pqb import DepthPQB, EncoderPosePQB, PosePQB, bins_mode
-from dapm_lightning.models.prior import PosePrior, bins_spread, fuse_pose
+from dapm_lightning.models.prior import PRIOR_FEATURES, PosePrior, bins_spread, fuse_pose, prior_features
 from dapm_lightning.models.teacher_forcing import TeacherForcing
 from dapm_lightning.models.upsample import ConvexUpsample
 
@@ -214,15 +214,16 @@ class DAPMNet(nn.Module):
                 self.upsample = (ConvexUpsample(config.head_channels, config.head_stride)
                                  if config.head_stride > 1 else None)
         if config.use_pose:
+            told = PRIOR_FEATURES if config.pose_prior_input else 0
             self.pose_decoder = PoseDecoder(channels[-config.pose_stages:], projection=config.pose_projection,
                                             hidden=config.pose_hidden, depth_grid=8 if config.use_depth else 0,
                                             projection_dropout=config.pose_dropout,
-                                            mlp_dropout=config.linear_dropout)
+                                            mlp_dropout=config.linear_dropout, prior_features=told)
             if config.pose_bins and config.pose_bins_source == "encoder":
                 self.pose_pqb = EncoderPosePQB(channels[-1], config.pose_bins, config.pose_hidden,
                                                residual_init=config.pose_residual_init,
                                                block_dropout=config.block_dropout,
-                                               linear_dropout=config.linear_dropout)
+                                               linear_dropout=config.linear_dropout, prior_features=told)
             elif config.pose_bins:
                 self.pose_pqb = PosePQB(config.pose_hidden, config.pose_bins, config.pose_hidden)
         if config.weight_init == "authors":  # the bins heads and the IGD feature keep PyTorch's, as the authors'
@@ -257,7 +258,9 @@ class DAPMNet(nn.Module):
             depth_feature, depth_coarse = self.depth_decoder(features[-3:])
         pose = None
         if self.pose_decoder is not None:
-            pose = self._pose(features, None if depth_coarse is None else depth_coarse.detach())
+            told = (prior_features(prior, self.config.igd, image).to(image.dtype) if self.config.pose_prior_input
+                    else None)
+            pose = self._pose(features, None if depth_coarse is None else depth_coarse.detach(), told)
             # exporting: always fused (a graph has no data-dependent branch; unknown components stay the network's)
             if prior is not None and (torch.compiler.is_exporting() or prior.known.any()):
                 spread = bins_spread(pose.bin_logits[-1]).detach() if pose.bin_logits else None
@@ -268,12 +271,15 @@ class DAPMNet(nn.Module):
             depth = self._depth(depth_feature, depth_coarse, size, pose, teacher_forcing)
         return DAPMOutput(depth, pose)
 
-    def _pose(self, features: list[Tensor], depth_coarse: Tensor | None) -> PosePrediction:
+    def _pose(self, features: list[Tensor], depth_coarse: Tensor | None,
+              told: Tensor | None = None) -> PosePrediction:
+        """``told``: the telemetry vector of a network with ``pose_prior_input`` (:func:`prior_features`)."""
         assert self.pose_decoder is not None
-        pose_feature, pose_init, init_logit = self.pose_decoder(features[-self.config.pose_stages:], depth_coarse)
+        pose_feature, pose_init, init_logit = self.pose_decoder(features[-self.config.pose_stages:], depth_coarse,
+                                                                told)
         pose_norm, bin_logits = pose_init, ()
         if isinstance(self.pose_pqb, EncoderPosePQB):
-            pose_logit, logits = self.pose_pqb(features[-1], init_logit)
+            pose_logit, logits = self.pose_pqb(features[-1], init_logit, told)
             pose_norm, bin_logits = torch.sigmoid(pose_logit), tuple(logits)
         elif self.pose_pqb is not None:
             pose_logit, logits = self.pose_pqb(pose_feature, pose_init)

@@ -62,23 +62,30 @@ class PoseDecoder(nn.Module):
             carries the horizon); 0 for no depth input (DAPM(P)).
         projection_dropout: ``Dropout`` on each pooled vector before its projection (authors: 0.2).
         mlp_dropout: ``Dropout`` inside each residual MLP block (authors: 0.3).
+        prior_features: width of the telemetry vector the decoder is told
+            (:func:`~dapm_lightning.models.prior.prior_features`), projected like a pooled stage; 0: none.
     """
 
     def __init__(self, in_channels: Sequence[int], projection: int = 128, hidden: int = 256,
                  depth_grid: int = 8, mlp_blocks: int = 2, projection_dropout: float = 0.0,
-                 mlp_dropout: float = 0.0) -> None:
+                 mlp_dropout: float = 0.0, prior_features: int = 0) -> None:
         super().__init__()
         self.depth_grid = depth_grid
         self.projection_dropout = nn.Dropout(projection_dropout)
         self.projections = nn.ModuleList(nn.Linear(c, projection) for c in in_channels)
         self.depth_projection = nn.Linear(depth_grid * depth_grid, projection) if depth_grid else None
-        inputs = projection * (len(in_channels) + (1 if depth_grid else 0))
+        self.prior_projection = nn.Linear(prior_features, projection) if prior_features else None
+        inputs = projection * (len(in_channels) + (1 if depth_grid else 0) + (1 if prior_features else 0))
         self.mlp = nn.Sequential(nn.Linear(inputs, hidden), nn.ReLU(inplace=True),
                                  *[ResidualMLPBlock(hidden, mlp_dropout) for _ in range(mlp_blocks)])
         self.out = nn.Linear(hidden, 4)
 
-    def forward(self, features: Sequence[Tensor], depth_norm: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
-        """Returns ``(pose feature [B, hidden], initial pose_norm [B, 4], its logit [B, 4])``."""
+    def forward(self, features: Sequence[Tensor], depth_norm: Tensor | None,
+                prior: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+        """Returns ``(pose feature [B, hidden], initial pose_norm [B, 4], its logit [B, 4])``.
+
+        ``prior``: the telemetry vector ``[B, prior_features]`` of a decoder built with one (zeros: nothing known).
+        """
         drop = self.projection_dropout
         pooled = [proj(drop(f.mean(dim=(2, 3)))) for proj, f in zip(self.projections, features)]
         if self.depth_projection is not None:
@@ -86,6 +93,10 @@ class PoseDecoder(nn.Module):
                 raise ValueError("this pose decoder was built with a depth input (depth_grid > 0) but got none")
             grid = adaptive_avg_pool2d(depth_norm, self.depth_grid).flatten(1)  # export-safe at any input size
             pooled.append(self.depth_projection(drop(grid)))
+        if self.prior_projection is not None:
+            if prior is None:
+                raise ValueError("this pose decoder was built with a telemetry input (prior_features > 0) but got none")
+            pooled.append(self.prior_projection(prior.to(pooled[0].dtype)))
         feature = self.mlp(torch.cat(pooled, dim=1))
         logit = self.out(feature)
         return feature, torch.sigmoid(logit), logit

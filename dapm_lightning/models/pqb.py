@@ -165,10 +165,13 @@ class EncoderPosePQB(nn.Module):
     authors' parameter count (11.84 M + 0.23 M + 2.6 k); their residual linear blocks use
     BatchNorm1d and a final ReLU, here LayerNorm (batch of one) and no ReLU on logits/corrections.
     ``block_dropout``/``linear_dropout``: dropout in the residual conv / linear blocks (authors: 0.1 / 0.3).
+    ``prior_features``: width of a telemetry vector the head also reads (0: none), so that what is known of the
+    pose reaches the refined pose and not only the initial one.
     """
 
     def __init__(self, in_channels: int, bins: Sequence[int], channels: int = 256,
-                 residual_init: bool = True, block_dropout: float = 0.0, linear_dropout: float = 0.0) -> None:
+                 residual_init: bool = True, block_dropout: float = 0.0, linear_dropout: float = 0.0,
+                 prior_features: int = 0) -> None:
         super().__init__()
         self.bins = tuple(bins)
         if any(n < 2 for n in self.bins):
@@ -180,16 +183,27 @@ class EncoderPosePQB(nn.Module):
             for n in self.bins)
         self.fuse = nn.ModuleList(ResidualLinear(4 * p + 4 * n, 4 * n, activate=False, dropout=linear_dropout)
                                   for p, n in zip(self.bins[:-1], self.bins[1:]))
-        self.head = ResidualLinear(4 + sum(4 * n for n in self.bins), 4, activate=False, dropout=linear_dropout)
+        self.prior_features = prior_features
+        self.head = ResidualLinear(4 + sum(4 * n for n in self.bins) + prior_features, 4, activate=False,
+                                   dropout=linear_dropout)
 
-    def forward(self, feature: Tensor, pose_init_logit: Tensor) -> tuple[Tensor, list[Tensor]]:
-        """``feature [B, C, h, w]`` (deepest encoder stage) -> ``(pose logit [B, 4], bin logits [B, 4, n] each)``."""
+    def forward(self, feature: Tensor, pose_init_logit: Tensor,
+                prior: Tensor | None = None) -> tuple[Tensor, list[Tensor]]:
+        """``feature [B, C, h, w]`` (deepest encoder stage) -> ``(pose logit [B, 4], bin logits [B, 4, n] each)``.
+
+        ``prior``: the telemetry vector ``[B, prior_features]`` of a head built with one.
+        """
         flat: list[Tensor] = []
         for k, stage in enumerate(self.stages):
             logits = stage(feature)
             if k > 0:
                 logits = self.fuse[k - 1](torch.cat([flat[-1], logits], dim=1))
             flat.append(logits)
-        correction = self.head(torch.cat([pose_init_logit, *flat], dim=1))
+        told = []
+        if self.prior_features:
+            if prior is None:
+                raise ValueError("this pose head was built with a telemetry input (prior_features > 0) but got none")
+            told = [prior.to(pose_init_logit.dtype)]
+        correction = self.head(torch.cat([pose_init_logit, *told, *flat], dim=1))
         pose_logit = correction + pose_init_logit if self.residual_init else correction
         return pose_logit, [f.view(-1, 4, n) for f, n in zip(flat, self.bins)]

@@ -101,6 +101,30 @@ class PosePrior:
                          None if self.mask is None else self.mask.to(device))
 
 
+PRIOR_FEATURES = 12
+"""Width of :func:`prior_features`: per component whether it is known, its normalised value and σ."""
+
+
+def prior_features(prior: PosePrior | None, spec: IGDSpec, like: Tensor) -> Tensor:
+    """What the pose branch is told of the telemetry (``DAPMConfig.pose_prior_input``): ``[B, 12]`` float32.
+
+    Per component (height, pitch, roll, fov): 1 where known, else 0; the normalised value (clamped to
+    [-0.5, 1.5]) where known, else 0; the normalised σ where known, else 0. Zeros without a prior (``like``:
+    ``[B, ...]``, gives the batch size and device), as when nothing is known, so an exported graph fed no telemetry
+    computes what eager does.
+    """
+    batch = like.shape[0]
+    if prior is None:
+        return torch.zeros(batch, PRIOR_FEATURES, device=like.device)
+    known = prior.known.to(like.device).expand(batch, 4)
+    value = torch.where(known, prior.value.to(like.device).float(), torch.zeros((), device=like.device))
+    _, ranges = pose_bounds(spec.pose_ranges, value)
+    value_norm = spec.normalize(value).clamp(-0.5, 1.5)
+    sigma_norm = prior.sigma.to(like.device).float().expand(batch, 4) / ranges
+    zero = torch.zeros_like(value_norm)
+    return torch.cat([known.float(), torch.where(known, value_norm, zero), torch.where(known, sigma_norm, zero)], 1)
+
+
 def bins_spread(bin_logits: Tensor) -> Tensor:
     """``[B, 4, n]`` logits over ``n`` equal bins of [0, 1] -> ``[B, 4]`` standard deviation of the distribution."""
     n = bin_logits.shape[-1]

@@ -42,10 +42,12 @@ class IGDTeacherForcing(L.Callback):
         return self.schedule["start_share"] == 0.0 and self.schedule["end_share"] == 0.0
 
     def on_fit_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        if self.keeps_the_true_pose and _dapm_module(pl_module).prior_training.enabled:
+        module = _dapm_module(pl_module)
+        if self.keeps_the_true_pose and module.prior_training.enabled and not module.net_config.pose_prior_input:
             rank_zero_warn("model.prior_training changes nothing here: IGDTeacherForcing keeps the IGD on the true "
                            "pose throughout training (start_share and end_share 0), which replaces the fused pose. "
-                           "Turn the priors off, or let the share rise (end_share > 0) for them to act.")
+                           "Tell the pose branch the priors (model.net.pose_prior_input: true), turn them off, or "
+                           "let the share rise (end_share > 0) for them to act.")
 
     def on_train_batch_start(self, trainer: L.Trainer, pl_module: L.LightningModule, batch: Any,
                              batch_idx: int) -> None:

@@ -7,7 +7,7 @@ import torch
 
 from dapm_lightning.geometry.igd import IGDSpec
 from dapm_lightning.models import DAPMConfig, DAPMNet, PosePrior, fuse_pose
-from dapm_lightning.models.prior import NETWORK_SPREAD_WITHOUT_BINS, bins_spread
+from dapm_lightning.models.prior import NETWORK_SPREAD_WITHOUT_BINS, PRIOR_FEATURES, bins_spread, prior_features
 
 NAN = float("nan")
 TINY = {"backbone": "resnet18", "decoder_channels": 16, "head_channels": 8, "igd_channels": 4, "pose_hidden": 16,
@@ -70,3 +70,35 @@ def test_without_pose_bins_the_fixed_spread_is_used():
     assert fused[0, 3] == pytest.approx(0.5 + weight * (spec.normalize(torch.tensor([[0, 0, 0, 100.0]]))[0, 3] - 0.5))
     with pytest.raises(ValueError, match="sigma must be >= 0"):
         PosePrior(torch.zeros(1, 4), torch.tensor([-1.0, 0, 0, 0]))
+
+
+def test_a_pose_branch_told_the_telemetry_reads_it_in_its_decoder_and_its_head():
+    torch.manual_seed(0)
+    net = DAPMNet(DAPMConfig(**TINY, pose_prior_input=True)).eval()
+    image = torch.rand(2, 3, 64, 64)
+    height_known = PosePrior(torch.tensor([[20.0, NAN, NAN, NAN], [NAN] * 4]), torch.tensor([3.0, 1.0, 1.0, 2.0]))
+    with torch.no_grad():
+        plain = net(image)
+        told = net(image, prior=height_known)
+        unknown = net(image, prior=PosePrior(torch.full((2, 4), NAN), torch.zeros(4)))
+    assert not torch.allclose(told.pose.pose[0], plain.pose.pose[0])  # the network's own estimate moves: all four
+    assert torch.equal(told.pose.pose[1], plain.pose.pose[1])  # nothing known for this image
+    assert torch.equal(unknown.pose.pose, plain.pose.pose)  # nothing known anywhere: as without a prior
+    features = prior_features(height_known, net.config.igd, image)
+    assert features.shape == (2, PRIOR_FEATURES) and torch.equal(features[1], torch.zeros(PRIOR_FEATURES))
+    assert features[0, :4].tolist() == [1, 0, 0, 0] and features[0, 4] == pytest.approx((20 - 10) / 90)
+    assert features[0, 8] == pytest.approx(3 / 90)  # the normalised sigma
+    # both parts read it: the decoder's projection and the refinement head receive gradients from a told pose
+    net.train()
+    net(image, prior=height_known).pose.pose_norm.sum().backward()
+    assert net.pose_decoder.prior_projection.weight.grad.abs().sum() > 0
+    first = net.pose_pqb.head.body[0]  # the head's input layer: initial logit, telemetry, bins logits
+    assert first.in_features == 4 + PRIOR_FEATURES + sum(4 * n for n in TINY["pose_bins"])
+    assert first.weight.grad[:, 4:4 + PRIOR_FEATURES].abs().sum() > 0
+
+
+def test_a_pose_branch_told_nothing_has_no_telemetry_weights_and_ignores_the_prior():
+    net = DAPMNet(DAPMConfig(**TINY))
+    assert net.pose_decoder.prior_projection is None and net.pose_pqb.prior_features == 0
+    with pytest.raises(ValueError, match="pose_prior_input needs the pose branch"):
+        DAPMConfig(**{**TINY, "use_depth": True, "use_pose": False, "use_igd_feature": False}, pose_prior_input=True)

@@ -30,6 +30,9 @@ def test_priors_under_a_teacher_forcing_that_keeps_the_true_pose_are_flagged():
         warnings.simplefilter("error")
         IGDTeacherForcing().on_fit_start(SimpleNamespace(), with_priors)  # the share rises: the priors act
         IGDTeacherForcing(end_share=0.0).on_fit_start(SimpleNamespace(), DAPMModule(DAPMConfig(backbone="resnet18")))
+        told = DAPMModule(DAPMConfig(backbone="resnet18", pose_prior_input=True),
+                          prior_training=PriorTraining(enabled=True))
+        IGDTeacherForcing(start_share=0.0, end_share=0.0).on_fit_start(SimpleNamespace(), told)  # the pose reads them
 
 
 def test_callback_sets_share_and_eval_ignores_it(monkeypatch):
