@@ -92,6 +92,9 @@ class DAPMConfig:
             so that a known component informs the others (the height the FoV, the FoV the height, ...). Off by
             default and in the paper configs (the paper has no telemetry); trained by ``model.prior_training``.
             The depth branch is told the telemetry through the IGD of the fused pose either way. docs/model.md.
+        depth_prior_input: the IGD feature is told the same telemetry vector beside the IGD map, so that the depth
+            refinement knows how far the pose behind the IGD is to be trusted (all of it given, the height alone,
+            nothing: the network's own). Needs ``use_igd_feature``; off by default and in the paper configs.
         weight_init: ``"pytorch"`` (default: PyTorch's) or ``"authors"``: the depth decoder's convs
             Kaiming-normal (fan_out) with bias 0, the pose branch's linears Xavier-normal with bias 0.01 and
             its convs Kaiming-normal (fan_out); the depth bins heads and the IGD feature keep PyTorch's, as the
@@ -133,6 +136,7 @@ class DAPMConfig:
     depth_parametrization: Literal["absolute", "igd_ratio"] = _architecture("absolute")
     depth_readout: DepthReadout = "head"
     pose_prior_input: bool = _architecture(False)
+    depth_prior_input: bool = _architecture(False)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "depth_bins", tuple(int(n) for n in self.depth_bins))
@@ -177,6 +181,9 @@ class DAPMConfig:
         if self.pose_prior_input and not self.use_pose:
             raise ValueError("model.net.pose_prior_input needs the pose branch (use_pose): it tells the telemetry to "
                              "the pose decoder")
+        if self.depth_prior_input and not self.use_igd_feature:
+            raise ValueError("model.net.depth_prior_input needs the IGD feature (use_igd_feature): the telemetry is "
+                             "told beside the IGD map")
         if self.head_stride not in (1, 2, 4, 8):
             raise ValueError(f"model.net.head_stride must be 1, 2, 4 or 8, got {self.head_stride}")
 

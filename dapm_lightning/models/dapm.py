@@ -209,7 +209,9 @@ class DAPMNet(nn.Module):
             if self.refines_depth:
                 igd_channels = config.igd_channels if config.use_igd_feature else 0
                 self.to_head = conv_bn_relu(config.decoder_channels, config.head_channels, kernel_size=1)
-                self.igd_feature = IGDFeature(config.igd_channels) if config.use_igd_feature else None
+                self.igd_feature = (IGDFeature(config.igd_channels,
+                                               PRIOR_FEATURES if config.depth_prior_input else 0)
+                                    if config.use_igd_feature else None)
                 self.depth_pqb = DepthPQB(config.head_channels, igd_channels, config.depth_bins, config.head_channels)
                 self.upsample = (ConvexUpsample(config.head_channels, config.head_stride)
                                  if config.head_stride > 1 else None)
@@ -253,14 +255,15 @@ class DAPMNet(nn.Module):
             raise ValueError(f"image must be [B, 3, H, W], got {tuple(image.shape)}")
         size = (image.shape[-2], image.shape[-1])
         features = self.encoder((image - self.pixel_mean) / self.pixel_std)
-        depth_feature = depth_coarse = None
+        depth_feature = depth_coarse = told = None
         if self.depth_decoder is not None:
             depth_feature, depth_coarse = self.depth_decoder(features[-3:])
         pose = None
         if self.pose_decoder is not None:
-            told = (prior_features(prior, self.config.igd, image).to(image.dtype) if self.config.pose_prior_input
-                    else None)
-            pose = self._pose(features, None if depth_coarse is None else depth_coarse.detach(), told)
+            told = (prior_features(prior, self.config.igd, image).to(image.dtype)
+                    if self.config.pose_prior_input or self.config.depth_prior_input else None)
+            pose = self._pose(features, None if depth_coarse is None else depth_coarse.detach(),
+                              told if self.config.pose_prior_input else None)
             # exporting: always fused (a graph has no data-dependent branch; unknown components stay the network's)
             if prior is not None and (torch.compiler.is_exporting() or prior.known.any()):
                 spread = bins_spread(pose.bin_logits[-1]).detach() if pose.bin_logits else None
@@ -268,7 +271,8 @@ class DAPMNet(nn.Module):
                 pose = pose._replace(used_norm=used_norm, used=self.config.igd.denormalize(used_norm))
         depth = None
         if depth_feature is not None and depth_coarse is not None:
-            depth = self._depth(depth_feature, depth_coarse, size, pose, teacher_forcing)
+            depth = self._depth(depth_feature, depth_coarse, size, pose, teacher_forcing,
+                                told if self.config.depth_prior_input else None)
         return DAPMOutput(depth, pose)
 
     def _pose(self, features: list[Tensor], depth_coarse: Tensor | None,
@@ -290,7 +294,8 @@ class DAPMNet(nn.Module):
                               self.pose_pqb is not None)
 
     def _depth(self, depth_feature: Tensor, depth_coarse: Tensor, size: tuple[int, int],
-               pose: PosePrediction | None, teacher_forcing: TeacherForcing | None) -> DepthPrediction:
+               pose: PosePrediction | None, teacher_forcing: TeacherForcing | None,
+               told: Tensor | None = None) -> DepthPrediction:
         igd = self.config.igd
         depth_init = F.interpolate(depth_coarse, size=size, mode="bilinear", align_corners=False)
         if self.depth_pqb is None or self.to_head is None:
@@ -310,7 +315,7 @@ class DAPMNet(nn.Module):
                 used_norm = teacher_forcing.blend(used_norm)
         if self.igd_feature is not None and used_norm is not None and pose is not None:
             igd_norm = held_in(igd.depth_norm(used_norm, head_size), pose.pose_norm)
-            igd_feature = self.igd_feature(igd_norm)
+            igd_feature = self.igd_feature(igd_norm, told)
         igd_m = igd_head = None
         if ratio and used_norm is not None:  # the depth is relative to the ground of the pose used
             used = igd.denormalize(used_norm.float())

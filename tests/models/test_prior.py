@@ -102,3 +102,21 @@ def test_a_pose_branch_told_nothing_has_no_telemetry_weights_and_ignores_the_pri
     assert net.pose_decoder.prior_projection is None and net.pose_pqb.prior_features == 0
     with pytest.raises(ValueError, match="pose_prior_input needs the pose branch"):
         DAPMConfig(**{**TINY, "use_depth": True, "use_pose": False, "use_igd_feature": False}, pose_prior_input=True)
+
+
+def test_an_igd_feature_told_the_telemetry_changes_the_depth_and_not_the_pose():
+    torch.manual_seed(0)
+    net = DAPMNet(DAPMConfig(**TINY, depth_prior_input=True)).eval()
+    net.depth_pqb.blocks[0].body[-1].bias.data.fill_(-4.0)  # ground, not sky
+    assert net.igd_feature.body[0][0].in_channels == 1 + PRIOR_FEATURES
+    image = torch.rand(2, 3, 64, 64)
+    with torch.no_grad():
+        plain = net(image)
+        own = plain.pose.pose
+        # the network's own pose given back as exact telemetry: the same IGD, only the telemetry vector differs
+        told = net(image, prior=PosePrior(own.clone(), torch.zeros(4)))
+    assert torch.equal(told.pose.pose, own)  # the pose branch is not told
+    assert torch.allclose(told.depth.igd_norm, plain.depth.igd_norm, atol=1e-5)
+    assert not torch.allclose(told.depth_m, plain.depth_m)  # the depth head read what is known
+    with pytest.raises(ValueError, match="depth_prior_input needs the IGD feature"):
+        DAPMConfig(**TINY, use_igd_feature=False, depth_prior_input=True)

@@ -29,10 +29,10 @@ TINY = ["--model.net.backbone", "mobilenetv3_small_050", "--model.net.decoder_ch
         "--model.net.pose_hidden", "32", "--data.init_args.batch_size", "2", "--data.init_args.num_workers", "0",
         "--trainer.limit_val_batches", "0", "--trainer.deterministic", "true", "--trainer.max_steps", "8",
         "--trainer.enable_progress_bar", "false",
-        # telemetry priors drawn in every step and told to the pose branch: their draws must resume exactly too
+        # telemetry priors drawn in every step and told to both branches: their draws must resume exactly too
         # (one and two processes)
         "--model.prior_training.enabled", "true", "--model.prior_training.image_fraction", "0.75",
-        "--model.net.pose_prior_input", "true"]
+        "--model.net.pose_prior_input", "true", "--model.net.depth_prior_input", "true"]
 
 
 @pytest.fixture(scope="module")
