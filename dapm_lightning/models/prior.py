@@ -106,7 +106,7 @@ PRIOR_FEATURES = 12
 
 
 def prior_features(prior: PosePrior | None, spec: IGDSpec, like: Tensor) -> Tensor:
-    """What the pose branch is told of the telemetry (``DAPMConfig.pose_prior_input``): ``[B, 12]`` float32.
+    """What the network is told of the telemetry (``DAPMConfig.pose_prior_input``, ``depth_prior_input``): ``[B, 12]``.
 
     Per component (height, pitch, roll, fov): 1 where known, else 0; the normalised value (clamped to
     [-0.5, 1.5]) where known, else 0; the normalised σ where known, else 0. Zeros without a prior (``like``:

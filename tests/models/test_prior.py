@@ -97,7 +97,7 @@ def test_a_pose_branch_told_the_telemetry_reads_it_in_its_decoder_and_its_head()
     assert first.weight.grad[:, 4:4 + PRIOR_FEATURES].abs().sum() > 0
 
 
-def test_a_pose_branch_told_nothing_has_no_telemetry_weights_and_ignores_the_prior():
+def test_a_network_told_nothing_has_no_telemetry_weights_and_switches_need_their_branch():
     net = DAPMNet(DAPMConfig(**TINY))
     assert net.pose_decoder.prior_projection is None and net.pose_pqb.prior_features == 0
     with pytest.raises(ValueError, match="pose_prior_input needs the pose branch"):
