@@ -117,6 +117,27 @@ def adaptive_avg_pool2d_symbolic(x: Tensor, output_size: int | tuple[int, int]) 
     return pool(pool(x, x.ndim - 1, n_w), x.ndim - 2, n_h)
 
 
+def pool_cells(x: Tensor, grid: int) -> Tensor:
+    """``[B, C, H, W]`` -> ``[B, C * grid * grid]``: the mean of each of ``grid x grid`` cells, channel-major.
+
+    ``grid`` 1 is the global average (the exact ``mean`` over the map, as before this option existed).
+    """
+    if grid == 1:
+        return x.mean(dim=(2, 3))
+    return adaptive_avg_pool2d(x, grid).flatten(1)
+
+
+class PoolCells(nn.Module):
+    """:func:`pool_cells` as a module."""
+
+    def __init__(self, grid: int) -> None:
+        super().__init__()
+        self.grid = grid
+
+    def forward(self, x: Tensor) -> Tensor:
+        return pool_cells(x, self.grid)
+
+
 def softmax(x: Tensor, dim: int) -> Tensor:
     """``torch.softmax``; while exporting, the same arithmetic spelt out (max, exp, sum, divide).
 

@@ -92,6 +92,10 @@ class DAPMConfig:
             so that a known component informs the others (the height the FoV, the FoV the height, ...). Off by
             default and in the paper configs (the paper has no telemetry); trained by ``model.prior_training``.
             The depth branch is told the telemetry through the IGD of the fused pose either way. docs/model.md.
+        pose_pool_grid: the pose branch pools each encoder feature map to a ``g x g`` grid instead of its mean (1, the
+            default and the paper's global average pooling): where in the picture a feature lies (the texture
+            coarsening toward the bottom of an oblique view, a horizon's tilt) then reaches the pose. Applies to the
+            pose decoder's pooled stages and to the encoder pose bins stages. docs/model.md.
         depth_prior_input: the IGD feature is told the same telemetry vector beside the IGD map, so that the depth
             refinement knows how far the pose behind the IGD is to be trusted (all of it given, the height alone,
             nothing: the network's own). Needs ``use_igd_feature``; off by default and in the paper configs.
@@ -137,6 +141,7 @@ class DAPMConfig:
     depth_readout: DepthReadout = "head"
     pose_prior_input: bool = _architecture(False)
     depth_prior_input: bool = _architecture(False)
+    pose_pool_grid: int = _architecture(1)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "depth_bins", tuple(int(n) for n in self.depth_bins))
@@ -184,6 +189,8 @@ class DAPMConfig:
         if self.depth_prior_input and not self.use_igd_feature:
             raise ValueError("model.net.depth_prior_input needs the IGD feature (use_igd_feature): the telemetry is "
                              "told beside the IGD map")
+        if not (isinstance(self.pose_pool_grid, int) and 1 <= self.pose_pool_grid <= 8):
+            raise ValueError(f"model.net.pose_pool_grid must be an integer from 1 to 8, got {self.pose_pool_grid!r}")
         if self.head_stride not in (1, 2, 4, 8):
             raise ValueError(f"model.net.head_stride must be 1, 2, 4 or 8, got {self.head_stride}")
 

@@ -220,12 +220,14 @@ class DAPMNet(nn.Module):
             self.pose_decoder = PoseDecoder(channels[-config.pose_stages:], projection=config.pose_projection,
                                             hidden=config.pose_hidden, depth_grid=8 if config.use_depth else 0,
                                             projection_dropout=config.pose_dropout,
-                                            mlp_dropout=config.linear_dropout, prior_features=told)
+                                            mlp_dropout=config.linear_dropout, prior_features=told,
+                                            pool_grid=config.pose_pool_grid)
             if config.pose_bins and config.pose_bins_source == "encoder":
                 self.pose_pqb = EncoderPosePQB(channels[-1], config.pose_bins, config.pose_hidden,
                                                residual_init=config.pose_residual_init,
                                                block_dropout=config.block_dropout,
-                                               linear_dropout=config.linear_dropout, prior_features=told)
+                                               linear_dropout=config.linear_dropout, prior_features=told,
+                                               pool_grid=config.pose_pool_grid)
             elif config.pose_bins:
                 self.pose_pqb = PosePQB(config.pose_hidden, config.pose_bins, config.pose_hidden)
         if config.weight_init == "authors":  # the bins heads and the IGD feature keep PyTorch's, as the authors'

@@ -8,7 +8,13 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from dapm_lightning.models.blocks import ResidualConvBlock, ResidualMLPBlock, SqueezeExcite, adaptive_avg_pool2d
+from dapm_lightning.models.blocks import (
+    ResidualConvBlock,
+    ResidualMLPBlock,
+    SqueezeExcite,
+    adaptive_avg_pool2d,
+    pool_cells,
+)
 
 
 class DepthDecoder(nn.Module):
@@ -64,15 +70,18 @@ class PoseDecoder(nn.Module):
         mlp_dropout: ``Dropout`` inside each residual MLP block (authors: 0.3).
         prior_features: width of the telemetry vector the decoder is told
             (:func:`~dapm_lightning.models.prior.prior_features`), projected like a pooled stage; 0: none.
+        pool_grid: each stage is average-pooled to ``pool_grid x pool_grid`` cells (1: its global mean, the
+            paper's), so that the projection sees where in the picture a feature lies.
     """
 
     def __init__(self, in_channels: Sequence[int], projection: int = 128, hidden: int = 256,
                  depth_grid: int = 8, mlp_blocks: int = 2, projection_dropout: float = 0.0,
-                 mlp_dropout: float = 0.0, prior_features: int = 0) -> None:
+                 mlp_dropout: float = 0.0, prior_features: int = 0, pool_grid: int = 1) -> None:
         super().__init__()
         self.depth_grid = depth_grid
+        self.pool_grid = pool_grid
         self.projection_dropout = nn.Dropout(projection_dropout)
-        self.projections = nn.ModuleList(nn.Linear(c, projection) for c in in_channels)
+        self.projections = nn.ModuleList(nn.Linear(c * pool_grid ** 2, projection) for c in in_channels)
         self.depth_projection = nn.Linear(depth_grid * depth_grid, projection) if depth_grid else None
         self.prior_projection = nn.Linear(prior_features, projection) if prior_features else None
         inputs = projection * (len(in_channels) + (1 if depth_grid else 0) + (1 if prior_features else 0))
@@ -87,7 +96,7 @@ class PoseDecoder(nn.Module):
         ``prior``: the telemetry vector ``[B, prior_features]`` of a decoder built with one (zeros: nothing known).
         """
         drop = self.projection_dropout
-        pooled = [proj(drop(f.mean(dim=(2, 3)))) for proj, f in zip(self.projections, features)]
+        pooled = [proj(drop(pool_cells(f, self.pool_grid))) for proj, f in zip(self.projections, features)]
         if self.depth_projection is not None:
             if depth_norm is None:
                 raise ValueError("this pose decoder was built with a depth input (depth_grid > 0) but got none")

@@ -8,7 +8,7 @@ import torch
 from torch import Tensor, nn
 
 from dapm_lightning.geometry.bins import bin_centers
-from dapm_lightning.models.blocks import ResidualConvBlock, ResidualLinear, conv_bn_relu, softmax
+from dapm_lightning.models.blocks import PoolCells, ResidualConvBlock, ResidualLinear, conv_bn_relu, softmax
 
 SKY_STAGE_BINS = 2
 """A depth stage of 2 bins is the binary "beyond d_max" (sky) map: one logit, trained with BCE."""
@@ -166,20 +166,23 @@ class EncoderPosePQB(nn.Module):
     BatchNorm1d and a final ReLU, here LayerNorm (batch of one) and no ReLU on logits/corrections.
     ``block_dropout``/``linear_dropout``: dropout in the residual conv / linear blocks (authors: 0.1 / 0.3).
     ``prior_features``: width of a telemetry vector the head also reads (0: none), so that what is known of the
-    pose reaches the refined pose and not only the initial one.
+    pose reaches the refined pose and not only the initial one. ``pool_grid``: each stage pools its conv block's
+    output to ``pool_grid x pool_grid`` cells instead of the global mean (1).
     """
 
     def __init__(self, in_channels: int, bins: Sequence[int], channels: int = 256,
                  residual_init: bool = True, block_dropout: float = 0.0, linear_dropout: float = 0.0,
-                 prior_features: int = 0) -> None:
+                 prior_features: int = 0, pool_grid: int = 1) -> None:
         super().__init__()
         self.bins = tuple(bins)
         if any(n < 2 for n in self.bins):
             raise ValueError(f"pose bins must be >= 2, got {self.bins}")
         self.residual_init = residual_init
         self.stages = nn.ModuleList(
-            nn.Sequential(ResidualConvBlock(in_channels, channels, dropout=block_dropout), nn.AdaptiveAvgPool2d(1),
-                          nn.Flatten(), ResidualLinear(channels, 4 * n, activate=False, dropout=linear_dropout))
+            nn.Sequential(ResidualConvBlock(in_channels, channels, dropout=block_dropout),
+                          *((nn.AdaptiveAvgPool2d(1), nn.Flatten()) if pool_grid == 1
+                            else (PoolCells(pool_grid), nn.Identity())),
+                          ResidualLinear(channels * pool_grid ** 2, 4 * n, activate=False, dropout=linear_dropout))
             for n in self.bins)
         self.fuse = nn.ModuleList(ResidualLinear(4 * p + 4 * n, 4 * n, activate=False, dropout=linear_dropout)
                                   for p, n in zip(self.bins[:-1], self.bins[1:]))

@@ -49,11 +49,12 @@ def test_dynamic_onnx_matches_pytorch_at_other_sizes(tmp_path):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("kind", ["depth_only", "pose_only", "fp16", "fixed", "told"])
+@pytest.mark.parametrize("kind", ["depth_only", "pose_only", "fp16", "fixed", "told", "pooled"])
 def test_every_variant_exports(kind, tmp_path):
     overrides = {"depth_only": {"use_pose": False, "use_igd_feature": False},
                  "pose_only": {"use_depth": False, "use_igd_feature": False},
-                 "told": {"pose_prior_input": True, "depth_prior_input": True}}.get(kind, {})
+                 "told": {"pose_prior_input": True, "depth_prior_input": True},
+                 "pooled": {"pose_pool_grid": 3}}.get(kind, {})  # uneven cells at the other sizes checked
     rows = export_onnx(tiny_net(**overrides), tmp_path / "m.onnx", (64, 64), checks=1, fp16=kind == "fp16",
                        dynamic=kind != "fixed")
     with_prior = ["pose", "pose_network", "pose_spread"]
