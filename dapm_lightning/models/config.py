@@ -189,7 +189,8 @@ class DAPMConfig:
         if self.depth_prior_input and not self.use_igd_feature:
             raise ValueError("model.net.depth_prior_input needs the IGD feature (use_igd_feature): the telemetry is "
                              "told beside the IGD map")
-        if not (isinstance(self.pose_pool_grid, int) and 1 <= self.pose_pool_grid <= 8):
+        grid = self.pose_pool_grid
+        if isinstance(grid, bool) or not (isinstance(grid, int) and 1 <= grid <= 8):
             raise ValueError(f"model.net.pose_pool_grid must be an integer from 1 to 8, got {self.pose_pool_grid!r}")
         if self.head_stride not in (1, 2, 4, 8):
             raise ValueError(f"model.net.head_stride must be 1, 2, 4 or 8, got {self.head_stride}")

@@ -66,7 +66,7 @@ def test_a_pooled_network_runs_at_any_size_and_every_weight_learns():
     assert pooled and all(p.grad is not None and p.grad.abs().sum() > 0 for p in pooled)
 
 
-@pytest.mark.parametrize("grid", [0, 9, 1.5, "2"])
+@pytest.mark.parametrize("grid", [0, 9, 1.5, "2", True])
 def test_a_pool_grid_outside_one_to_eight_is_refused(grid):
     with pytest.raises(ValueError, match="pose_pool_grid"):
         DAPMConfig(pose_pool_grid=grid)
