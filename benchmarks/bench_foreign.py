@@ -11,7 +11,9 @@ The verdict says whether the depth given the full telemetry beats the flat groun
 the flat-ground pixels. Writes ``foreign.json``.
 
 Not a training set: its point is to be unlike the training's (other shapes, colours and layout), as a user's
-renderer or a real flight would be.
+renderer or a real flight would be. ``--slope DEG`` tilts every view's ground (the IGD and its bound assume it
+level): how much a hillside costs the telemetry's flat ground, and the bound at margins 0, 0.1 (``predict``'s
+default) and 0.25.
 """
 
 from __future__ import annotations
@@ -30,11 +32,16 @@ import torch
 from dapm_lightning.data.uapd import format_uapd_filename
 from dapm_lightning.geometry.constants import MAX_DEPTH_M, POSE_KEYS, POSE_RANGES
 from dapm_lightning.geometry.depth_codec import depth_to_grey
+from dapm_lightning.models.prior import IGD_BOUND_MARGIN
 
+BOUND_MARGINS = (0.0, IGD_BOUND_MARGIN, 0.25)
+"""The IGD bound's margins measured: each pixel capped at ``(1 + margin)`` x the flat ground of the telemetry."""
 ROWS = (("model", "none (the network alone)"), ("full/igd", "full telemetry, IGD alone"),
-        ("full/cond+bound", "full telemetry, network"), ("height/cond+bound", "height only, network"),
-        ("true_pose", "true pose's IGD"))
-"""The rows printed: (row of :func:`~dapm_lightning.tools.evaluate.evaluate`, label)."""
+        ("full/cond+bound", "full telemetry, network"), ("full/cond", "  the same, no IGD bound"),
+        ("full/cond+bound@0", "  the same, bound margin 0"), ("full/cond+bound@0.25", "  the same, margin 0.25"),
+        ("height/cond+bound", "height only, network"), ("true_pose", "true pose's IGD"))
+"""The rows printed: (row of :func:`~dapm_lightning.tools.evaluate.evaluate`, label); the network's full-telemetry
+row is what ``predict --telemetry`` gives (the bound at its default margin)."""
 
 
 def camera_rays(pose: Sequence[float], size: tuple[int, int]) -> np.ndarray:
@@ -53,8 +60,12 @@ def camera_rays(pose: Sequence[float], size: tuple[int, int]) -> np.ndarray:
     return u[None, :, None] * right + v[:, None, None] * down + forward
 
 
-def sample_world(rng: np.random.Generator, pose: Sequence[float]) -> dict[str, Any]:
-    """Buildings (boxes), trees (vertical cylinders), roads and colours around what the camera sees."""
+def sample_world(rng: np.random.Generator, pose: Sequence[float], slope: float = 0.0) -> dict[str, Any]:
+    """Buildings (boxes), trees (vertical cylinders), roads and colours around what the camera sees.
+
+    ``slope``: the ground is a plane through the point under the camera tilted by this many degrees, downhill in a
+    random direction (0: level, what the IGD assumes); the camera's height is above that point.
+    """
     height, pitch = float(pose[0]), float(pose[1])
     ahead = min(height / math.tan(math.radians(max(-pitch, 5.0))), 600.0) if pitch < 0 else 600.0
     reach = 1.5 * height + 1.5 * ahead + 30.0
@@ -70,8 +81,8 @@ def sample_world(rng: np.random.Generator, pose: Sequence[float]) -> dict[str, A
     centres, half = centres[clear], half[clear]
     tops = np.minimum(rng.lognormal(math.log(12.0), 0.7, len(centres)), 120.0)
     trees = spots(int(rng.uniform(0.2, 1.0) * 200), 8.0)
-    return {
-        "boxes": np.column_stack([centres - half, centres + half, tops]),  # x0 y0 x1 y1 top
+    world = {
+        "boxes": np.column_stack([centres - half, centres + half, tops]),  # x0 y0 x1 y1 top (above the ground)
         "trees": np.column_stack([trees, rng.uniform(1.5, 5.0, len(trees)), rng.uniform(4.0, 22.0, len(trees))]),
         "ground": rng.uniform(0.15, 0.6, 3) * np.array([1.0, 1.1, 0.8]),
         "ground_bands": rng.uniform(5.0, 60.0, 3),
@@ -83,7 +94,23 @@ def sample_world(rng: np.random.Generator, pose: Sequence[float]) -> dict[str, A
                                    rng.uniform(0.05, 0.2, len(trees))]),
         "sun": _unit(np.array([rng.uniform(-1, 1), rng.uniform(-1, 1), rng.uniform(0.4, 1.5)])),
         "visibility": rng.uniform(800.0, 4000.0),
+        "ground_normal": np.array([0.0, 0.0, 1.0]),
     }
+    if slope:  # drawn last, so that a level world is the same with or without this option
+        tilt, azimuth = math.radians(slope), rng.uniform(0.0, 2 * math.pi)
+        world["ground_normal"] = np.array([math.sin(tilt) * math.cos(azimuth), math.sin(tilt) * math.sin(azimuth),
+                                           math.cos(tilt)])
+    return world
+
+
+def ground_z(world: dict[str, Any], x: np.ndarray | float, y: np.ndarray | float) -> np.ndarray | float:
+    """Height of the ground plane at ``(x, y)`` (0 under the camera)."""
+    nx, ny, nz = world["ground_normal"]
+    return -(nx * x + ny * y) / nz
+
+
+BURIED = 1e4
+"""Buildings and trees reach this far below the ground, so that on a slope they meet it on every side."""
 
 
 def _unit(x: np.ndarray) -> np.ndarray:
@@ -100,9 +127,10 @@ def render(pose: Sequence[float], size: tuple[int, int], world: dict[str, Any],
     normal = np.zeros((count, 3))
     colour = np.zeros((count, 3))
     with np.errstate(divide="ignore", invalid="ignore"):
-        t_ground = np.where(rays[:, 2] < 0, -origin[2] / rays[:, 2], np.inf)
+        towards = rays @ world["ground_normal"]
+        t_ground = np.where(towards < 0, -(origin @ world["ground_normal"]) / towards, np.inf)
     t_hit[:] = t_ground
-    normal[:] = (0.0, 0.0, 1.0)
+    normal[:] = world["ground_normal"]
     point = origin + np.where(np.isfinite(t_ground), t_ground, 0.0)[:, None] * rays
     along = point[:, 0] * math.cos(world["road_angle"]) + point[:, 1] * math.sin(world["road_angle"])
     across = -point[:, 0] * math.sin(world["road_angle"]) + point[:, 1] * math.cos(world["road_angle"])
@@ -113,8 +141,9 @@ def render(pose: Sequence[float], size: tuple[int, int], world: dict[str, Any],
         colour[np.abs(across - offset) < 6.0] = (0.22, 0.22, 0.24)
     with np.errstate(divide="ignore", invalid="ignore"):
         for k, (x0, y0, x1, y1, top) in enumerate(world["boxes"]):  # slab test per box, all rays at once
-            lo = (np.array([x0, y0, 0.0]) - origin) / rays
-            hi = (np.array([x1, y1, top]) - origin) / rays
+            base = ground_z(world, (x0 + x1) / 2, (y0 + y1) / 2)  # its roof is `top` above the ground at its centre
+            lo = (np.array([x0, y0, base - BURIED]) - origin) / rays
+            hi = (np.array([x1, y1, base + top]) - origin) / rays
             near, far = np.minimum(lo, hi), np.maximum(lo, hi)
             near = np.nan_to_num(near, nan=-np.inf)
             far = np.nan_to_num(far, nan=np.inf)
@@ -132,8 +161,9 @@ def render(pose: Sequence[float], size: tuple[int, int], world: dict[str, Any],
             c = ox * ox + oy * oy - radius * radius
             t_side = (-b - np.sqrt(b * b - 4 * a * c)) / (2 * a)
             z_side = origin[2] + t_side * rays[:, 2]
-            side = (t_side > 0) & (z_side >= 0) & (z_side <= top)
-            t_top = (top - origin[2]) / rays[:, 2]
+            base = ground_z(world, cx, cy)
+            side = (t_side > 0) & (z_side >= base - BURIED) & (z_side <= base + top)
+            t_top = (base + top - origin[2]) / rays[:, 2]
             on_top = (t_top > 0) & ((ox + t_top * rays[:, 0]) ** 2 + (oy + t_top * rays[:, 1]) ** 2 <= radius ** 2)
             t = np.where(side, t_side, np.where(on_top, t_top, np.inf))
             hit = t < t_hit
@@ -158,22 +188,22 @@ def render(pose: Sequence[float], size: tuple[int, int], world: dict[str, Any],
     return image, depth.reshape(size)
 
 
-def view(seed: int, index: int, size: int) -> tuple[str, np.ndarray, np.ndarray]:
+def view(seed: int, index: int, size: int, slope: float = 0.0) -> tuple[str, np.ndarray, np.ndarray]:
     """``(UAPD file name, rgb, range depth)`` of view ``index`` of a set: a pose uniform in the UAPD ranges."""
     rng = np.random.default_rng([seed, index])
     pose = np.array([round(float(rng.uniform(*POSE_RANGES[key])), 2) for key in POSE_KEYS])
-    rgb, depth = render(pose, (size, size), sample_world(rng, pose), rng)
+    rgb, depth = render(pose, (size, size), sample_world(rng, pose, slope), rng)
     return format_uapd_filename(["foreign", f"{index:05d}"], pose), rgb, depth
 
 
-def write_set(out: Path, count: int, size: int, seed: int) -> list[str]:
+def write_set(out: Path, count: int, size: int, seed: int, slope: float = 0.0) -> list[str]:
     """``count`` views in UAPD layout under ``out/val`` (and an empty ``out/train``); returns the file names."""
     for split in ("train", "val"):
         for kind in ("rgb", "depth"):
             (out / split / kind).mkdir(parents=True, exist_ok=True)
     names = []
     for index in range(count):
-        name, rgb, depth = view(seed, index, size)
+        name, rgb, depth = view(seed, index, size, slope)
         cv2.imwrite(str(out / "val" / "rgb" / name), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
         cv2.imwrite(str(out / "val" / "depth" / name), depth_to_grey(depth, MAX_DEPTH_M))
         names.append(name)
@@ -188,10 +218,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     out = args.out.resolve()
     root = out / "foreign_data"
     module = load_dapm_module(args.checkpoint).eval()  # first: a wrong path fails before any rendering
-    write_set(root, args.count, args.size, args.seed)
+    write_set(root, args.count, args.size, args.seed, args.slope)
     mean_pose = torch.tensor([(lo + hi) / 2 for lo, hi in (POSE_RANGES[k] for k in POSE_KEYS)], dtype=torch.float64)
     with torch.no_grad():
-        rows = evaluate(module, root, mean_pose)
+        rows = evaluate(module, root, mean_pose, bound_margins=BOUND_MARGINS)
     print(f"\n{args.count} views of {args.size}x{args.size} from a renderer this project's models never trained on; "
           "d1 / AbsRel, and d1 on the flat-ground pixels and on what stands on them")
     print(f"{'row':<30}{'d1':>8}{'AbsRel':>8}{'ground':>8}{'objects':>9}")
@@ -206,6 +236,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
           + ("it keeps" if verdict["keeps_ground"] else "it loses")
           + f" the telemetry's accuracy ({told['d1_ground']:.3f} against {alone['d1_ground']:.3f}).")
     report = {"checkpoint": str(args.checkpoint), "count": args.count, "size": args.size, "seed": args.seed,
+              "slope": args.slope,
               "results": rows, "verdict": verdict}
     (out / "foreign.json").write_text(json.dumps(report, indent=2, default=float) + "\n")
     print(f"report in {out / 'foreign.json'}")
@@ -220,12 +251,15 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--count", type=int, default=200, help="views rendered (default 200)")
     parser.add_argument("--size", type=int, default=64, help="image side in pixels (default 64, the quickstart's)")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--slope", type=float, default=0.0,
+                        help="degrees the ground of every view is tilted, downhill in a random direction (default 0: "
+                             "level, as the IGD assumes)")
     args = parser.parse_args(argv)
     if not args.checkpoint.exists():
         parser.error(f"{args.checkpoint}: no such checkpoint. Fix: pass a .ckpt (make demo writes one under "
                      "outputs/quickstart) or a shipped model's folder (models/dapm-synthetic-r18-256)")
-    if args.count < 1 or args.size < 16:
-        parser.error("--count must be at least 1 and --size at least 16")
+    if args.count < 1 or args.size < 16 or not 0 <= args.slope < 60:
+        parser.error("--count must be at least 1, --size at least 16 and --slope from 0 to below 60 degrees")
     return run(args)
 
 

@@ -82,3 +82,30 @@ def test_a_missing_checkpoint_is_named_before_anything_is_rendered(tmp_path, cap
         main(["--checkpoint", str(tmp_path / "none.ckpt"), "--out", str(tmp_path / "f")])
     assert info.value.code == 2 and "none.ckpt: no such checkpoint" in capsys.readouterr().err
     assert not (tmp_path / "f").exists()
+
+
+def test_a_sloped_ground_is_a_tilted_plane_through_the_nadir_point():
+    pose = (40.0, -50.0, 10.0, 80.0)
+    world = sample_world(np.random.default_rng(5), pose, slope=12.0)
+    assert np.degrees(np.arccos(world["ground_normal"][2])) == pytest.approx(12.0)
+    world["boxes"], world["trees"] = world["boxes"][:0], world["trees"][:0]
+    tilt = np.radians(12.0)
+    world["ground_normal"] = np.array([0.0, np.sin(tilt), np.cos(tilt)])  # sideways: one side rises, one falls
+    _, depth = render(pose, (32, 32), world)
+    rays = camera_rays(pose, (32, 32))
+    seen = np.isfinite(depth)
+    points = np.array([0.0, 0.0, 40.0]) + (depth / np.linalg.norm(rays, axis=-1))[..., None] * rays
+    normal = world["ground_normal"]
+    assert np.abs(points[seen] @ normal).max() < 1e-6 * depth[seen].max()
+    igd = ideal_ground_depth(torch.tensor([pose], dtype=torch.float64), (32, 32), depth_kind="range")[0, 0].numpy()
+    assert (depth[seen] < igd[seen] * 0.97).any() and (depth[seen] > igd[seen] * 1.03).any()  # uphill and downhill
+
+
+def test_level_worlds_do_not_depend_on_the_slope_option():
+    pose = (40.0, -50.0, 10.0, 80.0)
+    level = sample_world(np.random.default_rng(5), pose)
+    zero = sample_world(np.random.default_rng(5), pose, slope=0.0)
+    assert all(np.array_equal(level[k], zero[k]) for k in level)
+    tilted = sample_world(np.random.default_rng(5), pose, slope=8.0)
+    assert np.array_equal(level["boxes"], tilted["boxes"]) and not np.array_equal(level["ground_normal"],
+                                                                                   tilted["ground_normal"])
