@@ -2,8 +2,9 @@
 
 ``python -m benchmarks.bench_foreign --checkpoint CKPT --out OUT``: renders ``--count`` UAPD-format images with a
 second, deliberately plain renderer written from design.md §1 alone (none of :mod:`dapm_lightning.data.synthetic`
-or :mod:`dapm_lightning.geometry.igd`): a flat ground with procedural colour bands and roads, box buildings and
-cylinder trees, shaded by one sun, a sky gradient and haze; the depth is the exact ray range. The checkpoint is then
+or :mod:`dapm_lightning.geometry.igd`): a plane ground (level, or tilted by ``--slope``) with colour bands and
+roads, box buildings and cylinder trees, shaded by one sun, a sky gradient and haze; the depth is the exact ray
+range. The checkpoint is then
 evaluated as ``bench_synth transfer`` does (noisy telemetry σ 3 m, 1°, 1°, 2°, the network told that σ) and the
 table names the rows issue 31 is about: the network alone, the IGD of the noisy full telemetry alone (no learning),
 the network given that telemetry (what ``predict --telemetry`` does), the height alone, and the true pose's IGD.
