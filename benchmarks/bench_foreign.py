@@ -37,6 +37,8 @@ from dapm_lightning.models.prior import IGD_BOUND_MARGIN
 
 BOUND_MARGINS = (0.0, IGD_BOUND_MARGIN, 0.25)
 """The IGD bound's margins measured: each pixel capped at ``(1 + margin)`` x the flat ground of the telemetry."""
+GROUND_KEPT = 0.02
+"""The ground is kept when the network's d1 on it is at most this far below the telemetry's flat ground's."""
 ROWS = (("model", "none (the network alone)"), ("full/igd", "full telemetry, IGD alone"),
         ("full/cond+bound", "full telemetry, network"), ("full/cond", "  the same, no IGD bound"),
         ("full/cond+bound@0", "  the same, bound margin 0"), ("full/cond+bound@0.25", "  the same, margin 0.25"),
@@ -47,7 +49,7 @@ row is what ``predict --telemetry`` gives (the bound at its default margin)."""
 
 def camera_rays(pose: Sequence[float], size: tuple[int, int]) -> np.ndarray:
     """``[H, W, 3]`` world directions of every pixel's ray (not unit length), design.md §1 written out."""
-    height, pitch, roll, fov = (float(v) for v in pose)
+    _, pitch, roll, fov = (float(v) for v in pose)
     rows, cols = size
     p, r = math.radians(pitch), math.radians(roll)
     focal = cols / (2.0 * math.tan(math.radians(fov) / 2.0))
@@ -155,9 +157,9 @@ def render(pose: Sequence[float], size: tuple[int, int], world: dict[str, Any],
             face[np.arange(len(axis)), axis] = -np.sign(rays[hit, axis])
             t_hit[hit], normal[hit] = t_near[hit], face
             colour[hit] = np.where((axis == 2)[:, None], world["roofs"][k], world["walls"][k])
+        a = rays[:, 0] ** 2 + rays[:, 1] ** 2  # the rays' horizontal part, the same for every tree
         for k, (cx, cy, radius, top) in enumerate(world["trees"]):
             ox, oy = origin[0] - cx, origin[1] - cy
-            a = rays[:, 0] ** 2 + rays[:, 1] ** 2
             b = 2 * (ox * rays[:, 0] + oy * rays[:, 1])
             c = ox * ox + oy * oy - radius * radius
             t_side = (-b - np.sqrt(b * b - 4 * a * c)) / (2 * a)
@@ -231,7 +233,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         print(f"{label:<30}{r['d1']:>8.3f}{r['abs_rel']:>8.3f}{r.get('d1_ground', float('nan')):>8.3f}"
               f"{r.get('d1_objects', float('nan')):>9.3f}")
     told, alone = rows["full/cond+bound"], rows["full/igd"]
-    verdict = {"beats_igd": told["d1"] >= alone["d1"], "keeps_ground": told["d1_ground"] >= alone["d1_ground"] - 0.02}
+    verdict = {"beats_igd": told["d1"] >= alone["d1"],
+               "keeps_ground": told["d1_ground"] >= alone["d1_ground"] - GROUND_KEPT}
     print("\nGiven the full telemetry the depth " + ("beats" if verdict["beats_igd"] else "falls below")
           + f" the flat ground of that telemetry (d1 {told['d1']:.3f} against {alone['d1']:.3f}); on the ground "
           + ("it keeps" if verdict["keeps_ground"] else "it loses")

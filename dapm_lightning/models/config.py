@@ -191,7 +191,7 @@ class DAPMConfig:
                              "told beside the IGD map")
         grid = self.pose_pool_grid
         if isinstance(grid, bool) or not (isinstance(grid, int) and 1 <= grid <= 8):
-            raise ValueError(f"model.net.pose_pool_grid must be an integer from 1 to 8, got {self.pose_pool_grid!r}")
+            raise ValueError(f"model.net.pose_pool_grid must be an integer from 1 to 8, got {grid!r}")
         if self.head_stride not in (1, 2, 4, 8):
             raise ValueError(f"model.net.head_stride must be 1, 2, 4 or 8, got {self.head_stride}")
 

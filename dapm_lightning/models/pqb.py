@@ -179,9 +179,9 @@ class EncoderPosePQB(nn.Module):
             raise ValueError(f"pose bins must be >= 2, got {self.bins}")
         self.residual_init = residual_init
         self.stages = nn.ModuleList(
-            nn.Sequential(ResidualConvBlock(in_channels, channels, dropout=block_dropout),
-                          *((nn.AdaptiveAvgPool2d(1), nn.Flatten()) if pool_grid == 1
-                            else (PoolCells(pool_grid), nn.Identity())),
+            # the Identity keeps the linear at index 3, where checkpoints from before the grid (pool, flatten) have it
+            nn.Sequential(ResidualConvBlock(in_channels, channels, dropout=block_dropout), PoolCells(pool_grid),
+                          nn.Identity(),
                           ResidualLinear(channels * pool_grid ** 2, 4 * n, activate=False, dropout=linear_dropout))
             for n in self.bins)
         self.fuse = nn.ModuleList(ResidualLinear(4 * p + 4 * n, 4 * n, activate=False, dropout=linear_dropout)
