@@ -30,6 +30,7 @@ import cv2
 import numpy as np
 import torch
 
+from dapm_lightning.data.files import write_image, write_text
 from dapm_lightning.data.uapd import format_uapd_filename
 from dapm_lightning.geometry.constants import MAX_DEPTH_M, POSE_KEYS, POSE_RANGES
 from dapm_lightning.geometry.depth_codec import depth_to_grey
@@ -207,8 +208,8 @@ def write_set(out: Path, count: int, size: int, seed: int, slope: float = 0.0) -
     names = []
     for index in range(count):
         name, rgb, depth = view(seed, index, size, slope)
-        cv2.imwrite(str(out / "val" / "rgb" / name), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
-        cv2.imwrite(str(out / "val" / "depth" / name), depth_to_grey(depth, MAX_DEPTH_M))
+        write_image(out / "val" / "rgb" / name, cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+        write_image(out / "val" / "depth" / name, depth_to_grey(depth, MAX_DEPTH_M))
         names.append(name)
     return names
 
@@ -242,7 +243,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     report = {"checkpoint": str(args.checkpoint), "count": args.count, "size": args.size, "seed": args.seed,
               "slope": args.slope,
               "results": rows, "verdict": verdict}
-    (out / "foreign.json").write_text(json.dumps(report, indent=2, default=float) + "\n")
+    write_text(out / "foreign.json", json.dumps(report, indent=2, default=float) + "\n")
     print(f"report in {out / 'foreign.json'}")
     return report
 

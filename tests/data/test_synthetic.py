@@ -224,3 +224,16 @@ def test_the_synthetic_module_says_what_it_renders_and_what_it_replaces(tmp_path
     assert len(replaced) == 1 and "rendering it again (2 + 1 synthetic images at 16 px)" in replaced[0]
     assert "(train 1 -> 2)" in replaced[0] and "another data.init_args.root" in replaced[0]
     assert len(list((tmp_path / "s" / "train" / "rgb").iterdir())) == 2
+
+
+def test_an_image_that_cannot_be_written_stops_the_render_naming_it(tmp_path, monkeypatch):
+    """OpenCV reports a failed write by returning False: the generator raises instead, and is not left 'current'."""
+    import cv2
+
+    from dapm_lightning.data.files import WriteError
+
+    monkeypatch.setattr(cv2, "imencode", lambda *args, **kwargs: (False, None))
+    with pytest.raises(WriteError, match=r"synth_000000.*\.png"):
+        generate_uapd(tmp_path / "d", train=1, val=0, size=16, workers=1)
+    assert not (tmp_path / "d" / "synth.json").exists()
+    assert not list((tmp_path / "d").rglob("*.png"))

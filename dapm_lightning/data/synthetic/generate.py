@@ -14,6 +14,7 @@ import cv2
 import numpy as np
 import torch
 
+from dapm_lightning.data.files import write_image
 from dapm_lightning.data.synthetic.lens import distort, sample_lens
 from dapm_lightning.data.synthetic.render import render_scene
 from dapm_lightning.data.synthetic.scene import Scene, normalize_families, sample_scene
@@ -76,8 +77,8 @@ def _render_one(job: tuple[Path, str, int, int, tuple[int, int], dict[str, float
     out, split, index, seed, size, families, effects, distortion, max_depth = job
     torch.set_num_threads(1)
     name, rgb, grey, _ = render_sample(seed, split, index, size, families, effects, distortion, max_depth)
-    cv2.imwrite(str(out / split / "rgb" / name), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
-    cv2.imwrite(str(out / split / "depth" / name), grey)
+    write_image(out / split / "rgb" / name, cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+    write_image(out / split / "depth" / name, grey)
     return name
 
 
