@@ -33,7 +33,8 @@ def test_ddp_two_cpu_processes_match_single_process(tmp_path):
         fit = run(tmp_path, "fit", "fit", *common, "--trainer.devices", "2", "--trainer.strategy", "ddp",
                   "--trainer.max_steps", "3", "--trainer.limit_val_batches", "0",
                   "--model.prior_training.enabled", "true",  # telemetry priors under DDP, told to both branches
-                  "--model.net.pose_prior_input", "true", "--model.net.depth_prior_input", "true")
+                  "--model.net.pose_prior_input", "true", "--model.net.depth_prior_input", "true",
+                  "--model.net.pose_pool_grid", "2")  # the pose branch's pooled cells: every weight used
     except subprocess.CalledProcessError as error:
         pytest.fail(f"DDP fit failed:\n{error.stderr[-3000:]}")
     assert fit["global_step"] == 3

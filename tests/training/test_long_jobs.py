@@ -32,7 +32,8 @@ TINY = ["--model.net.backbone", "mobilenetv3_small_050", "--model.net.decoder_ch
         # telemetry priors drawn in every step and told to both branches: their draws must resume exactly too
         # (one and two processes)
         "--model.prior_training.enabled", "true", "--model.prior_training.image_fraction", "0.75",
-        "--model.net.pose_prior_input", "true", "--model.net.depth_prior_input", "true"]
+        "--model.net.pose_prior_input", "true", "--model.net.depth_prior_input", "true",
+        "--model.net.pose_pool_grid", "2"]  # the pose branch pooled to cells
 
 
 @pytest.fixture(scope="module")
