@@ -27,7 +27,7 @@ from dapm_lightning.models.dapm import DAPMNet, DAPMOutput
 from dapm_lightning.models.prior import PosePrior
 from dapm_lightning.models.teacher_forcing import TeacherForcing
 from dapm_lightning.training.loss import DAPMLoss, LossConfig
-from dapm_lightning.training.resume import resume_after_last_batch
+from dapm_lightning.training.resume import resume_after_last_batch, start_next_epoch_as_any_other
 from dapm_lightning.training.rng import pack_rng_states, rng_states, set_rng_states, unpack_rng_states
 from dapm_lightning.training.signals import SigtermAgreement
 
@@ -348,8 +348,10 @@ class DAPMModule(L.LightningModule):
         self.sigterm.install(self.trainer)
 
     def on_train_start(self) -> None:
-        """As :meth:`on_sanity_check_start`, for runs without a sanity check."""
+        """As :meth:`on_sanity_check_start`, for runs without a sanity check; a resumed run's next epoch starts as any
+        other (:func:`~dapm_lightning.training.resume.start_next_epoch_as_any_other`)."""
         self.sigterm.install(self.trainer)
+        start_next_epoch_as_any_other(self.trainer.fit_loop)
 
     def on_train_batch_end(self, outputs: Any, batch: Any, batch_idx: int) -> None:
         """Under DDP, every process stops here, after the same batch, when any of them got SIGTERM."""

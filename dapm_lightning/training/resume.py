@@ -8,6 +8,7 @@ epoch it makes the resumed run skip the next epoch entirely (its batch counters 
 run"). :func:`resume_after_last_batch` rewrites such counters to those of a checkpoint taken right after
 the last training batch, which Lightning resumes exactly: the same epoch, the next batch (or the next
 epoch from its first batch when the last batch ended it), without repeating the validation that ran there.
+:func:`start_next_epoch_as_any_other` mends how Lightning then starts that next epoch.
 """
 
 from __future__ import annotations
@@ -55,4 +56,26 @@ def resume_after_last_batch(fit_loop: MutableMapping[str, Any]) -> bool:
     return True
 
 
-__all__ = ["epoch_closed", "resume_after_last_batch"]
+def start_next_epoch_as_any_other(fit_loop: Any) -> bool:
+    """After a resume from a save right after an epoch's last batch, let the next epoch start as every epoch does.
+
+    Lightning (2.6) closes the restored epoch in ``FitLoop.reset`` but keeps the loop's restart stage "restarted
+    mid-epoch" until the next epoch ends, so that epoch is not counted ready and started and its
+    ``on_train_epoch_start`` hooks do not run. Its counters then end as (ready n, started n, processed n + 1),
+    which no later save reads right: the resume after the next save skipped a whole epoch and said it had
+    finished. Call it between the loop's reset and its first epoch (``on_train_start``).
+
+    Args:
+        fit_loop: the trainer's ``fit_loop``.
+
+    Returns:
+        Whether the restart stage was cleared (False: not such a resume, nothing changed).
+    """
+    progress = fit_loop.epoch_progress.total
+    if fit_loop.restarted_mid_epoch and progress.processed == progress.started:  # reset closed the restored epoch
+        fit_loop.reset_restart_stage()
+        return True
+    return False
+
+
+__all__ = ["epoch_closed", "resume_after_last_batch", "start_next_epoch_as_any_other"]

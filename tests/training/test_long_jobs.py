@@ -203,18 +203,23 @@ def test_two_seeded_runs_are_bit_identical(data8, tmp_path, monkeypatch):
     assert all(torch.equal(states[0][k], states[1][k]) for k in states[0])
 
 
-def fit_in_process(tmp_path, name, data, max_steps, extra=(), ckpt=None):
+def fit_in_process(tmp_path, name, data, max_steps, extra=(), ckpt=None, schedule=SCHEDULE, epoch_starts=None):
     """Fit in this process as a resumable job validating every 2 steps (last.ckpt as the configs write it: at every
-    validation and when training ends); returns the weights and the (step, epoch, first image) of every batch."""
+    validation and when training ends); returns the weights and the (step, epoch, first image) of every batch.
+    ``epoch_starts``: a list the epochs whose ``on_train_epoch_start`` ran are appended to."""
     seen = []
 
     class Record(L.Callback):
         def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
             seen.append((trainer.global_step, trainer.current_epoch, batch["name"][0]))
 
+        def on_train_epoch_start(self, trainer, pl_module):
+            if epoch_starts is not None:
+                epoch_starts.append(trainer.current_epoch)
+
     cli = run_lightning_cli([*job_config(tmp_path, name, every_step=False), "--data.class_path",
                              "dapm_lightning.data.datamodules.UAPDDataModule", "--data.init_args.root", str(data),
-                             *TINY, *VALIDATE, *SCHEDULE, "--trainer.enable_model_summary", "false",
+                             *TINY, *VALIDATE, *schedule, "--trainer.enable_model_summary", "false",
                              "--trainer.max_steps", str(max_steps), *extra], run=False)
     cli.trainer.callbacks.append(Record())
     cli.trainer.fit(cli.model, datamodule=cli.datamodule, ckpt_path=ckpt)
@@ -240,6 +245,59 @@ def test_stopped_by_max_steps_at_or_after_a_validation_resumes_exactly(data8, tm
     training ended at step 3 (Lightning counts that epoch as done: it would resume in the next one)."""
     monkeypatch.chdir(tmp_path)
     assert_resumes_exactly(tmp_path, data8, stops=(2, 3))
+
+
+@pytest.mark.parametrize("stops", [(4, 8, 12), (3, 6, 9, 12), (4, 6, 12)])
+def test_a_job_resumed_again_and_again_trains_as_the_uninterrupted_one(data8, tmp_path, monkeypatch, stops):
+    """A pre-empted job resumed several times (3 epochs of 4 batches): each resume trains the batches the
+    uninterrupted run trained from where the last one stopped, every epoch starts once (its start hooks run), and
+    the weights end equal. A resume from an epoch's end used to leave the next save's counters such that the
+    resume after it skipped a whole epoch and said it had finished."""
+    monkeypatch.chdir(tmp_path)
+    schedule = ["--model.optimizer.schedule_steps", "12"]
+    starts = []
+    reference, order = fit_in_process(tmp_path, "straight", data8, 12, schedule=schedule, epoch_starts=starts)
+    assert starts == [0, 1, 2]
+    starts, previous, weights_now = [], 0, None
+    for stop in stops:
+        last = tmp_path / "chain" / "last.ckpt"
+        weights_now, seen = fit_in_process(tmp_path, "chain", data8, stop, schedule=schedule, epoch_starts=starts,
+                                           ckpt=str(last) if previous else None)
+        assert seen == [s for s in order if previous <= s[0] < stop], f"resumed at {previous}, to {stop}: other batches"
+        assert torch.load(last, weights_only=True)["global_step"] == stop
+        previous = stop
+    assert sorted(set(starts)) == [0, 1, 2] and len(starts) == len(set(starts)), f"epoch starts {starts}"
+    differ = [k for k in reference if not torch.equal(reference[k], weights_now[k])]
+    assert not differ, f"{len(differ)} of {len(reference)} tensors differ"
+
+
+def test_a_job_resumed_at_each_epoch_end_trains_every_epoch(data8, tmp_path, monkeypatch):
+    """The configs' rhythm (a validation at each epoch's end, last.ckpt then and when training ends), stopped by
+    max_epochs and resumed three times: every resume trains one whole epoch, the batches of the uninterrupted run,
+    and saves where the next starts. The second resume used to train nothing and say `max_epochs` was reached."""
+    monkeypatch.chdir(tmp_path)
+    schedule = ["--model.optimizer.schedule_steps", "16"]
+
+    def by_epochs(epochs):
+        return ["--trainer.max_steps", "-1", "--trainer.max_epochs", str(epochs), "--trainer.val_check_interval",
+                "1.0"]
+
+    starts = []
+    reference, order = fit_in_process(tmp_path, "straight", data8, 0, extra=by_epochs(4), schedule=schedule,
+                                      epoch_starts=starts)
+    assert starts == [0, 1, 2, 3] and len(order) == 16
+    starts, weights_now = [], None
+    last = tmp_path / "chain" / "last.ckpt"
+    for epochs in (1, 2, 3, 4):
+        weights_now, seen = fit_in_process(tmp_path, "chain", data8, 0, extra=by_epochs(epochs), schedule=schedule,
+                                           epoch_starts=starts, ckpt=str(last) if epochs > 1 else None)
+        assert seen == [s for s in order if s[1] == epochs - 1], f"the run to epoch {epochs}: other batches"
+        saved = torch.load(last, weights_only=True)
+        assert saved["global_step"] == 4 * epochs
+        assert saved["UAPDDataModule"] == {"epoch": epochs, "samples_seen": 0}
+    assert starts == [0, 1, 2, 3]
+    differ = [k for k in reference if not torch.equal(reference[k], weights_now[k])]
+    assert not differ, f"{len(differ)} of {len(reference)} tensors differ"
 
 
 @pytest.mark.slow
