@@ -21,6 +21,9 @@ from dapm_lightning.geometry.depth_codec import grey_to_depth
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp")
 """Image files the project reads (data sets and prediction inputs)."""
+DATA_SUFFIXES = IMAGE_SUFFIXES + (".exr", ".npy", ".npz", ".pfm", ".hdr")
+"""Files in rgb/ or depth/ that look meant as images or depth maps: named when they are not NAME.png."""
+_IMAGE_SIGNATURES = (b"\x89PNG", b"\xff\xd8\xff")  # PNG, JPEG: an image whatever its name
 KEY_ALIASES = {"z": "height", "height": "height", "pitch": "pitch", "roll": "roll", "fov": "fov"}
 """File-name keys that carry the pose, mapped to the pose component they name."""
 _NUMBER = re.compile(r"^[+-]?(\d+(\.\d*)?|\.\d+)$")
@@ -167,6 +170,20 @@ def read_depth_grey(path: Path) -> np.ndarray:
     return grey
 
 
+def _looks_like_data(path: Path) -> bool:
+    """Whether a file that is not ``NAME.png`` looks meant as an image or a depth map (its suffix or first bytes).
+
+    Other files (notes, OS metadata) are not the data set's to judge.
+    """
+    if path.suffix.lower() in DATA_SUFFIXES:
+        return True
+    try:
+        with path.open("rb") as file:
+            return file.read(4).startswith(_IMAGE_SIGNATURES)
+    except OSError:
+        return False
+
+
 def check_pair(name: str, rgb_path: Path, depth_path: Path) -> tuple[dict[str, Any], str]:
     """Check one pair the way the start-up scan does, without decoding it.
 
@@ -272,14 +289,27 @@ class UAPDDataset(SkipsBadFiles, torch.utils.data.Dataset[Sample]):
                     f"Fix: put the {self.split} split in {layout}, or give data.init_args.root the folder that holds "
                     "it (UAPD's layout: docs/data.md)."))
         files = {folder: sorted(folder.iterdir()) for folder in (rgb_dir, depth_dir)}
-        rgb = {p.name: p for p in files[rgb_dir] if p.suffix.lower() == ".png"}
-        depth = {p.name: p for p in files[depth_dir] if p.suffix.lower() == ".png"}
-        problems = [f"{p}: not a PNG image: UAPD reads NAME.png pairs only, so this file is not read (convert it "
-                    "to PNG, or move it out of the folder)" for folder in (rgb_dir, depth_dir)
-                    for p in files[folder] if p.suffix.lower() in IMAGE_SUFFIXES and p.suffix.lower() != ".png"]
-        for name in sorted(rgb.keys() - depth.keys()):
+        rgb = {p.name: p for p in files[rgb_dir] if p.suffix.lower() == ".png" and p.is_file()}
+        depth = {p.name: p for p in files[depth_dir] if p.suffix.lower() == ".png" and p.is_file()}
+        problems, explained = [], set()
+        for folder, same, other in ((rgb_dir, rgb, depth), (depth_dir, depth, rgb)):
+            for p in files[folder]:
+                if p.name in same or p.name.startswith(".") or not (p.is_dir() or _looks_like_data(p)):
+                    continue
+                if p.is_dir():
+                    problems.append(f"{p}: a folder: UAPD reads the NAME.png files directly in {folder.name}/, so "
+                                    "nothing in it is read (move its files up, or move it out)")
+                    continue
+                unpaired = ""  # the pair this file was likely meant to complete (NAME.jpg, or NAME without .png)
+                for twin in (p.stem + ".png", p.name + ".png"):
+                    if twin in other and twin not in same:
+                        explained.add(twin)
+                        unpaired = f", and {other[twin]} has no pair"
+                problems.append(f"{p}: not a PNG image by its name: UAPD reads NAME.png pairs only, so this file is "
+                                f"not read{unpaired} (convert it to NAME.png, or move it out of the folder)")
+        for name in sorted(rgb.keys() - depth.keys() - explained):
             problems.append(f"{rgb[name]}: no depth twin {depth_dir / name}")
-        for name in sorted(depth.keys() - rgb.keys()):
+        for name in sorted(depth.keys() - rgb.keys() - explained):
             problems.append(f"{depth[name]}: no rgb twin {rgb_dir / name}")
 
         def check(name: str) -> tuple[dict[str, Any], str] | list[str]:

@@ -17,6 +17,7 @@ from __future__ import annotations
 import math
 import os
 import sys
+import warnings
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from json import dumps
@@ -54,6 +55,9 @@ reach this many pixels (at the checked resolution), however small the image or i
 MIN_AGREEMENT = 0.02
 """Below this share (or MIN_GROUND_PIXELS) no pose makes flat ground visible (e.g. a street canyon): such a
 sample is listed as unchecked."""
+DEPTH_KIND_GAIN = 0.3
+"""The other depth kind is reported when its median agreement exceeds the checked kind's by this much (and is at least
+twice it): exact range and planar data score about 0.95 with their own kind and 0.3 with the other."""
 CHECK_WIDTH = 128
 """Depth maps are checked at this width at most (nearest-neighbour downsampling keeps grey levels)."""
 FOV_STEP = 5.0
@@ -188,11 +192,29 @@ def check_sample(depth_grey: np.ndarray, pose: np.ndarray, depth_kind: DepthKind
                   f"{on['agree'][0] / on['seen']:.2f} of the non-sky pixels{where} agree; "
                   f"{on['beyond'][k + 1] / on['pixels']:.2f} vs {on['beyond'][0] / on['pixels']:.2f} of all pixels"
                   f"{where} lie beyond the ground)")
+    other_kind: DepthKind = "planar" if depth_kind == "range" else "range"
+    other = compare_poses(depth_grey, pose[None], other_kind)
     depth = grey_to_depth(depth_grey).astype(np.float64)
     visible = any(c["agree"].max() >= max(MIN_AGREEMENT * c["seen"], MIN_GROUND_PIXELS) for c in (whole, centre))
     return {"agreement": float(whole["agree"][0] / whole["seen"]),
+            "agreement_other_kind": float(other["agree"][0] / other["seen"]),
             "beyond": float(whole["beyond"][0] / whole["pixels"]),
             "lower_median_ratio": lower_median_ratio(depth, whole["igd"]), "flag": reason, "unchecked": not visible}
+
+
+def depth_kind_mismatch(depth_kind: DepthKind, agreement: float, agreement_other: float) -> str | None:
+    """A problem when the depths fit the other kind's flat ground far better than the kind checked, else None.
+
+    Range and planar depth agree on the optical axis only, so a set of the other kind fits its own poses poorly
+    off the centre, and its per-sample flags are then no evidence of wrong poses.
+    """
+    if agreement_other < max(2.0 * agreement, agreement + DEPTH_KIND_GAIN):
+        return None
+    other = "planar" if depth_kind == "range" else "range"
+    return (f"depth kind: the depth maps agree with the {other} IGD of their poses ({agreement_other:.2f} of the "
+            f"non-sky pixels, median) far more than with the {depth_kind} IGD ({agreement:.2f}): they look "
+            f"{other}. Check again with --depth_kind {other}, and train with --data.init_args.depth_kind {other} "
+            "(flags found with the wrong kind are no evidence of wrong poses)")
 
 
 @contextmanager
@@ -209,7 +231,9 @@ def one_torch_thread() -> Iterator[None]:
 def diagnose_split(root: Path, split: str, depth_kind: DepthKind, quiet: bool = True) -> dict[str, Any]:
     """The report of one split (with a progress bar on a terminal unless ``quiet``)."""
     try:
-        dataset = UAPDDataset(root, split, on_bad_file="skip")
+        with warnings.catch_warnings():  # the files skipped are listed as errors below
+            warnings.simplefilter("ignore")
+            dataset = UAPDDataset(root, split, on_bad_file="skip")
     except DatasetError as error:
         return {"split": split, "count": 0, "errors": error.problems, "flagged": []}
     errors = list(dataset.skipped)
@@ -223,7 +247,7 @@ def diagnose_split(root: Path, split: str, depth_kind: DepthKind, quiet: bool = 
                            "max": float(values.max()), "range": [lo, hi],
                            "outside_range": int(((values < lo) | (values > hi)).sum())}
     containers = dict(zip(dataset.names, dataset.depth_containers))
-    sky_fractions, agreements, ratios, flagged, unchecked = [], [], [], [], []
+    sky_fractions, agreements, agreements_other, ratios, flagged, unchecked = [], [], [], [], [], []
     depth_min, depth_max = math.inf, 0.0
     with one_torch_thread(), progress_bar(len(dataset.names), quiet=quiet, what=f"checking {split}") as bar:
         for index, name in enumerate(dataset.names):
@@ -246,16 +270,21 @@ def diagnose_split(root: Path, split: str, depth_kind: DepthKind, quiet: bool = 
                 depth_min, depth_max = min(depth_min, float(seen.min())), max(depth_max, float(seen.max()))
             result = check_sample(grey, poses[index], depth_kind)
             agreements.append(result["agreement"])
+            agreements_other.append(result["agreement_other_kind"])
             ratios.append(result["lower_median_ratio"])
             if result["flag"]:
                 flagged.append({"name": name, "reason": result["flag"]})
             elif result["unchecked"]:
                 unchecked.append(name)
+    mismatch = (depth_kind_mismatch(depth_kind, float(np.median(agreements)), float(np.median(agreements_other)))
+                if agreements else None)
     return {"split": split, "count": len(dataset), "errors": errors, "flagged": flagged, "unchecked": unchecked,
+            "depth_kind_problem": mismatch,
             "pose": pose_stats,
             "depth_m": {"min": depth_min if sky_fractions else None, "max": depth_max},
             "sky_fraction": {"mean": float(np.mean(sky_fractions)) if sky_fractions else None},
             "ground_agreement": {"median": float(np.median(agreements)) if agreements else None,
+                                 "median_other_kind": float(np.median(agreements_other)) if agreements else None,
                                  "lower_half_median_ratio": float(np.nanmedian(ratios)) if ratios else None},
             "depth_kind": depth_kind,
             "depth_container": containers,
@@ -284,7 +313,13 @@ def format_report(reports: list[dict[str, Any]]) -> str:
             if agree["median"] is not None:
                 lines.append(f"   flat-ground agreement ({r['depth_kind']} IGD of each file's pose): median "
                              f"{agree['median']:.3f} of non-sky pixels within 2 grey levels (5 %); lower-half "
-                             f"depth/IGD median ratio {agree['lower_half_median_ratio']:.3f}")
+                             f"depth/IGD median ratio {agree['lower_half_median_ratio']:.3f} (exact depth reads "
+                             "about 0.99: the encoding rounds down)")
+                if agree.get("median_other_kind") is not None:
+                    other = "planar" if r["depth_kind"] == "range" else "range"
+                    lines.append(f"   with the {other} IGD instead: median {agree['median_other_kind']:.3f}")
+        if r.get("depth_kind_problem"):
+            lines.append(f"   PROBLEM {r['depth_kind_problem']}")
         lines += [f"   ERROR   {e}" for e in r["errors"]]
         lines += [f"   FLAGGED {f['name']}: {f['reason']}" for f in r["flagged"]]
         if r.get("unchecked"):
@@ -330,7 +365,10 @@ def doctor(root: Path, splits: list[str] | None = None, depth_kind: DepthKind = 
         return EXIT_NOT_A_DATA_SET
     reports = [diagnose_split(root, split, depth_kind, quiet) for split in splits]
     print(format_report(reports))
-    bad = sum(len(r["errors"]) + len(r["flagged"]) for r in reports)
+    if "train" in splits and "val" not in splits and not (root / "val").exists():
+        print(f"note: {root} has no val/ split: `dapm-lightning fit` validates on ROOT/val and refuses to start "
+              "without it (`test` reads it too unless data.init_args.test_split names another)")
+    bad = sum(len(r["errors"]) + len(r["flagged"]) + bool(r.get("depth_kind_problem")) for r in reports)
     where = ""
     if json is not None:
         Path(json).parent.mkdir(parents=True, exist_ok=True)

@@ -53,6 +53,14 @@ def _is_dataset_error(error: BaseException, name: str) -> bool:
     return name == "DatasetError" or (errors is not None and isinstance(error, errors.DatasetError))
 
 
+def _end_progress_line(stream: Any) -> None:
+    """End the line a progress bar (tqdm's: Lightning's, the project's) left open, so a message starts on its own."""
+    tqdm = sys.modules.get("tqdm")
+    bars = getattr(getattr(tqdm, "tqdm", None), "_instances", ()) if tqdm is not None else ()
+    if any(not getattr(bar, "disable", True) for bar in list(bars)):
+        print(file=stream)
+
+
 def describe(error: BaseException) -> tuple[str, bool]:
     """``(message, expected)`` for an exception: ``expected`` is False for what looks like a bug."""
     name, message = _unwrap(error)
@@ -105,6 +113,7 @@ def run_reporting_errors(function: Callable[[], Any], debug: bool, stream: TextI
         if debug:
             raise
         message, _ = describe(error)
+        _end_progress_line(stream)
         print(f"error: {message}", file=stream)
         print(f"(traceback: rerun with {DEBUG_FLAG} or {DEBUG_ENV}=1)", file=stream)
         raise SystemExit(EXIT_ERROR) from None

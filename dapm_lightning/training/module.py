@@ -348,8 +348,11 @@ class DAPMModule(L.LightningModule):
         self.sigterm.install(self.trainer)
 
     def on_train_start(self) -> None:
-        """As :meth:`on_sanity_check_start`, for runs without a sanity check; a resumed run's next epoch starts as any
-        other (:func:`~dapm_lightning.training.resume.start_next_epoch_as_any_other`)."""
+        """As :meth:`on_sanity_check_start`, for runs without a sanity check.
+
+        A resumed run's next epoch then starts as any other
+        (:func:`~dapm_lightning.training.resume.start_next_epoch_as_any_other`).
+        """
         self.sigterm.install(self.trainer)
         start_next_epoch_as_any_other(self.trainer.fit_loop)
 

@@ -103,13 +103,28 @@ def test_bytes_after_iend_and_a_png_without_image_data_are_named(tmp_path, tiny_
 
 
 def test_other_images_in_the_folders_are_named_not_ignored(uapd_copy):
+    name = first_name(uapd_copy)
     jpg = uapd_copy / "train" / "rgb" / "Town01_000001_z_50_pitch_-45_roll_0_fov_90.jpg"
     cv2.imwrite(str(jpg), np.zeros((24, 40, 3), np.uint8))
     (uapd_copy / "train" / "rgb" / "notes.txt").write_text("not an image")  # not an image file: not ours to judge
+    (uapd_copy / "train" / "rgb" / ".DS_Store").write_bytes(b"\x00\x00\x00\x01Bud1")  # hidden: skipped
+    no_suffix = uapd_copy / "train" / "depth" / name.removesuffix(".png")  # a PNG by its bytes, not by its name
+    (uapd_copy / "train" / "depth" / name).rename(no_suffix)
+    array = uapd_copy / "train" / "depth" / "Town01_000001_z_50_pitch_-45_roll_0_fov_90.npy"
+    np.save(array, np.zeros((24, 40), np.float32))
+    (uapd_copy / "train" / "rgb" / "more").mkdir()
     with pytest.raises(DatasetError) as info:
         UAPDDataset(uapd_copy, "train")
-    assert info.value.problems == [f"{jpg}: not a PNG image: UAPD reads NAME.png pairs only, so this file is not "
-                                   "read (convert it to PNG, or move it out of the folder)"]
+    rgb = uapd_copy / "train" / "rgb"
+    assert sorted(info.value.problems) == sorted([
+        f"{jpg}: not a PNG image by its name: UAPD reads NAME.png pairs only, so this file is not read (convert it "
+        "to NAME.png, or move it out of the folder)",
+        f"{rgb / 'more'}: a folder: UAPD reads the NAME.png files directly in rgb/, so nothing in it is read (move "
+        "its files up, or move it out)",
+        f"{no_suffix}: not a PNG image by its name: UAPD reads NAME.png pairs only, so this file is not read, and "
+        f"{rgb / name} has no pair (convert it to NAME.png, or move it out of the folder)",
+        f"{array}: not a PNG image by its name: UAPD reads NAME.png pairs only, so this file is not read (convert "
+        "it to NAME.png, or move it out of the folder)"])
 
 
 def overflowing(name: str) -> str:

@@ -248,3 +248,35 @@ def test_flag_options_take_bare_booleans():
     assert flag_options(["--quiet", "false"], ["--quiet"]) == ["--quiet", "false"]
     assert flag_options(["--no_quiet", "--other"], ["--quiet"]) == ["--quiet=false", "--other"]
     assert flag_options(["--no_other"], ["--quiet"]) == ["--no_other"]
+
+
+def test_depth_of_the_other_kind_is_named_with_the_fix(synthetic, tmp_path, capsys):
+    """The synthetic range depth rewritten as planar (along the optical axis, as CARLA's camera gives it): checked as
+    range, the doctor names the kind and the two settings to change; checked as planar, it finds nothing."""
+    import torch
+
+    from dapm_lightning.geometry.camera import _plane_coords
+    from dapm_lightning.geometry.constants import SKY_GREY
+    from dapm_lightning.geometry.depth_codec import depth_to_grey, grey_to_depth
+
+    root = shutil.copytree(synthetic, tmp_path / "planar")
+    for path in root.glob("*/depth/*.png"):
+        grey = read_depth_grey(path)
+        a, b = _plane_coords(torch.tensor([pose_of(path.name)[3]]), grey.shape)
+        planar = grey_to_depth(grey) / np.sqrt(1.0 + a[0].numpy() ** 2 + b[0].numpy() ** 2)
+        cv2.imwrite(str(path), np.where(grey == SKY_GREY, grey, depth_to_grey(planar)).astype(np.uint8))
+    assert doctor_main([str(root), "--quiet", "--json", str(tmp_path / "r.json")]) == 1
+    out = capsys.readouterr().out
+    assert "they look planar" in out and "--depth_kind planar" in out and "--data.init_args.depth_kind planar" in out
+    report = json.loads((tmp_path / "r.json").read_text())
+    assert all(r["ground_agreement"]["median_other_kind"] > 0.5 > 0.25 > r["ground_agreement"]["median"]
+               for r in report)
+    assert doctor_main([str(root), "--quiet", "--depth_kind", "planar"]) == 0
+    assert "depth kind" not in capsys.readouterr().out
+
+
+def test_a_set_without_val_is_checked_and_the_missing_split_noted(synthetic, tmp_path, capsys):
+    root = shutil.copytree(synthetic, tmp_path / "noval")
+    shutil.rmtree(root / "val")
+    assert doctor_main([str(root), "--quiet"]) == 0
+    assert "has no val/ split: `dapm-lightning fit` validates on ROOT/val" in capsys.readouterr().out

@@ -119,3 +119,22 @@ def test_real_process_exit_status_and_traceback_only_on_request(tmp_path):
     assert quiet.returncode == 1 and "gone.ckpt" in quiet.stderr and "Traceback" not in quiet.stderr
     loud = subprocess.run(command, capture_output=True, text=True, env={**env, "DAPM_DEBUG": "1"})
     assert loud.returncode == 1 and "Traceback" in loud.stderr
+
+
+def test_an_error_under_a_progress_bar_starts_a_line_of_its_own():
+    """A progress bar leaves its line open (it redraws it); the message after it must not run on from that line."""
+    import io
+
+    from tqdm import tqdm
+
+    def failing():
+        raise ValueError("/data/x.png: broken")
+
+    for shown in (True, False):
+        stream = io.StringIO()
+        bar = tqdm(total=3, file=io.StringIO(), disable=not shown)
+        bar.update()
+        with pytest.raises(SystemExit):
+            run_reporting_errors(failing, debug=False, stream=stream)
+        bar.close()
+        assert stream.getvalue().startswith("\nerror: /data/x.png" if shown else "error: /data/x.png")

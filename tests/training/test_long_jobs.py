@@ -495,3 +495,29 @@ def test_two_process_ddp_resumes_mid_epoch_exactly(data16, tmp_path):
         assert resumed["global_step"] == 10
         for key, value in reference["state_dict"].items():
             assert torch.equal(value, resumed["state_dict"][key]), f"{name}: {key} differs"
+
+
+@pytest.mark.slow
+def test_two_process_ddp_job_resumed_at_each_epoch_end_trains_every_epoch(data16, tmp_path):
+    """2 processes with persistent workers, the configs' rhythm (a validation at each epoch's end), stopped by
+    max_epochs after epochs 1 and 2 and resumed each time: the third run trains epoch 3 and ends equal to the
+    uninterrupted run bit for bit (the second resume in a row used to train nothing)."""
+    def by_epochs(epochs):
+        return [*DDP, "--trainer.max_steps", "-1", "--trainer.max_epochs", str(epochs),
+                "--model.optimizer.schedule_steps", "12", "--trainer.val_check_interval", "1.0"]
+
+    code, out = finish(start(tmp_path, "straight", data16, extra=by_epochs(3), every_step=False), timeout=400)
+    assert code == 0, out[-3000:]
+    reference = weights(tmp_path / "straight.pt")
+    assert reference["global_step"] == 12
+    for epochs in (1, 2, 3):
+        resume = ["--ckpt_path", str(tmp_path / "chain" / "last.ckpt")] if epochs > 1 else []
+        code, out = finish(start(tmp_path, "chain", data16, extra=[*by_epochs(epochs), *resume], every_step=False),
+                           timeout=400)
+        assert code == 0, out[-3000:]
+        saved = torch.load(tmp_path / "chain" / "last.ckpt", weights_only=True)
+        assert saved["global_step"] == 4 * epochs, out[-3000:]
+        assert next(v for k, v in saved.items() if k.endswith("DataModule")) == {"epoch": epochs, "samples_seen": 0}
+    resumed = weights(tmp_path / "chain.pt")
+    for key, value in reference["state_dict"].items():
+        assert torch.equal(value, resumed["state_dict"][key]), f"{key} differs"
