@@ -10,16 +10,18 @@ import albumentations as A
 import lightning as L
 import torch
 from lightning.pytorch.trainer.states import TrainerFn
+from lightning.pytorch.utilities import rank_zero_warn
 from torch.utils.data import DataLoader, Dataset
 from torch.utils.data._utils.collate import default_collate
 
+from dapm_lightning.data.depth_kind import sampled_mismatch
 from dapm_lightning.data.errors import SkippedFile
 from dapm_lightning.data.potsdam import PotsdamCrops, PotsdamDataset
 from dapm_lightning.data.sample import Sample
 from dapm_lightning.data.samplers import EpochShuffleSampler
 from dapm_lightning.data.synthetic import generate_uapd, settings_changes
 from dapm_lightning.data.transforms import Augmentation, train_transform
-from dapm_lightning.data.uapd import UAPDDataset
+from dapm_lightning.data.uapd import UAPDDataset, read_depth_grey
 from dapm_lightning.data.workers import worker_init_fn
 from dapm_lightning.geometry.constants import MAX_DEPTH_M
 
@@ -185,6 +187,20 @@ class UAPDDataModule(DAPMDataModule):
     def make_dataset(self, split: str, train: bool) -> Dataset[Sample]:
         return UAPDDataset(self.root, split, self.split_transform(train), max_depth=self.max_depth,
                            image_dtype=self.image_dtype, on_bad_file=self.on_bad_file, augment_seed=self.seed)
+
+    def setup(self, stage: str | None = None) -> None:
+        """As every data module; when fitting, warn if the training depth looks of the kind ``depth_kind`` is not.
+
+        :func:`~dapm_lightning.data.depth_kind.sampled_mismatch` over 32 training files (range or planar).
+        """
+        super().setup(stage)
+        train = self.datasets.get("train")
+        if stage in (None, "fit") and isinstance(train, UAPDDataset):
+            folder = train.root / train.split / train.depth_dir
+            problem = sampled_mismatch(lambda index: read_depth_grey(folder / train.names[index]), train.poses,
+                                       self.depth_kind)
+            if problem:
+                rank_zero_warn(f"{folder}: {problem}")
 
 
 class SyntheticDataModule(UAPDDataModule):

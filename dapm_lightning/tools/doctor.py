@@ -24,10 +24,16 @@ from json import dumps
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 import torch
 
+from dapm_lightning.data.depth_kind import (
+    AGREE_LEVELS,
+    at_check_width,
+    depth_kind_mismatch,
+    flat_ground_agreement,
+    other_kind,
+)
 from dapm_lightning.data.errors import DatasetError
 from dapm_lightning.data.uapd import UAPDDataset, read_depth_grey, read_rgb
 from dapm_lightning.geometry.constants import MAX_DEPTH_M, POSE_KEYS, POSE_RANGES, SKY_GREY
@@ -37,9 +43,6 @@ from dapm_lightning.tools.progress import progress_bar
 
 EXIT_CLEAN, EXIT_PROBLEMS, EXIT_NOT_A_DATA_SET = 0, 1, 2
 """Exit statuses: no problem; a broken file or a flagged sample; ROOT (or a split asked for) is not a data set."""
-AGREE_LEVELS = 2
-"""A pixel agrees with the flat ground of a pose when its grey level is within 2 of the grey level of the
-pose's IGD (one 8-bit level is a depth factor of 1.027: about 5 %)."""
 BEYOND_LEVELS = 1
 """A pixel lies beyond the ground of a pose when it is deeper than the pose's IGD by more than one grey level
 (more than the 8-bit rounding). Nothing is seen through the ground: such pixels contradict the pose."""
@@ -55,11 +58,6 @@ reach this many pixels (at the checked resolution), however small the image or i
 MIN_AGREEMENT = 0.02
 """Below this share (or MIN_GROUND_PIXELS) no pose makes flat ground visible (e.g. a street canyon): such a
 sample is listed as unchecked."""
-DEPTH_KIND_GAIN = 0.3
-"""The other depth kind is reported when its median agreement exceeds the checked kind's by this much (and is at least
-twice it): exact range and planar data score about 0.95 with their own kind and 0.3 with the other."""
-CHECK_WIDTH = 128
-"""Depth maps are checked at this width at most (nearest-neighbour downsampling keeps grey levels)."""
 FOV_STEP = 5.0
 """The FoVs tried as alternatives: the UAPD range in steps of this many degrees."""
 FOV_CROP = 0.5
@@ -168,10 +166,7 @@ def check_sample(depth_grey: np.ndarray, pose: np.ndarray, depth_kind: DepthKind
     beyond the ground, so on exact data a right pose is never contradicted. A FoV too wide for a nadir view,
     whose ground then lies nowhere beyond the depth, goes unnoticed.
     """
-    if depth_grey.shape[1] > CHECK_WIDTH:
-        scale = CHECK_WIDTH / depth_grey.shape[1]
-        depth_grey = cv2.resize(depth_grey, (CHECK_WIDTH, max(1, round(depth_grey.shape[0] * scale))),
-                                interpolation=cv2.INTER_NEAREST_EXACT)  # the pixel at each new pixel's centre
+    depth_grey = at_check_width(depth_grey)
     height, width = depth_grey.shape
     alts, fov_alts = alternatives(pose), fov_alternatives(pose)
     whole = compare_poses(depth_grey, np.stack([pose, *alts.values()]), depth_kind)
@@ -192,29 +187,12 @@ def check_sample(depth_grey: np.ndarray, pose: np.ndarray, depth_kind: DepthKind
                   f"{on['agree'][0] / on['seen']:.2f} of the non-sky pixels{where} agree; "
                   f"{on['beyond'][k + 1] / on['pixels']:.2f} vs {on['beyond'][0] / on['pixels']:.2f} of all pixels"
                   f"{where} lie beyond the ground)")
-    other_kind: DepthKind = "planar" if depth_kind == "range" else "range"
-    other = compare_poses(depth_grey, pose[None], other_kind)
     depth = grey_to_depth(depth_grey).astype(np.float64)
     visible = any(c["agree"].max() >= max(MIN_AGREEMENT * c["seen"], MIN_GROUND_PIXELS) for c in (whole, centre))
     return {"agreement": float(whole["agree"][0] / whole["seen"]),
-            "agreement_other_kind": float(other["agree"][0] / other["seen"]),
+            "agreement_other_kind": flat_ground_agreement(depth_grey, pose, other_kind(depth_kind)),
             "beyond": float(whole["beyond"][0] / whole["pixels"]),
             "lower_median_ratio": lower_median_ratio(depth, whole["igd"]), "flag": reason, "unchecked": not visible}
-
-
-def depth_kind_mismatch(depth_kind: DepthKind, agreement: float, agreement_other: float) -> str | None:
-    """A problem when the depths fit the other kind's flat ground far better than the kind checked, else None.
-
-    Range and planar depth agree on the optical axis only, so a set of the other kind fits its own poses poorly
-    off the centre, and its per-sample flags are then no evidence of wrong poses.
-    """
-    if agreement_other < max(2.0 * agreement, agreement + DEPTH_KIND_GAIN):
-        return None
-    other = "planar" if depth_kind == "range" else "range"
-    return (f"depth kind: the depth maps agree with the {other} IGD of their poses ({agreement_other:.2f} of the "
-            f"non-sky pixels, median) far more than with the {depth_kind} IGD ({agreement:.2f}): they look "
-            f"{other}. Check again with --depth_kind {other}, and train with --data.init_args.depth_kind {other} "
-            "(flags found with the wrong kind are no evidence of wrong poses)")
 
 
 @contextmanager
@@ -316,10 +294,10 @@ def format_report(reports: list[dict[str, Any]]) -> str:
                              f"depth/IGD median ratio {agree['lower_half_median_ratio']:.3f} (exact depth reads "
                              "about 0.99: the encoding rounds down)")
                 if agree.get("median_other_kind") is not None:
-                    other = "planar" if r["depth_kind"] == "range" else "range"
-                    lines.append(f"   with the {other} IGD instead: median {agree['median_other_kind']:.3f}")
+                    lines.append(f"   with the {other_kind(r['depth_kind'])} IGD instead: median "
+                                 f"{agree['median_other_kind']:.3f}")
         if r.get("depth_kind_problem"):
-            lines.append(f"   PROBLEM {r['depth_kind_problem']}")
+            lines.append(f"   PROBLEM depth kind: {r['depth_kind_problem']}")
         lines += [f"   ERROR   {e}" for e in r["errors"]]
         lines += [f"   FLAGGED {f['name']}: {f['reason']}" for f in r["flagged"]]
         if r.get("unchecked"):

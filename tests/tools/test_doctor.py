@@ -1,6 +1,7 @@
 import json
 import re
 import shutil
+import warnings
 from collections import Counter
 
 import cv2
@@ -250,24 +251,31 @@ def test_flag_options_take_bare_booleans():
     assert flag_options(["--no_other"], ["--quiet"]) == ["--no_other"]
 
 
-def test_depth_of_the_other_kind_is_named_with_the_fix(synthetic, tmp_path, capsys):
-    """The synthetic range depth rewritten as planar (along the optical axis, as CARLA's camera gives it): checked as
-    range, the doctor names the kind and the two settings to change; checked as planar, it finds nothing."""
+def planar_copy(source, target):
+    """A copy of a synthetic (range) set with its depth rewritten as planar, as CARLA's depth camera gives it."""
     import torch
 
     from dapm_lightning.geometry.camera import _plane_coords
     from dapm_lightning.geometry.constants import SKY_GREY
     from dapm_lightning.geometry.depth_codec import depth_to_grey, grey_to_depth
 
-    root = shutil.copytree(synthetic, tmp_path / "planar")
+    root = shutil.copytree(source, target)
     for path in root.glob("*/depth/*.png"):
         grey = read_depth_grey(path)
         a, b = _plane_coords(torch.tensor([pose_of(path.name)[3]]), grey.shape)
         planar = grey_to_depth(grey) / np.sqrt(1.0 + a[0].numpy() ** 2 + b[0].numpy() ** 2)
         cv2.imwrite(str(path), np.where(grey == SKY_GREY, grey, depth_to_grey(planar)).astype(np.uint8))
+    return root
+
+
+def test_depth_of_the_other_kind_is_named_with_the_fix(synthetic, tmp_path, capsys):
+    """The synthetic range depth rewritten as planar: checked as range, the doctor names the kind and the two
+    settings to change; checked as planar, it finds nothing."""
+    root = planar_copy(synthetic, tmp_path / "planar")
     assert doctor_main([str(root), "--quiet", "--json", str(tmp_path / "r.json")]) == 1
     out = capsys.readouterr().out
-    assert "they look planar" in out and "--depth_kind planar" in out and "--data.init_args.depth_kind planar" in out
+    assert "depth kind: the depth maps agree with the planar IGD" in out and "they look planar" in out
+    assert "Set data.init_args.depth_kind and model.net.igd.depth_kind to planar" in out
     report = json.loads((tmp_path / "r.json").read_text())
     assert all(r["ground_agreement"]["median_other_kind"] > 0.5 > 0.25 > r["ground_agreement"]["median"]
                for r in report)
@@ -280,3 +288,17 @@ def test_a_set_without_val_is_checked_and_the_missing_split_noted(synthetic, tmp
     shutil.rmtree(root / "val")
     assert doctor_main([str(root), "--quiet"]) == 0
     assert "has no val/ split: `dapm-lightning fit` validates on ROOT/val" in capsys.readouterr().out
+
+
+def test_fitting_on_depth_of_the_other_kind_warns_with_the_fix(synthetic, tmp_path):
+    """Training on planar depth as range (the default) warns at start-up, naming the folder and the settings; the
+    range set itself, and the planar set declared planar, do not."""
+    from dapm_lightning.data.datamodules import UAPDDataModule
+
+    root = planar_copy(synthetic, tmp_path / "planar")
+    with pytest.warns(UserWarning, match="they look planar. Set data.init_args.depth_kind and model.net.igd"):
+        UAPDDataModule(root=str(root), batch_size=2).setup("fit")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        UAPDDataModule(root=str(synthetic), batch_size=2).setup("fit")
+        UAPDDataModule(root=str(root), batch_size=2, depth_kind="planar").setup("fit")
