@@ -143,6 +143,10 @@ def test_every_config_parses_and_feeds_the_igd_to_the_depth_exactly_where_it_say
     cli = parse(stack)
     assert isinstance(cli.model, DAPMModule)
     assert isinstance(cli.datamodule, DAPMDataModule)
+    if path.startswith(("ablations", "variants")):  # an overlay's run has its own folder: `--ckpt_path last`
+        assert cli.trainer.default_root_dir == f"outputs/{path.removesuffix('.yaml')}"  # resumes it, not the base's
+    if path != "predict.yaml":  # the logs (and checkpoints) go where the run's folder is, wherever it is moved
+        assert {logger.save_dir for logger in cli.trainer.loggers} == {cli.trainer.default_root_dir}
     assert isinstance(cli.trainer.strategy.checkpoint_io, SafeCheckpointIO)  # the real CLI's trainer defaults
     low, high = depth_for_two_poses(cli.model.net)
     if path in WITHOUT_IGD_FEATURE:
