@@ -138,3 +138,18 @@ def test_an_error_under_a_progress_bar_starts_a_line_of_its_own():
             run_reporting_errors(failing, debug=False, stream=stream)
         bar.close()
         assert stream.getvalue().startswith("\nerror: /data/x.png" if shown else "error: /data/x.png")
+
+
+def test_a_failed_weights_download_names_the_offline_settings():
+    """timm's pretrained weights from the Hub, offline: an OSError, but not a path the user gave."""
+    class LocalEntryNotFoundError(FileNotFoundError):  # huggingface_hub's, raised when the Hub cannot be reached
+        pass
+
+    LocalEntryNotFoundError.__module__ = "huggingface_hub.errors"
+    message, expected = describe(LocalEntryNotFoundError(
+        "An error happened while trying to locate the file on the Hub and we cannot find the requested files in the "
+        "local cache."))
+    assert expected and "--model.net.pretrained false" in message and "--model.net.weights_path FILE" in message
+    assert "check the path" not in message
+    message, _ = describe(FileNotFoundError("data/x.png: no such file"))
+    assert "pretrained" not in message and "check the path" in message
