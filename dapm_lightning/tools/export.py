@@ -201,7 +201,7 @@ def _move_exported(staged: Path, final: Path) -> None:
 def export_main(argv: Sequence[str]) -> None:
     """``dapm-lightning export CKPT [--out FILE] [--height H --width W] [--fp16 | --int8 [--force]]``.
 
-    The checkpoint positional or ``--ckpt_path CKPT``; booleans as flags (``--int8``, ``--no_dynamic``) or with
+    The checkpoint positional or ``--ckpt_path CKPT``; booleans as flags (``--int8``) or with
     their value (``--int8 true``).
     """
     from jsonargparse import auto_cli

@@ -185,3 +185,16 @@ def test_the_shipped_model_exports_exactly_at_odd_sizes(tmp_path, capsys, monkey
     assert out.read_bytes() == exported  # the earlier, right export is left whole; the wrong one is not written
     assert export_tool.export(shipped, out, checks=1, force=True) == out and out.is_file()
     assert "kept anyway (--force true)" in capsys.readouterr().out
+
+
+def test_the_docs_name_every_input_and_output_of_the_exported_model():
+    """predict.md documents the ONNX file's interface: each input the export takes and each output it gives."""
+    from pathlib import Path
+
+    from dapm_lightning.inference.onnx import PRIOR_INPUTS
+    from dapm_lightning.models.dapm import INFERENCE_OUTPUTS
+
+    doc = (Path(__file__).resolve().parents[2] / "docs" / "predict.md").read_text()
+    section = doc[doc.index("dapm-lightning export CKPT"):doc.index("The file carries what prediction needs")]
+    assert [name for name in ("image", *PRIOR_INPUTS, *INFERENCE_OUTPUTS) if f"`{name}`" not in section] == []
+    assert "NaN where unknown" not in section  # the graph takes no NaN: prior_known says what is known
