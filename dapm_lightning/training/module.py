@@ -27,7 +27,11 @@ from dapm_lightning.models.dapm import DAPMNet, DAPMOutput
 from dapm_lightning.models.prior import PosePrior
 from dapm_lightning.models.teacher_forcing import TeacherForcing
 from dapm_lightning.training.loss import DAPMLoss, LossConfig
-from dapm_lightning.training.resume import resume_after_last_batch, start_next_epoch_as_any_other
+from dapm_lightning.training.resume import (
+    keep_checkpoint_rankings,
+    resume_after_last_batch,
+    start_next_epoch_as_any_other,
+)
 from dapm_lightning.training.rng import pack_rng_states, rng_states, set_rng_states, unpack_rng_states
 from dapm_lightning.training.signals import SigtermAgreement
 
@@ -391,6 +395,8 @@ class DAPMModule(L.LightningModule):
         self.train_image_size = training_image_size(checkpoint)
         if self._trainer is None:
             return
+        if self.trainer.state.fn == TrainerFn.FITTING:  # the best model stays the best across a resume
+            keep_checkpoint_rankings(checkpoint, self.trainer.checkpoint_callbacks)
         per_rank = checkpoint.get("dapm_rng_states_per_rank")
         if per_rank is not None:  # saved under DDP: [world size, ...] per state
             saved_ranks = per_rank["torch"].shape[0]

@@ -1,7 +1,8 @@
 """No Lightning tips and foreign warnings: what Lightning prints that says nothing about the user's run.
 
 :func:`quiet_lightning` drops its advertising tips ("💡 Tip: ... litlogger"), its note on callbacks a checkpoint
-was trained with ("Please add the following callbacks") and a deprecation warning Lightning raises inside itself.
+was trained with ("Please add the following callbacks"), a deprecation warning Lightning raises inside itself, and
+its warning that a mid-epoch resume is unreliable (the data modules resume exactly).
 """
 
 from __future__ import annotations
@@ -12,6 +13,9 @@ import warnings
 FOREIGN_WARNINGS = (
     r"(?s).*Please add the following callbacks",  # callbacks of training, restored into predict / test
     r"(?s).*isinstance\(treespec, LeafSpec\)",  # Lightning's own use of a torch API it deprecated
+    # mid-epoch resumes are exact: the data modules save the position and their sampler skips to it
+    # (docs/long_jobs.md); Lightning asks the DataLoader itself for a state, which it does not need
+    r"(?s).*your dataloader is not resumable",
 )
 """Warnings raised inside Lightning that a user can do nothing about (regular expressions)."""
 RANK_ZERO_LOGGER = "lightning.pytorch.utilities.rank_zero"

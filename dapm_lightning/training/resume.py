@@ -78,4 +78,30 @@ def start_next_epoch_as_any_other(fit_loop: Any) -> bool:
     return False
 
 
-__all__ = ["epoch_closed", "resume_after_last_batch", "start_next_epoch_as_any_other"]
+def keep_checkpoint_rankings(checkpoint: MutableMapping[str, Any], callbacks: Any) -> list[str]:
+    """Let each ``ModelCheckpoint`` resume its ranking of the saved models when the resumed run writes elsewhere.
+
+    A resumed run logs into a new version folder, so its ``ModelCheckpoint`` folders differ from the saved ones,
+    and Lightning then restores only ``best_model_path``: without the best score, the first validation after the
+    resume saved its model as the best, however much worse. Each saved state whose folder differs is given the
+    callback's folder, so Lightning restores the scores (the files ranked stay where they are).
+
+    Args:
+        checkpoint: the loaded checkpoint (``on_load_checkpoint``), changed in place; the file is not.
+        callbacks: the trainer's checkpoint callbacks (``trainer.checkpoint_callbacks``).
+
+    Returns:
+        The ``state_key`` of each callback whose state was given its folder.
+    """
+    states = checkpoint.get("callbacks") or {}
+    kept = []
+    for callback in callbacks:
+        state = states.get(getattr(callback, "state_key", None))
+        folder = getattr(callback, "dirpath", None)
+        if isinstance(state, MutableMapping) and folder is not None and state.get("dirpath") not in (None, folder):
+            state["dirpath"] = folder
+            kept.append(callback.state_key)
+    return kept
+
+
+__all__ = ["epoch_closed", "keep_checkpoint_rankings", "resume_after_last_batch", "start_next_epoch_as_any_other"]

@@ -130,10 +130,10 @@ def test_find_last_checkpoint_takes_the_newest_of_every_version(tmp_path):
     assert find_last_checkpoint([tmp_path]) == tmp_path / "tb/version_1/checkpoints/last-v1.ckpt"
 
 
-@pytest.mark.slow
 def test_quickstart_resumes_from_the_latest_state_when_validation_stopped_improving(tmp_path, monkeypatch):
     """The best model stays at epoch 0 (its metric, the step, is minimal there); last.ckpt follows every epoch,
-    and `fit --ckpt_path last` continues from it although the resumed run logs into a new version folder."""
+    and `fit --ckpt_path last` continues from it although the resumed run logs into a new version folder, keeping
+    epoch 0's model as the best (the resumed run used to save its first validation's model as the best)."""
     monkeypatch.chdir(tmp_path)
     config = yaml.safe_load(QUICKSTART.read_text())
     best = next(c for c in config["trainer"]["callbacks"] if c["class_path"].endswith(".ModelCheckpoint"))
@@ -151,6 +151,10 @@ def test_quickstart_resumes_from_the_latest_state_when_validation_stopped_improv
     resumed = run_lightning_cli(["fit", *common, "--trainer.max_epochs", "4", "--ckpt_path", "last"])
     assert Path(resumed.trainer.ckpt_path).resolve() == last.resolve() and resumed.trainer.global_step == 8
     assert resumed.trainer.log_dir != first.trainer.log_dir
+    # the best model is still epoch 0's: the resumed run knows its score, though it writes into another folder
+    best_path = resumed.trainer.checkpoint_callback.best_model_path
+    assert torch.load(best_path, weights_only=True)["global_step"] == 2, best_path
+    assert float(resumed.trainer.checkpoint_callback.best_model_score) == 2.0
 
 
 class Validated(Linear):
