@@ -34,6 +34,8 @@ from dapm_lightning.training.checkpoint_files import is_split_checkpoint, join_s
 PRIOR_INPUTS = ("prior", "prior_known", "prior_sigma")
 """The exported inputs of a model with a pose branch, after ``image``: the values (finite; any value where
 unknown), which are known (bool), and their σ. No NaN enters the graph, so int8 calibration sees none."""
+CHECK_DRAW = "draw"
+"""Key of a check row: ``(k, n)``, the k-th of the n random inputs checked at that shape."""
 METADATA_NET = "dapm.net"
 """The metadata key that marks a dapm-lightning export: the network's settings as JSON."""
 
@@ -208,7 +210,8 @@ def export_onnx(net: nn.Module, path: str | Path, size: tuple[int, int], *, chec
             with torch.no_grad():
                 expected = reference(*inputs)
             got = session.run(None, {name: value.numpy() for name, value in zip(model.input_names, inputs)})
-            row: dict[str, Any] = {"shape": shape, **{name: float(np.abs(g - e.numpy()).max())
+            row: dict[str, Any] = {"shape": shape, CHECK_DRAW: (check + 1, checks),
+                                   **{name: float(np.abs(g - e.numpy()).max())
                                                       for name, g, e in zip(model.names, got, expected)}}
             if "depth_m" in model.names:
                 depth, reference_depth = got[model.names.index("depth_m")], expected[model.names.index("depth_m")]

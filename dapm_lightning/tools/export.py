@@ -28,6 +28,7 @@ from pathlib import Path
 
 from dapm_lightning.inference.inputs import SIZE_MULTIPLE, checkpoint_network_size, network_size
 from dapm_lightning.inference.onnx import (
+    CHECK_DRAW,
     DEPTH_SHARE_OFF,
     EXPORT_TOLERANCES,
     MAX_EXPORT_SIDE,
@@ -106,7 +107,7 @@ def export(ckpt_path: Path, out: Path | None = None, height: int | None = None, 
             _move_exported(staging / float_out.name, float_out)
     finally:
         shutil.rmtree(staging, ignore_errors=True)
-    names = [k for k in rows[0] if k not in ("shape", DEPTH_SHARE_OFF)]
+    names = [k for k in rows[0] if k not in ("shape", CHECK_DRAW, DEPTH_SHARE_OFF)]
     shape = "[batch, 3, height, width]" if dynamic else f"[1, 3, {height}, {width}]"
     data = weights_file(float_out)
     weights = f"; weights in {data.name}: keep it beside the .onnx file" if data.is_file() and kept else ""
@@ -114,7 +115,9 @@ def export(ckpt_path: Path, out: Path | None = None, height: int | None = None, 
     print(f"{'wrote' if kept else 'exported, not written:'} {float_out} ({precision}{weights}) in "
           f"{time.perf_counter() - start:.0f} s: input 'image' {shape} float RGB in [0, 1]; outputs {', '.join(names)}")
     for row in rows:
-        print(f"  check {tuple(row['shape'])}: max |onnxruntime - PyTorch fp32|: "
+        draw, draws = row.get(CHECK_DRAW, (1, 1))
+        print(f"  check {tuple(row['shape'])}" + (f", random input {draw} of {draws}" if draws > 1 else "")
+              + ": max |onnxruntime - PyTorch fp32|: "
               + ", ".join(f"{n} {row[n]:.3g}" for n in names)
               + (f"; depth pixels off by > 1 %: {row[DEPTH_SHARE_OFF]:.2%}" if DEPTH_SHARE_OFF in row else ""))
     if not kept:

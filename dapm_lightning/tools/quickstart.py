@@ -107,7 +107,8 @@ def report(model: dict[str, dict[str, float]], base: dict[str, dict[str, float]]
         beaten = ours > theirs if better == "higher" else ours < theirs
         gain = (ours / theirs if better == "higher" else theirs / ours) if ours and theirs else math.nan
         given = f"{telemetry[group].get(name, math.nan):>9.3f}" if telemetry else ""
-        lines.append(f"{group + ' ' + name + unit + arrow:<26}{ours:>9.3f}{theirs:>10.3f}{gain:>7.1f}x{given}")
+        ratio = f"{gain:>7.1f}x" if math.isfinite(gain) else f"{'-':>8}"  # a zero (or missing) figure: no ratio
+        lines.append(f"{group + ' ' + name + unit + arrow:<26}{ours:>9.3f}{theirs:>10.3f}{ratio}{given}")
         if not beaten and (name in ("d1", "abs_rel") or name.endswith("_median")):
             failures.append(f"{group} {name}")
     return "\n".join(lines), failures

@@ -6,7 +6,7 @@ import torch
 import yaml
 
 from dapm_lightning.cli import main
-from dapm_lightning.inference.onnx import DEPTH_SHARE_OFF, export_mismatches, export_onnx
+from dapm_lightning.inference.onnx import CHECK_DRAW, DEPTH_SHARE_OFF, export_mismatches, export_onnx
 from dapm_lightning.models import DAPMConfig, DAPMNet
 from dapm_lightning.models.blocks import adaptive_avg_pool2d_symbolic
 
@@ -60,7 +60,7 @@ def test_every_variant_exports(kind, tmp_path):
     with_prior = ["pose", "pose_network", "pose_spread"]
     names = {"depth_only": ["depth_m", "sky_prob"], "pose_only": with_prior}.get(kind, ["depth_m", "sky_prob",
                                                                                         *with_prior])
-    assert [k for k in rows[0] if k not in ("shape", DEPTH_SHARE_OFF)] == names
+    assert [k for k in rows[0] if k not in ("shape", CHECK_DRAW, DEPTH_SHARE_OFF)] == names
     depth_tol, pose_tol = (2.0, 0.2) if kind == "fp16" else (1e-2, 1e-3)  # metres at ~21 m / degrees
     for row in rows[:1]:  # the export size
         assert row.get("depth_m", 0) < depth_tol and row.get("pose", 0) < pose_tol

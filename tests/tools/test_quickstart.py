@@ -54,3 +54,12 @@ def test_a_missing_checkpoint_stops_before_rendering(tmp_path):
     with pytest.raises(FileNotFoundError, match="nope: no such checkpoint file or folder"):
         main(["--out", str(tmp_path / "demo"), "--checkpoint", str(tmp_path / "nope")])
     assert not (tmp_path / "demo").exists()
+
+
+def test_a_zero_baseline_shows_no_ratio():
+    """A figure of 0 (an AUC no baseline pose reaches) has no ratio: a dash, not `nanx` or `infx`."""
+    model = {group: {name: 0.5 for g, name, _ in ROWS if g == group} for group, _, _ in ROWS}
+    base = {group: {name: 0.0 for g, name, _ in ROWS if g == group} for group, _, _ in ROWS}
+    table, _ = report(model, base)
+    assert "nan" not in table and "inf" not in table
+    assert all(line.rstrip().endswith("-") for line in table.splitlines()[2:])
