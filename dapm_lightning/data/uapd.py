@@ -289,8 +289,11 @@ class UAPDDataset(SkipsBadFiles, torch.utils.data.Dataset[Sample]):
                     f"Fix: put the {self.split} split in {layout}, or give data.init_args.root the folder that holds "
                     "it (UAPD's layout: docs/data.md)."))
         files = {folder: sorted(folder.iterdir()) for folder in (rgb_dir, depth_dir)}
-        rgb = {p.name: p for p in files[rgb_dir] if p.suffix.lower() == ".png" and p.is_file()}
-        depth = {p.name: p for p in files[depth_dir] if p.suffix.lower() == ".png" and p.is_file()}
+        def pairable(path: Path) -> bool:  # NAME.png, not a folder, not hidden (macOS leaves ._NAME.png on FAT drives)
+            return path.suffix.lower() == ".png" and not path.name.startswith(".") and not path.is_dir()
+
+        rgb = {p.name: p for p in files[rgb_dir] if pairable(p)}
+        depth = {p.name: p for p in files[depth_dir] if pairable(p)}
         problems, explained = [], set()
         for folder, same, other in ((rgb_dir, rgb, depth), (depth_dir, depth, rgb)):
             for p in files[folder]:

@@ -56,8 +56,8 @@ def _is_dataset_error(error: BaseException, name: str) -> bool:
 def _is_download_error(error: BaseException, message: str) -> bool:
     """A failed download from the Hugging Face Hub (timm's pretrained weights), whatever its exception class."""
     chain = [error, error.__cause__, error.__context__]
-    from_hub = any(type(e).__module__.startswith(("huggingface_hub", "requests", "urllib3")) for e in chain if e)
-    return from_hub or "huggingface.co" in message or "on the Hub" in message
+    from_hub = any(type(e).__module__.startswith("huggingface_hub") for e in chain if e)
+    return from_hub or "on the Hub" in message
 
 
 def _end_progress_line(stream: Any) -> None:
@@ -76,6 +76,8 @@ def describe(error: BaseException) -> tuple[str, bool]:
             "Fix: correct or remove the files listed (`dapm-lightning doctor ROOT` reports on a whole data set), or "
             "leave them out with --data.init_args.on_bad_file skip.")
         return f"{message}\n{fix}", True
+    if getattr(error, "explained", False):  # says what happened and the fix itself (refused or unsaved checkpoints)
+        return message, True
     if _is_download_error(error, message):
         return (f"{name}: {message}\nFix: the backbone's pretrained (ImageNet) weights could not be downloaded (no "
                 "internet here?): pass --model.net.weights_path FILE with the weights saved on a machine that has it, "
@@ -83,8 +85,6 @@ def describe(error: BaseException) -> tuple[str, bool]:
     if isinstance(error, _PATH_ERRORS):
         fix = f"Fix: check the path (relative paths start from the current directory, {os.getcwd()})."
         return (message if "Fix" in message else f"{message}\n{fix}"), True
-    if getattr(error, "explained", False):  # says what happened and the fix itself (refused or unsaved checkpoints)
-        return message, True
     if "not a readable checkpoint" in message:
         return (f"{message}\nFix: copy the checkpoint again (a file cut short by a full disk or an interrupted "
                 "transfer cannot be read) or pick another one, e.g. the run's last.ckpt."), True

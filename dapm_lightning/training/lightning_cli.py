@@ -185,6 +185,31 @@ def short_parse_error(message: str, options: Sequence[str], subcommand: str | No
     return "\n".join(lines)
 
 
+def stacked_run_folder(configs: Sequence[str], words: Sequence[str], subcommand: str | None = None) -> str | None:
+    """The run folder of a stack of config files: the first file's ``trainer.default_root_dir`` + ``+NAME`` per overlay.
+
+    ``--config configs/paper/uapd_dapm.yaml --config configs/ablations/t9_pqb_only.yaml`` runs in
+    ``outputs/uapd_dapm+t9_pqb_only``: each stack in a folder of its own, so that ``--ckpt_path last`` resumes that
+    stack's run, never the base config's or another stack's. None (nothing changed) for one file, when the command
+    line or a later file sets ``trainer.default_root_dir``, when the first file sets none, or for ``predict`` (its
+    outputs have their own folder).
+    """
+    if len(configs) < 2 or subcommand == "predict" or any(w.split("=", 1)[0] == "--trainer.default_root_dir"
+                                                           for w in words):
+        return None
+    roots = []
+    for path in configs:
+        try:
+            loaded = yaml.safe_load(Path(path).read_text())
+        except (OSError, yaml.YAMLError):
+            return None  # the parser names the file
+        trainer = loaded.get("trainer") if isinstance(loaded, dict) else None
+        roots.append(trainer.get("default_root_dir") if isinstance(trainer, dict) else None)
+    if roots[0] is None or any(root is not None for root in roots[1:]):
+        return None
+    return str(roots[0]) + "".join(f"+{Path(path).stem}" for path in configs[1:])
+
+
 def loggers_follow_root_dir(config: Any) -> None:
     """Set the ``save_dir`` of every logger that has none to ``trainer.default_root_dir`` (in place).
 
@@ -251,6 +276,9 @@ class DAPMCLI(LightningCLI):
             subcommands = getattr(parser, "_subcommands_action", None)
             for each in [parser, *getattr(subcommands, "_name_parser_map", {}).values()]:  # a subcommand reports
                 each.config_files = configs
+            folder = stacked_run_folder(configs, words, parser.requested_subcommand)
+            if folder is not None:
+                args = [*words, "--trainer.default_root_dir", folder]
         super().parse_arguments(parser, args)
 
     def _run_subcommand(self, subcommand: str) -> None:

@@ -396,7 +396,8 @@ class DAPMModule(L.LightningModule):
         if self._trainer is None:
             return
         if self.trainer.state.fn == TrainerFn.FITTING:  # the best model stays the best across a resume
-            keep_checkpoint_rankings(checkpoint, self.trainer.checkpoint_callbacks)
+            roots = [self.trainer.default_root_dir, *(getattr(log, "save_dir", None) for log in self.trainer.loggers)]
+            keep_checkpoint_rankings(checkpoint, self.trainer.checkpoint_callbacks, roots)
         per_rank = checkpoint.get("dapm_rng_states_per_rank")
         if per_rank is not None:  # saved under DDP: [world size, ...] per state
             saved_ranks = per_rank["torch"].shape[0]

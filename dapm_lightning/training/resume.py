@@ -14,6 +14,7 @@ epoch from its first batch when the last batch ended it), without repeating the 
 from __future__ import annotations
 
 from collections.abc import MutableMapping
+from pathlib import Path
 from typing import Any
 
 
@@ -78,29 +79,39 @@ def start_next_epoch_as_any_other(fit_loop: Any) -> bool:
     return False
 
 
-def keep_checkpoint_rankings(checkpoint: MutableMapping[str, Any], callbacks: Any) -> list[str]:
+def keep_checkpoint_rankings(checkpoint: MutableMapping[str, Any], callbacks: Any, roots: Any = ()) -> list[str]:
     """Let each ``ModelCheckpoint`` resume its ranking of the saved models when the resumed run writes elsewhere.
 
     A resumed run logs into a new version folder, so its ``ModelCheckpoint`` folders differ from the saved ones,
     and Lightning then restores only ``best_model_path``: without the best score, the first validation after the
-    resume saved its model as the best, however much worse. Each saved state whose folder differs is given the
-    callback's folder, so Lightning restores the scores (the files ranked stay where they are).
+    resume saved its model as the best, however much worse. A saved state is given the callback's folder, so that
+    Lightning restores the scores (the files ranked stay where they are), when it is this run's: its folder is a
+    local one under one of ``roots`` (the run's folders) and its best model is still there. Another run's
+    checkpoint (fine-tuning from it) starts a ranking of its own, as before.
 
     Args:
         checkpoint: the loaded checkpoint (``on_load_checkpoint``), changed in place; the file is not.
         callbacks: the trainer's checkpoint callbacks (``trainer.checkpoint_callbacks``).
+        roots: the run's folders (``trainer.default_root_dir``, the loggers' ``save_dir``).
 
     Returns:
         The ``state_key`` of each callback whose state was given its folder.
     """
     states = checkpoint.get("callbacks") or {}
+    local_roots = [Path(root).resolve() for root in roots if root and "://" not in str(root)]
     kept = []
     for callback in callbacks:
         state = states.get(getattr(callback, "state_key", None))
         folder = getattr(callback, "dirpath", None)
-        if isinstance(state, MutableMapping) and folder is not None and state.get("dirpath") not in (None, folder):
-            state["dirpath"] = folder
-            kept.append(callback.state_key)
+        if not isinstance(state, MutableMapping) or folder is None or state.get("dirpath") in (None, folder):
+            continue
+        saved, best = str(state["dirpath"]), str(state.get("best_model_path") or "")
+        if "://" in saved or "://" in str(folder) or not best or not Path(best).is_file():
+            continue
+        if not any(Path(saved).resolve().is_relative_to(root) for root in local_roots):
+            continue
+        state["dirpath"] = folder
+        kept.append(callback.state_key)
     return kept
 
 

@@ -108,6 +108,8 @@ def test_other_images_in_the_folders_are_named_not_ignored(uapd_copy):
     cv2.imwrite(str(jpg), np.zeros((24, 40, 3), np.uint8))
     (uapd_copy / "train" / "rgb" / "notes.txt").write_text("not an image")  # not an image file: not ours to judge
     (uapd_copy / "train" / "rgb" / ".DS_Store").write_bytes(b"\x00\x00\x00\x01Bud1")  # hidden: skipped
+    shutil.copy(jpg, uapd_copy / "train" / "rgb" / ".hidden.jpg")  # hidden, though an image: skipped
+    shutil.copy(uapd_copy / "train" / "rgb" / name, uapd_copy / "train" / "rgb" / f"._{name}")  # macOS on FAT
     no_suffix = uapd_copy / "train" / "depth" / name.removesuffix(".png")  # a PNG by its bytes, not by its name
     (uapd_copy / "train" / "depth" / name).rename(no_suffix)
     array = uapd_copy / "train" / "depth" / "Town01_000001_z_50_pitch_-45_roll_0_fov_90.npy"

@@ -153,3 +153,13 @@ def test_a_failed_weights_download_names_the_offline_settings():
     assert "check the path" not in message
     message, _ = describe(FileNotFoundError("data/x.png: no such file"))
     assert "pretrained" not in message and "check the path" in message
+
+
+def test_an_explained_error_about_a_hub_address_keeps_its_own_fix():
+    """A checkpoint that cannot be fetched from huggingface.co says its own fix, not the pretrained weights' one."""
+    class CheckpointFetchError(OSError):
+        explained = True
+
+    message, expected = describe(CheckpointFetchError(
+        "https://huggingface.co/x/y/resolve/main/m.ckpt: cannot be fetched (no network?)\nFix: copy it here."))
+    assert expected and "Fix: copy it here." in message and "pretrained" not in message

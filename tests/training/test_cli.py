@@ -143,8 +143,8 @@ def test_every_config_parses_and_feeds_the_igd_to_the_depth_exactly_where_it_say
     cli = parse(stack)
     assert isinstance(cli.model, DAPMModule)
     assert isinstance(cli.datamodule, DAPMDataModule)
-    if path.startswith(("ablations", "variants")):  # an overlay's run has its own folder: `--ckpt_path last`
-        assert cli.trainer.default_root_dir == f"outputs/{path.removesuffix('.yaml')}"  # resumes it, not the base's
+    if path.startswith(("ablations", "variants")):  # a stack runs in a folder of its own: `--ckpt_path last`
+        assert cli.trainer.default_root_dir == f"outputs/uapd_dapm+{Path(path).stem}"  # resumes it, not the base's
     if path != "predict.yaml":  # the logs (and checkpoints) go where the run's folder is, wherever it is moved
         assert {logger.save_dir for logger in cli.trainer.loggers} == {cli.trainer.default_root_dir}
     assert isinstance(cli.trainer.strategy.checkpoint_io, SafeCheckpointIO)  # the real CLI's trainer defaults
@@ -188,3 +188,26 @@ def test_top_level_help_lists_every_subcommand_and_tools_take_settings_files(cap
         assert "``" not in text, f"{tool} --help shows raw RST markup"
         flags = [w.split("=")[0] for w in text.split() if w.startswith("--") and len(w) > 3]
         assert not [f for f in flags if "-" in f[2:]], f"{tool}: one flag style (underscores)"
+
+
+def test_each_stack_of_configs_runs_in_a_folder_of_its_own(tmp_path):
+    """The same overlay on two bases, two overlays, and the base alone: four folders; an explicit folder (the command
+    line or a later file) is kept; predict is left alone."""
+    from dapm_lightning.training.lightning_cli import stacked_run_folder
+
+    paper, efficient = str(PAPER), str(CONFIGS / "variants" / "efficient.yaml")
+    potsdam, t9 = str(CONFIGS / "paper" / "potsdam_dapm_d.yaml"), str(CONFIGS / "ablations" / "t9_pqb_only.yaml")
+    planar = str(CONFIGS / "ablations" / "planar_depth.yaml")
+    assert stacked_run_folder([paper, efficient], []) == "outputs/uapd_dapm+efficient"
+    assert stacked_run_folder([potsdam, efficient], []) == "outputs/potsdam_dapm_d+efficient"
+    assert stacked_run_folder([paper, t9, planar], []) == "outputs/uapd_dapm+t9_pqb_only+planar_depth"
+    assert stacked_run_folder([paper], []) is None
+    assert stacked_run_folder([paper, t9], ["--trainer.default_root_dir", "runs/x"]) is None
+    assert stacked_run_folder([paper, t9], ["--trainer.default_root_dir=runs/x"]) is None
+    assert stacked_run_folder([paper, t9], [], "predict") is None
+    own = tmp_path / "own.yaml"
+    own.write_text("trainer:\n  default_root_dir: runs/mine\n")
+    assert stacked_run_folder([paper, str(own)], []) is None
+    cli = parse(["--config", paper, "--config", t9])  # through the real parser: the loggers follow
+    assert cli.trainer.default_root_dir == "outputs/uapd_dapm+t9_pqb_only"
+    assert {logger.save_dir for logger in cli.trainer.loggers} == {"outputs/uapd_dapm+t9_pqb_only"}

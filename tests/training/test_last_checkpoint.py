@@ -193,3 +193,29 @@ def test_a_step_save_that_a_validation_follows_holds_that_validation(tmp_path):
     best = next(state for name, state in saved["callbacks"].items() if name.startswith("ModelCheckpoint"))
     assert float(best["best_model_score"]) == 10.0  # the validation of step 2, run before the save
     assert fit(6, ckpt_path=str(tmp_path / "last.ckpt")).validated_at == [4, 6]  # step 2 not repeated
+
+
+def test_only_this_runs_rankings_are_kept(tmp_path):
+    """A ranking saved in this run's folders, whose best model is still there, moves to the new version folder; one
+    of another run (fine-tuning from it), one whose best file is gone, and a remote one start afresh."""
+    from types import SimpleNamespace
+
+    from dapm_lightning.training.resume import keep_checkpoint_rankings
+
+    run, other = tmp_path / "outputs" / "run", tmp_path / "elsewhere"
+    for folder in (run / "version_0" / "checkpoints", other / "checkpoints"):
+        folder.mkdir(parents=True)
+        (folder / "best.ckpt").write_bytes(b"x")
+    new = str(run / "version_1" / "checkpoints")
+
+    def state(folder, best="best.ckpt"):
+        return {"dirpath": str(folder), "best_model_path": str(Path(folder) / best), "best_model_score": 1.0}
+
+    checkpoint = {"callbacks": {"own": state(run / "version_0" / "checkpoints"),
+                                "foreign": state(other / "checkpoints"),
+                                "gone": state(run / "version_0" / "checkpoints", "deleted.ckpt"),
+                                "remote": {**state(run / "version_0" / "checkpoints"), "dirpath": "s3://b/run"}}}
+    callbacks = [SimpleNamespace(state_key=key, dirpath=new) for key in checkpoint["callbacks"]]
+    assert keep_checkpoint_rankings(checkpoint, callbacks, [str(run)]) == ["own"]
+    assert checkpoint["callbacks"]["own"]["dirpath"] == new
+    assert checkpoint["callbacks"]["foreign"]["dirpath"] == str(other / "checkpoints")
