@@ -42,18 +42,20 @@ if __name__ == "__main__":
     for config in configs:
         root = ["--data.init_args.root", potsdam, "--data.init_args.crop_size", "32"] if "potsdam" in config else [
             "--data.init_args.root", data]
+        runs = Path(out).parent / "runs"
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             cli = run_lightning_cli(["fit", *stack(config), *GPU_ONLY, *SMALL_RUN, *root,
-                                     "--trainer.default_root_dir", str(Path(out).parent / "runs")])
-        # the paper configs write a last.ckpt of about 0.5 GB each (42.6 M parameters with AdamW state) into
-        # ./outputs: remove it before the next config, or the run needs ~9 GB of disk
+                                     "--trainer.default_root_dir", str(runs)])
+        # the paper configs write a last.ckpt of about 0.5 GB each (42.6 M parameters with AdamW state) under the
+        # run's folder (their logs and checkpoints follow trainer.default_root_dir): remove it before the next
+        # config, or the run needs ~9 GB of disk
         dist.barrier()
-        last = find_last_checkpoint(["outputs"])
+        last = find_last_checkpoint([runs])
         last_step = torch.load(last, map_location="cpu", weights_only=True, mmap=True)["global_step"] if last else None
         dist.barrier()
         if dist.get_rank() == 0:
-            shutil.rmtree("outputs", ignore_errors=True)
+            shutil.rmtree(runs, ignore_errors=True)
         unsynced = [str(w.message)[:200] for w in caught if "sync_dist" in str(w.message)]
         results[config] = {"global_step": cli.trainer.global_step, "world_size": cli.trainer.world_size,
                            "last_ckpt_step": last_step,

@@ -79,7 +79,8 @@ def test_every_shipped_config_trains_under_two_process_ddp(tmp_path, tiny_potsda
                 f"== {path.relative_to(logs)}\n{path.read_text()[-3000:]}" for path in sorted(logs.rglob("stderr.log")))
                 + f"\n== torchrun\n{launcher[-2000:]}")
         results.update(json.loads(out.read_text()))
-    assert not (tmp_path / "outputs").exists(), "ddp_configs_run.py leaves the paper checkpoints behind"
+    # the configs' logs and checkpoints follow --trainer.default_root_dir: nothing in the working folder's outputs/
+    assert not (tmp_path / "outputs").exists(), "a config wrote outside the run's folder"
     assert sorted(results) == sorted(ALL_CONFIGS)
     for config, result in results.items():
         assert result["world_size"] == 2 and result["global_step"] == 2, config
