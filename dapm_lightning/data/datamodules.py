@@ -10,7 +10,6 @@ import albumentations as A
 import lightning as L
 import torch
 from lightning.pytorch.trainer.states import TrainerFn
-from lightning.pytorch.utilities import rank_zero_warn
 from torch.utils.data import DataLoader, Dataset
 from torch.utils.data._utils.collate import default_collate
 
@@ -195,12 +194,12 @@ class UAPDDataModule(DAPMDataModule):
         """
         super().setup(stage)
         train = self.datasets.get("train")
-        if stage in (None, "fit") and isinstance(train, UAPDDataset):
+        if stage in (None, "fit") and isinstance(train, UAPDDataset) and self._processes()[1] == 0:  # one reader
             folder = train.root / train.split / train.depth_dir
             problem = sampled_mismatch(lambda index: read_depth_grey(folder / train.names[index]), train.poses,
                                        self.depth_kind)
             if problem:
-                rank_zero_warn(f"{folder}: {problem}")
+                warnings.warn(f"{folder}: {problem}", stacklevel=2)
 
 
 class SyntheticDataModule(UAPDDataModule):

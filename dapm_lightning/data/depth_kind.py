@@ -9,6 +9,8 @@ training warns at start-up from a sample of the training files.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import cv2
 import numpy as np
 import torch
@@ -41,6 +43,16 @@ def at_check_width(depth_grey: np.ndarray) -> np.ndarray:
                       interpolation=cv2.INTER_NEAREST_EXACT)
 
 
+def on_flat_ground(depth_grey: np.ndarray, igd_grey: np.ndarray) -> np.ndarray:
+    """The non-sky pixels of ``depth_grey`` (``[H, W]`` uint8) within :data:`AGREE_LEVELS` grey levels of a ground.
+
+    ``igd_grey``: the grey levels (int16) of the IGD of one pose ``[H, W]`` or of several ``[K, H, W]``; where it is
+    sky no pixel agrees. Returns a bool mask of ``igd_grey``'s shape.
+    """
+    above = depth_grey.astype(np.int16) - igd_grey
+    return (np.abs(above) <= AGREE_LEVELS) & (igd_grey < SKY_GREY) & (depth_grey < SKY_GREY)
+
+
 def flat_ground_agreement(depth_grey: np.ndarray, pose: np.ndarray, depth_kind: DepthKind) -> float:
     """Share of the non-sky pixels of ``depth_grey`` that lie on the flat ground of ``pose``; 0 when all is sky.
 
@@ -49,10 +61,8 @@ def flat_ground_agreement(depth_grey: np.ndarray, pose: np.ndarray, depth_kind: 
     """
     igd = ideal_ground_depth(torch.from_numpy(np.asarray(pose, np.float64)), depth_grey.shape,
                              depth_kind=depth_kind)[0, 0].numpy()
-    igd_grey = depth_to_grey(igd).astype(np.int16)
-    seen = depth_grey < SKY_GREY
-    agree = (np.abs(depth_grey.astype(np.int16) - igd_grey) <= AGREE_LEVELS) & (igd_grey < SKY_GREY) & seen
-    return float(agree.sum() / max(int(seen.sum()), 1))
+    agree = on_flat_ground(depth_grey, depth_to_grey(igd).astype(np.int16))
+    return float(agree.sum() / max(int((depth_grey < SKY_GREY).sum()), 1))
 
 
 def depth_kind_mismatch(depth_kind: DepthKind, agreement: float, agreement_other: float) -> str | None:
@@ -70,7 +80,8 @@ def depth_kind_mismatch(depth_kind: DepthKind, agreement: float, agreement_other
             f"--depth_kind {other}` checks the set)")
 
 
-def sampled_mismatch(read_grey: object, poses: np.ndarray, depth_kind: DepthKind, count: int = 32) -> str | None:
+def sampled_mismatch(read_grey: Callable[[int], np.ndarray], poses: np.ndarray, depth_kind: DepthKind,
+                     count: int = 32) -> str | None:
     """:func:`depth_kind_mismatch` over ``count`` files spread evenly over a set.
 
     Args:
@@ -80,7 +91,7 @@ def sampled_mismatch(read_grey: object, poses: np.ndarray, depth_kind: DepthKind
     agreements: list[tuple[float, float]] = []
     for index in np.unique(np.linspace(0, len(poses) - 1, min(count, len(poses))).round().astype(int)):
         try:
-            grey = at_check_width(read_grey(int(index)))  # type: ignore[operator]
+            grey = at_check_width(read_grey(int(index)))
         except (OSError, ValueError):
             continue
         agreements.append((flat_ground_agreement(grey, poses[index], depth_kind),

@@ -32,6 +32,7 @@ from dapm_lightning.data.depth_kind import (
     at_check_width,
     depth_kind_mismatch,
     flat_ground_agreement,
+    on_flat_ground,
     other_kind,
 )
 from dapm_lightning.data.errors import DatasetError
@@ -111,9 +112,8 @@ def ground_evidence(depth_grey: np.ndarray, igd: np.ndarray) -> tuple[np.ndarray
     """
     igd_grey = depth_to_grey(igd).astype(np.int16)
     above = depth_grey.astype(np.int16)[None] - igd_grey  # > 0: deeper than the ground of the pose
-    ground = igd_grey < SKY_GREY  # the pose has ground nearer than MAX_DEPTH_M there
-    agree = (np.abs(above) <= AGREE_LEVELS) & ground & (depth_grey < SKY_GREY)[None]
-    beyond = (above > BEYOND_LEVELS) & ground
+    agree = on_flat_ground(depth_grey, igd_grey)
+    beyond = (above > BEYOND_LEVELS) & (igd_grey < SKY_GREY)  # where the pose has ground nearer than MAX_DEPTH_M
     return igd_grey, agree, beyond
 
 

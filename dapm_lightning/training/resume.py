@@ -14,8 +14,9 @@ epoch from its first batch when the last batch ended it), without repeating the 
 from __future__ import annotations
 
 from collections.abc import MutableMapping
-from pathlib import Path
 from typing import Any
+
+from dapm_lightning.training.checkpoint_files import is_remote, local_path
 
 
 def epoch_closed(epoch_progress: MutableMapping[str, Any]) -> bool:
@@ -98,17 +99,17 @@ def keep_checkpoint_rankings(checkpoint: MutableMapping[str, Any], callbacks: An
         The ``state_key`` of each callback whose state was given its folder.
     """
     states = checkpoint.get("callbacks") or {}
-    local_roots = [Path(root).resolve() for root in roots if root and "://" not in str(root)]
+    local_roots = [local_path(root).resolve() for root in roots if root and not is_remote(root)]
     kept = []
     for callback in callbacks:
         state = states.get(getattr(callback, "state_key", None))
         folder = getattr(callback, "dirpath", None)
         if not isinstance(state, MutableMapping) or folder is None or state.get("dirpath") in (None, folder):
             continue
-        saved, best = str(state["dirpath"]), str(state.get("best_model_path") or "")
-        if "://" in saved or "://" in str(folder) or not best or not Path(best).is_file():
+        saved, best = state["dirpath"], state.get("best_model_path")
+        if is_remote(saved) or is_remote(folder) or not best or not local_path(best).is_file():
             continue
-        if not any(Path(saved).resolve().is_relative_to(root) for root in local_roots):
+        if not any(local_path(saved).resolve().is_relative_to(root) for root in local_roots):
             continue
         state["dirpath"] = folder
         kept.append(callback.state_key)
