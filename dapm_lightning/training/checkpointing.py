@@ -228,6 +228,7 @@ def load_dapm_module(path: str | Path, map_location: Any = "cpu",
     settings = {k: v for k, v in checkpoint["hyper_parameters"].items() if k in accepted and k != "self"}
     # the weights come from the checkpoint: no ImageNet download (or local weights file) for the backbone
     settings["net"] = {**settings["net"], "pretrained": False, "weights_path": None}
+    settings.pop("init_weights", None)  # where its fit started: not read again
     if net_overrides:
         architecture = sorted(set(net_overrides) & set(DAPMConfig.architecture_fields()))
         if architecture:

@@ -13,7 +13,7 @@ import lightning as L
 import numpy as np
 import torch
 from lightning.pytorch.trainer.states import TrainerFn
-from lightning.pytorch.utilities import rank_zero_warn
+from lightning.pytorch.utilities import rank_zero_info, rank_zero_warn
 from lightning.pytorch.utilities.types import OptimizerLRSchedulerConfig
 from torch import Tensor
 from torchmetrics import Metric
@@ -186,6 +186,11 @@ class DAPMModule(L.LightningModule):
             ``train_nonfinite_steps``) instead of corrupting the weights.
         prior_training: pose priors drawn from the true pose during training (:class:`PriorTraining`), so
             that the model learns to use telemetry; off by default.
+        init_weights: start ``fit`` from the weights of this checkpoint (a ``.ckpt``, a split checkpoint folder
+            such as ``models/dapm-synthetic-r18-256``, or a remote file) instead of random or ImageNet ones:
+            fine-tuning. Its network must have this run's architecture (the differences are listed otherwise);
+            the optimizer, the step count and the schedule start afresh. Not read when ``fit --ckpt_path``
+            resumes a run (the resumed weights win), nor outside ``fit``.
 
     :attr:`igd_predicted_share` (the IGD teacher-forcing weight) is set by
     :class:`~dapm_lightning.training.callbacks.IGDTeacherForcing` during training; validation, test and
@@ -206,7 +211,7 @@ class DAPMModule(L.LightningModule):
                  pose_auc_min_error: float | None = None, skip_nonfinite_loss: bool = True,
                  authors_depth_metrics: bool = True,
                  prior_training: PriorTraining = PriorTraining(),  # noqa: B008
-                 authors_pose_metrics: bool = True) -> None:
+                 authors_pose_metrics: bool = True, init_weights: str | None = None) -> None:
         super().__init__()
         # settings arrive as dataclasses (CLI, Python) or as plain mappings (a checkpoint's hyper-parameters)
         self.net_config: DAPMConfig = _as_config(net, DAPMConfig)
@@ -220,7 +225,8 @@ class DAPMModule(L.LightningModule):
             "log_space_metrics": log_space_metrics, "pose_auc_min_error": pose_auc_min_error,
             "skip_nonfinite_loss": skip_nonfinite_loss, "authors_depth_metrics": authors_depth_metrics,
             "prior_training": {**asdict(self.prior_training), "noise": list(self.prior_training.noise)},
-            "authors_pose_metrics": authors_pose_metrics})
+            "authors_pose_metrics": authors_pose_metrics, "init_weights": init_weights})
+        self.init_weights = init_weights
         self.igd_predicted_share = 1.0
         self.skip_nonfinite_loss = skip_nonfinite_loss
         self.configure_models()
@@ -260,6 +266,30 @@ class DAPMModule(L.LightningModule):
                     self.metrics[f"{stage}_poseauthors"] = AuthorsPoseMetrics()
 
     def setup(self, stage: str) -> None:
+        self._check_data_agrees()
+        if stage == "fit" and self.init_weights is not None and self._trainer is not None \
+                and self.trainer.ckpt_path is None:
+            self.load_initial_weights(self.init_weights)
+
+    def load_initial_weights(self, path: str) -> None:
+        """Copy the network weights of the checkpoint at ``path`` into this module (``init_weights``).
+
+        Raises:
+            ValueError: the checkpoint's network has another architecture (every difference listed), or it is
+                not a dapm-lightning checkpoint.
+            FileNotFoundError, CheckpointReadError: as :func:`~.checkpoint_files.read_checkpoint`.
+        """
+        from dapm_lightning.training.checkpoint_files import read_checkpoint
+        from dapm_lightning.training.checkpointing import check_dapm_checkpoint
+
+        checkpoint = read_checkpoint(path)
+        check_dapm_checkpoint(checkpoint, path)
+        self.net_config.check_loads(checkpoint["hyper_parameters"]["net"], f"{path} (model.init_weights)")
+        weights = {k.removeprefix("net."): v for k, v in checkpoint["state_dict"].items() if k.startswith("net.")}
+        self.net.load_state_dict(weights, strict=True)  # copies into this run's tensors: float16 parts become float32
+        rank_zero_info(f"model.init_weights: the network starts from {path} ({len(weights)} tensors)")
+
+    def _check_data_agrees(self) -> None:
         datamodule = getattr(self._trainer, "datamodule", None) if self._trainer is not None else None
         data_kind = getattr(datamodule, "depth_kind", None)
         model_kind = self.net_config.igd.depth_kind

@@ -96,3 +96,41 @@ def test_fit_refuses_to_resume_from_weights_only(checkpoint, tiny_uapd, tmp_path
         run_lightning_cli(["fit", "--config", str(QUICKSTART), *UAPD, "--data.init_args.root", str(tiny_uapd),
                            "--trainer.default_root_dir", str(tmp_path / "run"), "--trainer.max_steps", "1",
                            "--ckpt_path", "shipped"])
+
+
+def _fit_from(init, tiny_uapd, work, *extra):
+    """One step at learning rate 0 from ``init``'s weights: the parameters stay those the run started from."""
+    return run_lightning_cli(["fit", "--config", str(QUICKSTART), *UAPD, "--data.init_args.root", str(tiny_uapd),
+                              "--trainer.max_steps", "1", "--trainer.limit_val_batches", "0",
+                              "--trainer.callbacks", "[]", "--trainer.enable_checkpointing", "false",
+                              "--trainer.default_root_dir", str(work), "--model.optimizer.lr", "0",
+                              "--model.init_weights", str(init), *extra])
+
+
+def test_fit_starts_from_a_split_models_weights(checkpoint, split, tiny_uapd, tmp_path):
+    folder, _ = split
+    cli = _fit_from(folder, tiny_uapd, tmp_path / "run")
+    saved = read_checkpoint(checkpoint)["state_dict"]
+    parameters = dict(cli.model.named_parameters())
+    assert parameters and all(torch.equal(p.detach(), saved[name].float()) for name, p in parameters.items())
+    assert cli.trainer.global_step == 1  # a fresh start: step, optimizer and schedule are this run's
+    # the checkpoints it writes do not send their loaders back to the starting weights
+    tuned = tmp_path / "tuned.ckpt"
+    cli.trainer.save_checkpoint(tuned)
+    assert read_checkpoint(tuned)["hyper_parameters"]["init_weights"] == str(folder)
+    shutil.rmtree(folder)
+    assert load_dapm_module(tuned) is not None
+
+
+def test_init_weights_of_another_network_list_the_differences(checkpoint, tiny_uapd, tmp_path):
+    with pytest.raises(ValueError, match=r"model.init_weights.*\n  model.net.decoder_channels: checkpoint 64"):
+        _fit_from(checkpoint, tiny_uapd, tmp_path / "run", "--model.net.decoder_channels", "32")
+
+
+def test_a_resumed_run_does_not_read_init_weights(checkpoint, tiny_uapd, tmp_path):
+    run = tmp_path / "run"
+    first = _fit_from(checkpoint, tiny_uapd, run)
+    last = tmp_path / "last.ckpt"
+    first.trainer.save_checkpoint(last)
+    resumed = _fit_from(tmp_path / "gone.ckpt", tiny_uapd, run, "--trainer.max_steps", "2", "--ckpt_path", str(last))
+    assert resumed.trainer.global_step == 2

@@ -1,0 +1,87 @@
+#!/usr/bin/env bash
+# One GPU session (../shared/gpu_session.md, docs/gpu.md): fine-tune the shipped model on the generator's current
+# version, ship the result as float16 parts, then time the one-line `predict` with it on rendered frames and a
+# video. Everything it reports goes to $OUT. Run from the repository root with the node's Python:
+#
+#   OUT=/tmp/out bash scripts/gpu_session.sh                                  # one GPU, 16 cores
+#   OUT=/tmp/out ACCEL=cpu SIZE=64 TRAIN=64 VAL=8 MAX_TIME=00:00:00:20 FRAMES=16 bash scripts/gpu_session.sh  # CPU check
+set -uo pipefail
+OUT=${OUT:?set OUT}; WORK=${WORK:-/tmp/gpu_session}; PY=${PY:-python3}
+ACCEL=${ACCEL:-gpu}; PRECISION=${PRECISION:-bf16-mixed}; SIZE=${SIZE:-256}; TRAIN=${TRAIN:-4000}; VAL=${VAL:-300}
+MAX_TIME=${MAX_TIME:-00:00:04:00}; SCHEDULE_S=${SCHEDULE_S:-225}; LR=${LR:-0.0005}; SEED=${SEED:-2}
+CORES=$(nproc); FRAMES=${FRAMES:-400}; INIT=${INIT:-models/dapm-synthetic-r18-256}; NAME=${NAME:-dapm-synthetic-r18-256}
+mkdir -p "$OUT" "$WORK"
+{ nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader 2>/dev/null || echo "no GPU"
+  $PY -c "import sys, torch, lightning, timm, torchmetrics, cv2, albumentations; print('python', sys.version.split()[0],
+'torch', torch.__version__, 'lightning', lightning.__version__, 'timm', timm.__version__, 'torchmetrics',
+torchmetrics.__version__, 'opencv', cv2.__version__, 'albumentations', albumentations.__version__)"
+  echo "cores $CORES, dapm-lightning at $(git rev-parse --short HEAD 2>/dev/null || echo '?'), $(date -u +%FT%TZ)"
+} | tee "$OUT/fit.log"
+
+# 1. fine-tune: the shipped model's weights, this generator's renders, a fresh warm-up and cosine over the time
+RUN=$WORK/run
+FIT=(fit --config dapm_lightning/configs/quickstart.yaml --model.init_weights "$INIT" --trainer.accelerator "$ACCEL"
+     --trainer.precision "$PRECISION" --trainer.max_epochs 1000 --trainer.max_time "$MAX_TIME"
+     --trainer.default_root_dir "$RUN" --data.init_args.root "$WORK/data" --data.init_args.image_size "$SIZE"
+     --data.init_args.train_size "$TRAIN" --data.init_args.val_size "$VAL" --data.init_args.render_seed "$SEED"
+     --data.init_args.render_workers "$CORES" --data.init_args.num_workers $((CORES - 2))
+     --model.optimizer.lr "$LR" --model.optimizer.schedule_seconds "$SCHEDULE_S" --trainer.enable_progress_bar false)
+COMMAND="dapm-lightning ${FIT[*]}"
+echo "$COMMAND" >> "$OUT/fit.log"
+$PY -m dapm_lightning "${FIT[@]}" 2>&1 | tail -40 >> "$OUT/fit.log"
+cp "$(find "$RUN" -name metrics.csv | head -1)" "$OUT/metrics.csv" 2>/dev/null
+LAST=$(find "$RUN" -name last.ckpt | head -1)
+echo "last checkpoint: ${LAST:-none}" | tee -a "$OUT/fit.log"
+[ -n "$LAST" ] || exit 1
+$PY scripts/ship_model.py "$LAST" "$OUT/$NAME" --card <(echo "{\"command\": \"$COMMAND\"}") \
+  | tee -a "$OUT/fit.log"
+MODEL=$OUT/$NAME
+
+# 2. the one-line predict with it: 512x512 frames (a folder) and the same frames as a video, each run twice
+# (all frames, then 50) so that the start-up (imports, loading, compiling) drops out of the images/s
+$PY -m dapm_lightning synth --out "$WORK/frames" --train "$FRAMES" --val 1 --size 512 --seed 3 --workers "$CORES" \
+  --quiet
+$PY - "$WORK/frames/train/rgb" "$WORK/video.mp4" <<'PY'
+import sys, pathlib, cv2
+frames = sorted(pathlib.Path(sys.argv[1]).glob("*.png"))
+video = cv2.VideoWriter(sys.argv[2], cv2.VideoWriter_fourcc(*"mp4v"), 30, (512, 512))
+for path in frames:
+    video.write(cv2.imread(str(path)))
+video.release()
+PY
+ls "$WORK/frames/train/rgb" | head -50 | sed "s#^#$WORK/frames/train/rgb/#" > "$WORK/first50.txt"
+DEADLINE=${DEADLINE:-100000}  # seconds since the start after which no predict run starts
+timed() {  # NAME SOURCE [predict options]: one line of JSON per run in $OUT/predict.jsonl
+  local name=$1 source=$2; shift 2
+  [ $SECONDS -lt "$DEADLINE" ] || { echo "{\"run\": \"$name\", \"skipped\": \"deadline\"}" >> "$OUT/predict.jsonl"; return; }
+  timeout 200 $PY - "$name" "$source" "$MODEL" "$WORK/p_$name" "$@" <<'PY' | tee -a "$OUT/predict.jsonl"
+import json, resource, sys, time
+import torch
+from dapm_lightning.cli import main
+name, source, model, out, *options = sys.argv[1:]
+start = time.perf_counter()
+try:
+    main(["predict", source, "--ckpt_path", model, "--out", out, "--quiet", *options])
+    code = 0
+except SystemExit as stop:
+    code = stop.code
+seconds = time.perf_counter() - start
+peak_gb = torch.cuda.max_memory_allocated() / 1e9 if torch.cuda.is_available() else None
+rss_gb = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss + resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss) / 1e6
+print(json.dumps({"run": name, "options": options, "exit": code, "seconds": round(seconds, 2),
+                  "gpu_peak_gb": peak_gb and round(peak_gb, 3), "host_rss_gb": round(rss_gb, 2)}), flush=True)
+PY
+}
+FAST=(--precision bf16 --batch_size 16 --num_workers 8 --channels_last)
+both() {  # NAME SOURCE [options]: all frames, then the first 50
+  local name=$1 source=$2; shift 2
+  timed "${name}_all" "$source" "$@"
+  if [ "$source" = "$WORK/video.mp4" ]; then timed "${name}_first50" "$source" --max_frames 50 "$@"
+  else timed "${name}_first50" "$WORK/first50.txt" "$@"; fi
+}
+both eager_fp32_b4 "$WORK/frames/train/rgb"
+both bf16_b16_w8_cl "$WORK/frames/train/rgb" "${FAST[@]}"
+both video_eager_fp32_b4 "$WORK/video.mp4"
+both compile_bf16_b16_w8_cl "$WORK/frames/train/rgb" "${FAST[@]}" --compile
+both video_bf16_b16_cl "$WORK/video.mp4" --precision bf16 --batch_size 16 --channels_last
+echo "done in $SECONDS s"
