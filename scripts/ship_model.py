@@ -16,8 +16,7 @@ from pathlib import Path
 
 import torch
 
-from dapm_lightning.training.checkpoint_files import read_checkpoint, split_checkpoint
-from dapm_lightning.training.checkpointing import check_dapm_checkpoint
+from dapm_lightning.training.checkpoint_files import check_dapm_checkpoint, read_checkpoint, split_checkpoint
 
 KEPT = ("hyper_parameters", "epoch", "global_step", "pytorch-lightning_version", "dapm_train_image_size")
 

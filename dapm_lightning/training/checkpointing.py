@@ -31,9 +31,11 @@ from lightning.pytorch.utilities.exceptions import SIGTERMException
 from torch import Tensor
 
 from dapm_lightning.models.config import DAPMConfig
-from dapm_lightning.training.checkpoint_files import (
+from dapm_lightning.training.checkpoint_files import (  # the check of foreign files lives there: re-exported
     CheckpointReadError,
+    NotADAPMCheckpointError,
     UnsafeCheckpointIOError,
+    check_dapm_checkpoint,
     is_remote,
     local_path,
     read_checkpoint,
@@ -145,58 +147,6 @@ def enforce_safe_checkpoint_io(trainer: L.Trainer) -> None:
     safe = safe_checkpoint_io(current)
     if safe is not current:
         strategy.checkpoint_io = safe
-
-
-class NotADAPMCheckpointError(ValueError):
-    """A readable file that is not a dapm-lightning checkpoint (another model's, a bare state dict...)."""
-
-
-def _some_keys(keys: Iterable[Any], count: int = 3) -> str:
-    names = [str(k) for k in keys]
-    shown = ", ".join(repr(k) for k in names[:count])
-    return shown + (f", ... ({len(names)} in all)" if len(names) > count else "")
-
-
-def foreign_checkpoint(checkpoint: Any) -> str | None:
-    """None for a dapm-lightning checkpoint; else what ``checkpoint`` (a loaded file) is, in a few words.
-
-    A dapm-lightning checkpoint is a Lightning checkpoint whose ``hyper_parameters`` hold the network's
-    settings (``net``) and whose ``state_dict`` holds the network's weights (``net.*``).
-    """
-    if not isinstance(checkpoint, Mapping):
-        return f"it holds a {type(checkpoint).__name__}, not a dictionary of weights and settings"
-    state_dict = checkpoint.get("state_dict")
-    if not isinstance(state_dict, Mapping):
-        if checkpoint and all(isinstance(v, Tensor) for v in checkpoint.values()):
-            whose = ("the weights of a DAPM network" if any(str(k).startswith("net.") for k in checkpoint)
-                     else "another model's weights")
-            return (f"a plain PyTorch state dict, {whose} ({_some_keys(checkpoint, 2)}), without the settings "
-                    "that rebuild the network")
-        return f"a dictionary with the keys {_some_keys(checkpoint, 6)}, not a Lightning checkpoint"
-    hyper_parameters = checkpoint.get("hyper_parameters")
-    settings = hyper_parameters if isinstance(hyper_parameters, Mapping) else {}
-    ours = isinstance(settings.get("net"), Mapping) and any(str(k).startswith("net.") for k in state_dict)
-    if ours:
-        return None
-    if any(str(k).startswith("net.") for k in state_dict):
-        return "DAPM weights without the network's settings (no hyper_parameters['net'])"
-    kind = "a Lightning checkpoint" if "pytorch-lightning_version" in checkpoint else "a checkpoint"
-    class_path = settings.get("_class_path")
-    model = f" of {class_path}" if isinstance(class_path, str) else " of another model"
-    shown = f"; settings {_some_keys([k for k in settings if not str(k).startswith('_')], 4)}" if settings else ""
-    return f"{kind}{model}: {len(state_dict)} weight tensor(s) such as {_some_keys(state_dict, 2)}{shown}"
-
-
-def check_dapm_checkpoint(checkpoint: Any, source: str | Path) -> None:
-    """Raise :class:`NotADAPMCheckpointError` (a ValueError naming ``source`` and the fix) unless ours."""
-    what = foreign_checkpoint(checkpoint)
-    if what is None:
-        return
-    fix = ("Fix: pass a checkpoint written by `dapm-lightning fit` (the run's checkpoints/last.ckpt or best-*.ckpt)")
-    if "DAPM" in what:
-        fix += ("; to use bare DAPM weights, build the model with the settings they were trained with and call "
-                "`DAPMModule(net=...).load_state_dict(...)`")
-    raise NotADAPMCheckpointError(f"{source}: not a dapm-lightning checkpoint ({what}).\n{fix}.")
 
 
 def load_dapm_module(path: str | Path, map_location: Any = "cpu",

@@ -23,6 +23,7 @@ from dapm_lightning.models.config import DAPMConfig
 from dapm_lightning.training.checkpoint_files import (
     CheckpointReadError,
     UnsafeCheckpointError,
+    check_dapm_checkpoint,
     fetch_checkpoint,
     is_remote,
     is_split_checkpoint,
@@ -32,7 +33,6 @@ from dapm_lightning.training.checkpoint_files import (
     remove_unfinished_saves,
 )
 from dapm_lightning.training.checkpointing import (
-    check_dapm_checkpoint,
     enforce_safe_checkpoint_io,
     find_last_checkpoint,
     resolve_last_checkpoint,

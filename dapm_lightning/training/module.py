@@ -279,8 +279,7 @@ class DAPMModule(L.LightningModule):
                 not a dapm-lightning checkpoint.
             FileNotFoundError, CheckpointReadError: as :func:`~.checkpoint_files.read_checkpoint`.
         """
-        from dapm_lightning.training.checkpoint_files import read_checkpoint
-        from dapm_lightning.training.checkpointing import check_dapm_checkpoint
+        from dapm_lightning.training.checkpoint_files import check_dapm_checkpoint, read_checkpoint
 
         checkpoint = read_checkpoint(path)
         check_dapm_checkpoint(checkpoint, path)

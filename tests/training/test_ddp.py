@@ -121,3 +121,40 @@ def test_a_run_that_fails_on_rank_0_leaves_no_process_behind(tmp_path):
     time.sleep(1)
     with pytest.raises(ProcessLookupError):
         os.killpg(process.pid, 0)
+
+
+def test_fine_tuning_under_two_process_ddp_starts_from_the_weights_and_resumes_without_them(tmp_path):
+    """``model.init_weights`` under DDP: both processes start from the file's weights (at learning rate 0 they stay
+    those), and the run resumes from its own checkpoint once the file is gone."""
+    import shutil
+
+    import torch
+
+    from dapm_lightning.training.checkpoint_files import read_checkpoint
+    from dapm_lightning.training.checkpointing import load_dapm_module
+
+    root = generate_uapd(tmp_path / "data", train=8, val=2, size=(24, 40), seed=13, workers=1)
+    common = ["--config", str(QUICKSTART), "--data.class_path", "dapm_lightning.data.datamodules.UAPDDataModule",
+              "--data.init_args.root", str(root), "--data.init_args.batch_size", "2",
+              "--data.init_args.num_workers", "0", "--trainer.accelerator", "cpu", "--trainer.limit_val_batches", "0",
+              "--trainer.callbacks+=lightning.pytorch.callbacks.ModelCheckpoint"]
+
+    def fit(name, *args):
+        try:
+            return run(tmp_path, name, "fit", *common, "--trainer.callbacks.dirpath", str(tmp_path / name), *args)
+        except subprocess.CalledProcessError as error:
+            pytest.fail(f"{name} failed:\n{error.stderr[-3000:]}")
+
+    fit("base", "--trainer.devices", "1", "--trainer.max_steps", "2")
+    init = tmp_path / "init.ckpt"
+    shutil.copy(sorted((tmp_path / "base").glob("*.ckpt"))[-1], init)
+    ddp = ["--trainer.devices", "2", "--trainer.strategy", "ddp", "--model.init_weights", str(init)]
+    tuned = fit("tuned", *ddp, "--trainer.max_steps", "2", "--model.optimizer.lr", "0")
+    assert tuned["global_step"] == 2
+    saved = sorted((tmp_path / "tuned").glob("*.ckpt"))[-1]
+    start, after = read_checkpoint(init)["state_dict"], read_checkpoint(saved)["state_dict"]
+    names = [f"net.{name}" for name, _ in load_dapm_module(saved).net.named_parameters()]
+    assert names and all(torch.equal(start[name], after[name]) for name in names)
+    init.unlink()
+    resumed = fit("resumed", *ddp, "--trainer.max_steps", "4", "--ckpt_path", str(saved))
+    assert resumed["global_step"] == 4
