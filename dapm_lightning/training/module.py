@@ -189,8 +189,9 @@ class DAPMModule(L.LightningModule):
         init_weights: start ``fit`` from the weights of this checkpoint (a ``.ckpt``, a split checkpoint folder
             such as ``models/dapm-synthetic-r18-256``, or a remote file) instead of random or ImageNet ones:
             fine-tuning. Its network must have this run's architecture (the differences are listed otherwise);
-            the optimizer, the step count and the schedule start afresh. Not read when ``fit --ckpt_path``
-            resumes a run (the resumed weights win), nor outside ``fit``.
+            the optimizer, the step count and the schedule start afresh. Read as the fit starts (every process
+            under DDP reads the file), not when ``fit --ckpt_path`` resumes a run (the resumed weights win; the
+            file may be gone), nor outside ``fit``. Not for strategies that shard the weights (FSDP, DeepSpeed).
 
     :attr:`igd_predicted_share` (the IGD teacher-forcing weight) is set by
     :class:`~dapm_lightning.training.callbacks.IGDTeacherForcing` during training; validation, test and
@@ -267,8 +268,10 @@ class DAPMModule(L.LightningModule):
 
     def setup(self, stage: str) -> None:
         self._check_data_agrees()
-        if stage == "fit" and self.init_weights is not None and self._trainer is not None \
-                and self.trainer.ckpt_path is None:
+
+    def on_fit_start(self) -> None:
+        # here, not in setup: Lightning knows whether it restored a checkpoint (trainer.ckpt_path) only after setup
+        if self.init_weights is not None and self.trainer.ckpt_path is None:
             self.load_initial_weights(self.init_weights)
 
     def load_initial_weights(self, path: str) -> None:

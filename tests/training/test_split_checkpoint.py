@@ -128,9 +128,12 @@ def test_init_weights_of_another_network_list_the_differences(checkpoint, tiny_u
 
 
 def test_a_resumed_run_does_not_read_init_weights(checkpoint, tiny_uapd, tmp_path):
-    run = tmp_path / "run"
-    first = _fit_from(checkpoint, tiny_uapd, run)
+    """Its checkpoint names the file it started from, which may be gone by the resume."""
+    run, init = tmp_path / "run", tmp_path / "init.ckpt"
+    shutil.copy(checkpoint, init)
+    first = _fit_from(init, tiny_uapd, run)
     last = tmp_path / "last.ckpt"
     first.trainer.save_checkpoint(last)
-    resumed = _fit_from(tmp_path / "gone.ckpt", tiny_uapd, run, "--trainer.max_steps", "2", "--ckpt_path", str(last))
+    init.unlink()
+    resumed = _fit_from(init, tiny_uapd, run, "--trainer.max_steps", "2", "--ckpt_path", str(last))
     assert resumed.trainer.global_step == 2
