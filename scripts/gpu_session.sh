@@ -8,7 +8,7 @@
 set -uo pipefail
 OUT=${OUT:?set OUT}; WORK=${WORK:-/tmp/gpu_session}; PY=${PY:-python3}
 ACCEL=${ACCEL:-gpu}; PRECISION=${PRECISION:-bf16-mixed}; SIZE=${SIZE:-256}; TRAIN=${TRAIN:-4000}; VAL=${VAL:-300}
-MAX_TIME=${MAX_TIME:-00:00:04:00}; SCHEDULE_S=${SCHEDULE_S:-225}; LR=${LR:-0.0005}; SEED=${SEED:-2}
+MAX_TIME=${MAX_TIME:-00:00:03:45}; SCHEDULE_S=${SCHEDULE_S:-210}; LR=${LR:-0.0005}; SEED=${SEED:-2}
 CORES=$(nproc); FRAMES=${FRAMES:-400}; INIT=${INIT:-models/dapm-synthetic-r18-256}; NAME=${NAME:-dapm-synthetic-r18-256}
 mkdir -p "$OUT" "$WORK"
 { nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader 2>/dev/null || echo "no GPU"
@@ -20,6 +20,7 @@ torchmetrics.__version__, 'opencv', cv2.__version__, 'albumentations', albumenta
 
 # 1. fine-tune: the shipped model's weights, this generator's renders, a fresh warm-up and cosine over the time
 RUN=$WORK/run
+rm -rf "$RUN"  # a run left by an earlier call must not be shipped
 FIT=(fit --config dapm_lightning/configs/quickstart.yaml --model.init_weights "$INIT" --trainer.accelerator "$ACCEL"
      --trainer.precision "$PRECISION" --trainer.max_epochs 1000 --trainer.max_time "$MAX_TIME"
      --trainer.default_root_dir "$RUN" --data.init_args.root "$WORK/data" --data.init_args.image_size "$SIZE"
@@ -29,10 +30,11 @@ FIT=(fit --config dapm_lightning/configs/quickstart.yaml --model.init_weights "$
 COMMAND="dapm-lightning ${FIT[*]}"
 echo "$COMMAND" >> "$OUT/fit.log"
 $PY -m dapm_lightning "${FIT[@]}" 2>&1 | tail -40 >> "$OUT/fit.log"
+FIT_EXIT=${PIPESTATUS[0]}
 cp "$(find "$RUN" -name metrics.csv | head -1)" "$OUT/metrics.csv" 2>/dev/null
 LAST=$(find "$RUN" -name last.ckpt | head -1)
-echo "last checkpoint: ${LAST:-none}" | tee -a "$OUT/fit.log"
-[ -n "$LAST" ] || exit 1
+echo "fit exit status $FIT_EXIT, last checkpoint: ${LAST:-none}" | tee -a "$OUT/fit.log"
+[ "$FIT_EXIT" = 0 ] && [ -n "$LAST" ] || exit 1
 $PY scripts/ship_model.py "$LAST" "$OUT/$NAME" --card <(echo "{\"command\": \"$COMMAND\"}") \
   | tee -a "$OUT/fit.log"
 MODEL=$OUT/$NAME

@@ -16,16 +16,12 @@ from pathlib import Path
 
 import torch
 
-from dapm_lightning.training.checkpoint_files import check_dapm_checkpoint, read_checkpoint, split_checkpoint
-
-KEPT = ("hyper_parameters", "epoch", "global_step", "pytorch-lightning_version", "dapm_train_image_size")
-
-
-def shipped_checkpoint(checkpoint: dict) -> dict:
-    """The inference part of a training checkpoint; floating-point weights as float16."""
-    weights = {name: value.half() if value.is_floating_point() else value
-               for name, value in checkpoint["state_dict"].items()}
-    return {"state_dict": weights, **{key: checkpoint[key] for key in KEPT if key in checkpoint}}
+from dapm_lightning.training.checkpoint_files import (
+    check_dapm_checkpoint,
+    inference_checkpoint,
+    read_checkpoint,
+    split_checkpoint,
+)
 
 
 def main() -> None:
@@ -41,7 +37,7 @@ def main() -> None:
     card.setdefault("image_size", (checkpoint.get("dapm_train_image_size") or [None])[0])
     with tempfile.TemporaryDirectory() as work:
         whole = Path(work) / "model.ckpt"
-        torch.save(shipped_checkpoint(checkpoint), whole)
+        torch.save(inference_checkpoint(checkpoint), whole)
         files = split_checkpoint(whole, args.folder, card=card)
     read_checkpoint(args.folder)  # the parts join to the file written, or this fails naming the part
     print(f"wrote {args.folder}: {len(files) - 1} part(s), {sum(f.stat().st_size for f in files[:-1]) / 1e6:.1f} MB")

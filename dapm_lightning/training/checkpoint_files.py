@@ -506,3 +506,21 @@ def check_dapm_checkpoint(checkpoint: Any, source: str | Path) -> None:
         fix += ("; to use bare DAPM weights, build the model with the settings they were trained with and call "
                 "`DAPMModule(net=...).load_state_dict(...)`")
     raise NotADAPMCheckpointError(f"{source}: not a dapm-lightning checkpoint ({what}).\n{fix}.")
+
+
+INFERENCE_KEYS = ("hyper_parameters", "epoch", "global_step", "pytorch-lightning_version", "dapm_train_image_size")
+"""What :func:`inference_checkpoint` keeps of a training checkpoint besides the weights."""
+
+
+def inference_checkpoint(checkpoint: Mapping[str, Any], dtype: torch.dtype = torch.float16) -> dict[str, Any]:
+    """The part of a training checkpoint a shipped model needs; no optimizer, loop or callback state.
+
+    That is the weights (floating point ones as ``dtype``), the hyper-parameters (without ``init_weights``: where
+    its fit started is no setting of the shipped model) and the training size.
+    """
+    weights = {name: value.to(dtype) if value.is_floating_point() else value
+               for name, value in checkpoint["state_dict"].items()}
+    kept = {key: checkpoint[key] for key in INFERENCE_KEYS if key in checkpoint}
+    if isinstance(kept.get("hyper_parameters"), Mapping):
+        kept["hyper_parameters"] = {k: v for k, v in kept["hyper_parameters"].items() if k != "init_weights"}
+    return {"state_dict": weights, **kept}

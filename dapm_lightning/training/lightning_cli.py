@@ -348,8 +348,9 @@ class DAPMCLI(LightningCLI):
         if subcommand == "fit" and "optimizer_states" not in checkpoint:
             raise WeightsOnlyCheckpointError(
                 f"{given}: holds the model's weights only (no optimizer or loop state), so `fit` "
-                "cannot resume from it.\nFix: use it with `predict`, `test`, `validate` or `export`; to resume a "
-                "training, pass that run's last.ckpt (or --ckpt_path last).")
+                "cannot resume from it.\nFix: use it with `predict`, `test`, `validate` or `export`; to fine-tune "
+                f"from its weights, `--model.init_weights {given}` instead of --ckpt_path; to resume a training, "
+                "pass that run's last.ckpt (or --ckpt_path last).")
         saved = checkpoint.get("hyper_parameters", {}).get("net")
         net = config.get("model", {}).get("net")
         if subcommand == "fit" and saved is not None and net is not None:
@@ -373,6 +374,16 @@ class DAPMCLI(LightningCLI):
         except SystemExit:
             sys.stderr.write("Parsing of ckpt_path hyperparameters failed!\n")
             raise
+
+    def before_fit(self) -> None:
+        """Read ``model.init_weights`` unless ``--ckpt_path`` resumes a run.
+
+        Before the fit: in every process, before the data, sharding or tuning, and a wrong file stops the run early.
+        """
+        model = self.model
+        resumes = self.config["fit"].get("ckpt_path")
+        if isinstance(model, DAPMModule) and model.init_weights is not None and not resumes:
+            model.load_initial_weights()
 
     def before_instantiate_classes(self) -> None:
         subcommand = self.config.get("subcommand")

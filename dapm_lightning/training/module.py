@@ -6,7 +6,7 @@ import math
 import time
 import zlib
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import Any, Literal, cast
 
 import lightning as L
@@ -188,20 +188,13 @@ class DAPMModule(L.LightningModule):
             that the model learns to use telemetry; off by default.
         init_weights: start ``fit`` from the weights of this checkpoint (a ``.ckpt``, a split checkpoint folder
             such as ``models/dapm-synthetic-r18-256``, or a remote file) instead of random or ImageNet ones:
-            fine-tuning. Its network must have this run's architecture (the differences are listed otherwise);
-            the optimizer, the step count and the schedule start afresh. Read as the fit starts (every process
-            under DDP reads the file), not when ``fit --ckpt_path`` resumes a run (the resumed weights win; the
-            file may be gone), nor outside ``fit``. Not for strategies that shard the weights (FSDP, DeepSpeed).
-
-    :attr:`igd_predicted_share` (the IGD teacher-forcing weight) is set by
-    :class:`~dapm_lightning.training.callbacks.IGDTeacherForcing` during training; validation, test and
-    predict always use the predicted pose alone. Checkpoints carry the RNG states, and loading one trained
-    with another architecture fails with a message listing what differs.
-
-    Logged keys: ``<stage>_loss_<term>``, ``<stage>_depth_<metric>`` (metres),
-    ``<stage>_depthlog_<metric>`` (toolbox protocol on grey levels), ``<stage>_depthauthors_<metric>`` (the
-    authors' protocol), ``<stage>_pose_<component>_<stat>`` (GeoCalib's AUC),
-    ``<stage>_poseauthors_<component>_<stat>`` (the authors' AUC and MAE).
+            fine-tuning (the backbone is then built without ImageNet weights: nothing is downloaded). Its network
+            must have this run's architecture (the differences are listed otherwise); the optimizer, the step
+            count and the schedule start afresh. ``dapm-lightning fit`` reads it before the fit starts, in every
+            process, unless ``--ckpt_path`` resumes a run (the resumed weights win; the file may be gone). In
+            Python, call :meth:`load_initial_weights` before ``trainer.fit`` (or the module does it as the fit
+            starts). Read once: weights from a checkpoint (a resume, ``load_from_checkpoint``) or a later fit
+            of the same module are never replaced by it.
     """
 
     igd_predicted_share: float
@@ -219,6 +212,8 @@ class DAPMModule(L.LightningModule):
         self.loss_config: LossConfig = _as_config(loss, LossConfig)
         self.optimizer_config: OptimizerConfig = _as_config(optimizer, OptimizerConfig)
         self.prior_training: PriorTraining = _as_config(prior_training, PriorTraining)
+        if init_weights is not None:  # every weight comes from that file: no ImageNet download first
+            self.net_config = replace(self.net_config, pretrained=False, weights_path=None)
         self.save_hyperparameters({  # plain values: checkpoints load with weights_only=True
             "net": self.net_config.to_dict(), "loss": {**asdict(self.loss_config),
                                                         "weights": dict(self.loss_config.weights)},
@@ -228,6 +223,8 @@ class DAPMModule(L.LightningModule):
             "prior_training": {**asdict(self.prior_training), "noise": list(self.prior_training.noise)},
             "authors_pose_metrics": authors_pose_metrics, "init_weights": init_weights})
         self.init_weights = init_weights
+        self.weights_are_final = False
+        """True once the weights came from ``init_weights`` or a checkpoint: ``init_weights`` is not read (again)."""
         self.igd_predicted_share = 1.0
         self.skip_nonfinite_loss = skip_nonfinite_loss
         self.configure_models()
@@ -270,12 +267,15 @@ class DAPMModule(L.LightningModule):
         self._check_data_agrees()
 
     def on_fit_start(self) -> None:
-        # here, not in setup: Lightning knows whether it restored a checkpoint (trainer.ckpt_path) only after setup
-        if self.init_weights is not None and self.trainer.ckpt_path is None:
-            self.load_initial_weights(self.init_weights)
+        if self.init_weights is not None and not self.weights_are_final:  # Python use without load_initial_weights
+            if self.trainer.strategy.restore_checkpoint_after_setup:
+                raise ValueError(f"model.init_weights: the {type(self.trainer.strategy).__name__} strategy shards the "
+                                 "weights before this point. Fix: call load_initial_weights() before trainer.fit "
+                                 "(dapm-lightning fit does)")
+            self.load_initial_weights()
 
-    def load_initial_weights(self, path: str) -> None:
-        """Copy the network weights of the checkpoint at ``path`` into this module (``init_weights``).
+    def load_initial_weights(self, path: str | None = None) -> None:
+        """Copy the network weights of the checkpoint at ``path`` (default: ``init_weights``) into this module.
 
         Raises:
             ValueError: the checkpoint's network has another architecture (every difference listed), or it is
@@ -284,11 +284,15 @@ class DAPMModule(L.LightningModule):
         """
         from dapm_lightning.training.checkpoint_files import check_dapm_checkpoint, read_checkpoint
 
+        path = path if path is not None else self.init_weights
+        if path is None:
+            raise ValueError("load_initial_weights: no path given and model.init_weights is not set")
         checkpoint = read_checkpoint(path)
         check_dapm_checkpoint(checkpoint, path)
         self.net_config.check_loads(checkpoint["hyper_parameters"]["net"], f"{path} (model.init_weights)")
         weights = {k.removeprefix("net."): v for k, v in checkpoint["state_dict"].items() if k.startswith("net.")}
-        self.net.load_state_dict(weights, strict=True)  # copies into this run's tensors: float16 parts become float32
+        self.net.load_state_dict(weights, strict=True)  # copied into this module's tensors, in their dtype
+        self.weights_are_final = True
         rank_zero_info(f"model.init_weights: the network starts from {path} ({len(weights)} tensors)")
 
     def _check_data_agrees(self) -> None:
@@ -421,6 +425,7 @@ class DAPMModule(L.LightningModule):
             checkpoint["dapm_rng_states"] = states
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        self.weights_are_final = True  # a resume, load_from_checkpoint: init_weights is not read over them
         saved = checkpoint.get("hyper_parameters", {}).get("net")
         if saved is not None:
             self.net_config.check_loads(saved, "the checkpoint")

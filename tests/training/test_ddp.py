@@ -124,14 +124,13 @@ def test_a_run_that_fails_on_rank_0_leaves_no_process_behind(tmp_path):
 
 
 def test_fine_tuning_under_two_process_ddp_starts_from_the_weights_and_resumes_without_them(tmp_path):
-    """``model.init_weights`` under DDP: both processes start from the file's weights (at learning rate 0 they stay
-    those), and the run resumes from its own checkpoint once the file is gone."""
+    """``model.init_weights`` under DDP: each process starts from the file's weights (their digests as training
+    starts), and the run resumes from its own checkpoint once the file is gone."""
     import shutil
-
-    import torch
 
     from dapm_lightning.training.checkpoint_files import read_checkpoint
     from dapm_lightning.training.checkpointing import load_dapm_module
+    from tests.training.weights_digest import parameters_digest
 
     root = generate_uapd(tmp_path / "data", train=8, val=2, size=(24, 40), seed=13, workers=1)
     common = ["--config", str(QUICKSTART), "--data.class_path", "dapm_lightning.data.datamodules.UAPDDataModule",
@@ -141,20 +140,27 @@ def test_fine_tuning_under_two_process_ddp_starts_from_the_weights_and_resumes_w
 
     def fit(name, *args):
         try:
-            return run(tmp_path, name, "fit", *common, "--trainer.callbacks.dirpath", str(tmp_path / name), *args)
+            return run(tmp_path, name, "fit", *common, "--trainer.callbacks.dirpath", str(tmp_path / name),
+                       "--trainer.callbacks+=weights_digest.WeightsDigest",
+                       "--trainer.callbacks.folder", str(tmp_path / f"{name}_digests"), *args)
         except subprocess.CalledProcessError as error:
             pytest.fail(f"{name} failed:\n{error.stderr[-3000:]}")
 
     fit("base", "--trainer.devices", "1", "--trainer.max_steps", "2")
     init = tmp_path / "init.ckpt"
     shutil.copy(sorted((tmp_path / "base").glob("*.ckpt"))[-1], init)
+    names = [f"net.{name}" for name, _ in load_dapm_module(init).net.named_parameters()]
+    start = read_checkpoint(init)["state_dict"]
+    expected = parameters_digest((name.removeprefix("net."), start[name]) for name in names)
     ddp = ["--trainer.devices", "2", "--trainer.strategy", "ddp", "--model.init_weights", str(init)]
-    tuned = fit("tuned", *ddp, "--trainer.max_steps", "2", "--model.optimizer.lr", "0")
+    tuned = fit("tuned", *ddp, "--trainer.max_steps", "2")
     assert tuned["global_step"] == 2
+    digests = [(tmp_path / "tuned_digests" / f"rank{rank}.txt").read_text() for rank in (0, 1)]
+    assert digests == [expected, expected]
     saved = sorted((tmp_path / "tuned").glob("*.ckpt"))[-1]
-    start, after = read_checkpoint(init)["state_dict"], read_checkpoint(saved)["state_dict"]
-    names = [f"net.{name}" for name, _ in load_dapm_module(saved).net.named_parameters()]
-    assert names and all(torch.equal(start[name], after[name]) for name in names)
     init.unlink()
     resumed = fit("resumed", *ddp, "--trainer.max_steps", "4", "--ckpt_path", str(saved))
     assert resumed["global_step"] == 4
+    after = read_checkpoint(saved)["state_dict"]
+    resumed_digest = parameters_digest((name.removeprefix("net."), after[name]) for name in names)
+    assert [(tmp_path / "resumed_digests" / f"rank{rank}.txt").read_text() for rank in (0, 1)] == [resumed_digest] * 2

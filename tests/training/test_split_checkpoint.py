@@ -4,18 +4,23 @@ or damaged part named with the fix, never loaded half."""
 import json
 import shutil
 
+import lightning as L
 import pytest
 import torch
 
+from dapm_lightning.data.datamodules import UAPDDataModule
+from dapm_lightning.models.config import DAPMConfig
 from dapm_lightning.training.checkpoint_files import (
     SPLIT_MANIFEST,
     CheckpointReadError,
+    inference_checkpoint,
     read_checkpoint,
     split_checkpoint,
     split_checkpoint_card,
 )
 from dapm_lightning.training.checkpointing import load_dapm_module
 from dapm_lightning.training.lightning_cli import run_lightning_cli
+from dapm_lightning.training.module import DAPMModule
 from tests.conftest import QUICKSTART
 
 UAPD = ["--data.class_path", "dapm_lightning.data.datamodules.UAPDDataModule", "--data.init_args.batch_size", "2",
@@ -107,19 +112,39 @@ def _fit_from(init, tiny_uapd, work, *extra):
                               "--model.init_weights", str(init), *extra])
 
 
-def test_fit_starts_from_a_split_models_weights(checkpoint, split, tiny_uapd, tmp_path):
-    folder, _ = split
-    cli = _fit_from(folder, tiny_uapd, tmp_path / "run")
+@pytest.fixture()
+def shipped(checkpoint, tmp_path):
+    """The one-step checkpoint as a shipped model: float16 weights in parts (scripts/ship_model.py's form)."""
+    whole = tmp_path / "shipped.ckpt"
+    torch.save(inference_checkpoint(read_checkpoint(checkpoint)), whole)
+    return split_checkpoint(whole, tmp_path / "shipped", part_bytes=1 << 20)[-1].parent
+
+
+def test_fit_starts_from_a_shipped_models_float16_weights(checkpoint, shipped, tiny_uapd, tmp_path):
+    cli = _fit_from(shipped, tiny_uapd, tmp_path / "run")
     saved = read_checkpoint(checkpoint)["state_dict"]
     parameters = dict(cli.model.named_parameters())
-    assert parameters and all(torch.equal(p.detach(), saved[name].float()) for name, p in parameters.items())
+    assert parameters and all(p.dtype == torch.float32 for p in parameters.values())
+    assert all(torch.equal(p.detach(), saved[name].half().float()) for name, p in parameters.items())
     assert cli.trainer.global_step == 1  # a fresh start: step, optimizer and schedule are this run's
-    # the checkpoints it writes do not send their loaders back to the starting weights
+    # the checkpoints it writes load without the file it started from, and never read it again
     tuned = tmp_path / "tuned.ckpt"
     cli.trainer.save_checkpoint(tuned)
-    assert read_checkpoint(tuned)["hyper_parameters"]["init_weights"] == str(folder)
-    shutil.rmtree(folder)
-    assert load_dapm_module(tuned) is not None
+    assert read_checkpoint(tuned)["hyper_parameters"]["init_weights"] == str(shipped)
+    assert "init_weights" not in read_checkpoint(shipped)["hyper_parameters"]
+    shutil.rmtree(shipped)
+    assert load_dapm_module(tuned).init_weights is None
+    again = DAPMModule.load_from_checkpoint(tuned, weights_only=True)  # init_weights set, its file gone
+    assert again.init_weights == str(shipped) and again.weights_are_final
+    trainer = L.Trainer(max_steps=1, logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                        limit_val_batches=0)
+    trainer.fit(again, datamodule=UAPDDataModule(root=tiny_uapd, batch_size=2, num_workers=0))
+    assert trainer.global_step == 1
+
+
+def test_init_weights_build_the_backbone_without_imagenet_weights():
+    module = DAPMModule(net=DAPMConfig(backbone="resnet18", pretrained=True), init_weights="any.ckpt")
+    assert module.net_config.pretrained is False and module.hparams["net"]["pretrained"] is False
 
 
 def test_init_weights_of_another_network_list_the_differences(checkpoint, tiny_uapd, tmp_path):
