@@ -26,6 +26,7 @@ from dapm_lightning.models.config import DAPMConfig
 from dapm_lightning.models.dapm import DAPMNet, DAPMOutput
 from dapm_lightning.models.prior import PosePrior
 from dapm_lightning.models.teacher_forcing import TeacherForcing
+from dapm_lightning.training.checkpoint_files import check_dapm_checkpoint, read_checkpoint
 from dapm_lightning.training.loss import DAPMLoss, LossConfig
 from dapm_lightning.training.resume import (
     keep_checkpoint_rankings,
@@ -195,6 +196,16 @@ class DAPMModule(L.LightningModule):
             Python, call :meth:`load_initial_weights` before ``trainer.fit`` (or the module does it as the fit
             starts). Read once: weights from a checkpoint (a resume, ``load_from_checkpoint``) or a later fit
             of the same module are never replaced by it.
+
+    :attr:`igd_predicted_share` (the IGD teacher-forcing weight) is set by
+    :class:`~dapm_lightning.training.callbacks.IGDTeacherForcing` during training; validation, test and
+    predict always use the predicted pose alone. Checkpoints carry the RNG states, and loading one trained
+    with another architecture fails with a message listing what differs.
+
+    Logged keys: ``<stage>_loss_<term>``, ``<stage>_depth_<metric>`` (metres),
+    ``<stage>_depthlog_<metric>`` (toolbox protocol on grey levels), ``<stage>_depthauthors_<metric>`` (the
+    authors' protocol), ``<stage>_pose_<component>_<stat>`` (GeoCalib's AUC),
+    ``<stage>_poseauthors_<component>_<stat>`` (the authors' AUC and MAE).
     """
 
     igd_predicted_share: float
@@ -263,9 +274,6 @@ class DAPMModule(L.LightningModule):
                 if authors_pose_metrics:
                     self.metrics[f"{stage}_poseauthors"] = AuthorsPoseMetrics()
 
-    def setup(self, stage: str) -> None:
-        self._check_data_agrees()
-
     def on_fit_start(self) -> None:
         if self.init_weights is not None and not self.weights_are_final:  # Python use without load_initial_weights
             if self.trainer.strategy.restore_checkpoint_after_setup:
@@ -274,19 +282,17 @@ class DAPMModule(L.LightningModule):
                                  "(dapm-lightning fit does)")
             self.load_initial_weights()
 
-    def load_initial_weights(self, path: str | None = None) -> None:
-        """Copy the network weights of the checkpoint at ``path`` (default: ``init_weights``) into this module.
+    def load_initial_weights(self) -> None:
+        """Copy the network weights of the checkpoint ``init_weights`` into this module.
 
         Raises:
             ValueError: the checkpoint's network has another architecture (every difference listed), or it is
                 not a dapm-lightning checkpoint.
             FileNotFoundError, CheckpointReadError: as :func:`~.checkpoint_files.read_checkpoint`.
         """
-        from dapm_lightning.training.checkpoint_files import check_dapm_checkpoint, read_checkpoint
-
-        path = path if path is not None else self.init_weights
+        path = self.init_weights
         if path is None:
-            raise ValueError("load_initial_weights: no path given and model.init_weights is not set")
+            raise ValueError("load_initial_weights: model.init_weights is not set")
         checkpoint = read_checkpoint(path)
         check_dapm_checkpoint(checkpoint, path)
         self.net_config.check_loads(checkpoint["hyper_parameters"]["net"], f"{path} (model.init_weights)")
@@ -295,7 +301,7 @@ class DAPMModule(L.LightningModule):
         self.weights_are_final = True
         rank_zero_info(f"model.init_weights: the network starts from {path} ({len(weights)} tensors)")
 
-    def _check_data_agrees(self) -> None:
+    def setup(self, stage: str) -> None:
         datamodule = getattr(self._trainer, "datamodule", None) if self._trainer is not None else None
         data_kind = getattr(datamodule, "depth_kind", None)
         model_kind = self.net_config.igd.depth_kind
