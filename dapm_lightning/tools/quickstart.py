@@ -114,6 +114,26 @@ def report(model: dict[str, dict[str, float]], base: dict[str, dict[str, float]]
     return "\n".join(lines), failures
 
 
+def outputs_listing(out: Path, fit_dir: Path, test_dir: Path, checkpoint: Path) -> list[str]:
+    """The lines naming this run's outputs under ``out``: its own log folders (a second run in the same ``out``
+    logs to new ``version_N`` folders beside the first's), their panels and viewpoint figure, its checkpoint."""
+    def shown(path: Path) -> str:
+        return str(path.relative_to(out)) if path.is_relative_to(out) else str(path)
+
+    lines = ["  metrics.json       all figures above (and the paper's 8-bit log-space depth metrics)"]
+    for figure in sorted(test_dir.glob("viewpoints.png")):
+        lines.append(f"  {shown(figure)}  d1 and pose error per bin of pitch, height, roll, FoV")
+    panels = [p for run in (fit_dir, test_dir) for p in sorted(run.glob("panels/*.png"))]
+    if panels:
+        folders = list(dict.fromkeys(shown(p.parent) for p in panels))
+        lines.append(f"  {', '.join(folders)}: {len(panels)} picture(s): "
+                     "RGB | true depth | predicted | IGD of predicted pose | error")
+    lines.append(f"  {shown(fit_dir)}, {shown(test_dir)}: logs of the fit and the test (TensorBoard; the same "
+                 "figures as CSV under csv/)")
+    lines.append(f"  {shown(checkpoint)}: the checkpoint tested")
+    return lines
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the quickstart; returns 0 when the model beats both baselines where it must."""
     parser = argparse.ArgumentParser(description=__doc__)
@@ -158,8 +178,6 @@ def main(argv: list[str] | None = None) -> int:
     base = baselines(data_root)
     telemetry = with_telemetry(best, data_root)
     table, failures = report(model, base, telemetry)
-    panels = sorted(out.rglob("panels/*.png"))
-    figures = sorted(out.rglob("viewpoints.png"))
     summary = {"model": model, "baselines": base, "with_telemetry": telemetry, "checkpoint": best,
                "minutes": (time.time() - start) / 60,
                "beats_baselines": not failures, "not_beaten": failures,
@@ -175,14 +193,8 @@ def main(argv: list[str] | None = None) -> int:
     print("\n" + ("The trained model beats both baselines on depth d1, AbsRel and every pose median."
                   if not failures else f"NOT beaten: {', '.join(failures)}"))
     print(f"\nOutputs in {out}:")
-    print("  metrics.json       all figures above (and the paper's 8-bit log-space depth metrics)")
-    for figure in figures[-1:]:
-        print(f"  {figure.relative_to(out)}  d1 and pose error per bin of pitch, height, roll, FoV")
-    folders = sorted({str(p.parent.relative_to(out)) for p in panels})
-    print(f"  {', '.join(folders) or 'panels'}: {len(panels)} picture(s): "
-          "RGB | true depth | predicted | IGD of predicted pose | error")
-    print("  tensorboard/, csv/ logs of the fit (version_0) and test (version_1) runs; checkpoints in "
-          "tensorboard/version_0/checkpoints")
+    print("\n".join(outputs_listing(out, Path(fit.trainer.log_dir or out), Path(test.trainer.log_dir or out),
+                                     Path(best))))
     print(f"Took {(time.time() - start) / 60:.1f} min.")
     return 0 if not failures else 1
 

@@ -63,3 +63,21 @@ def test_a_zero_baseline_shows_no_ratio():
     table, _ = report(model, base)
     assert "nan" not in table and "inf" not in table
     assert all(line.rstrip().endswith("-") for line in table.splitlines()[2:])
+
+
+def test_a_second_run_in_the_same_folder_names_its_own_outputs(tmp_path):
+    """`make demo` twice: the second run logs to new version folders; the listing names those, not the first's."""
+    from dapm_lightning.tools.quickstart import outputs_listing
+
+    runs = tmp_path / "tensorboard"
+    for name in ("version_0/panels/val.png", "version_1/panels/test_val.png", "version_1/viewpoints.png",
+                 "version_2/panels/val.png", "version_10/panels/test_val.png", "version_10/viewpoints.png"):
+        (runs / name).parent.mkdir(parents=True, exist_ok=True)
+        (runs / name).write_bytes(b"png")
+    checkpoint = runs / "version_2" / "checkpoints" / "best-epoch=3.ckpt"
+    listing = "\n".join(outputs_listing(tmp_path, runs / "version_2", runs / "version_10", checkpoint))
+    assert "version_0" not in listing and "version_1/" not in listing and "version_1," not in listing
+    assert "tensorboard/version_10/viewpoints.png" in listing
+    assert "tensorboard/version_2/panels, tensorboard/version_10/panels: 2 picture(s)" in listing
+    assert "tensorboard/version_2, tensorboard/version_10: logs of the fit and the test" in listing
+    assert "tensorboard/version_2/checkpoints/best-epoch=3.ckpt: the checkpoint tested" in listing
