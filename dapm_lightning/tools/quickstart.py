@@ -115,8 +115,10 @@ def report(model: dict[str, dict[str, float]], base: dict[str, dict[str, float]]
 
 
 def outputs_listing(out: Path, fit_dir: Path, test_dir: Path, checkpoint: Path) -> list[str]:
-    """The lines naming this run's outputs under ``out``: its own log folders (a second run in the same ``out``
-    logs to new ``version_N`` folders beside the first's), their panels and viewpoint figure, its checkpoint."""
+    """The lines naming this run's outputs under ``out``: its log folders, panels, viewpoint figure and checkpoint.
+
+    A second run in the same ``out`` logs to new ``version_N`` folders beside the first's; only its own are named.
+    """
     def shown(path: Path) -> str:
         return str(path.relative_to(out)) if path.is_relative_to(out) else str(path)
 

@@ -237,3 +237,33 @@ def test_an_image_that_cannot_be_written_stops_the_render_naming_it(tmp_path, mo
         generate_uapd(tmp_path / "d", train=1, val=0, size=16, workers=1)
     assert not (tmp_path / "d" / "synth.json").exists()
     assert not list((tmp_path / "d").rglob("*.png"))
+
+
+def test_skies_are_blue_pale_or_white_with_the_rest_of_the_scene_unchanged(monkeypatch):
+    """Generator version 4: the sky's kind and the sun's glare come from their own stream after the rest, so
+    switching them off leaves every object, texture and camera of the scene as it was."""
+    import dapm_lightning.data.synthetic.scene as scene_module
+    from dapm_lightning.data.synthetic.shading import sky_color
+
+    looks = [sample_scene(np.random.default_rng(i)).look for i in range(400)]
+    zeniths = np.array([look["zenith"] for look in looks])
+    deep_blue = (zeniths[:, 2] - zeniths[:, 0] > 0.45).mean()  # version 3's zenith: blue - red = 0.60 +- 0.16
+    grey_white = ((zeniths.max(1) - zeniths.min(1) < 0.1) & (zeniths.mean(1) > 0.6)).mean()
+    assert 0.3 < deep_blue < 0.6 and 0.12 < grey_white < 0.3, (deep_blue, grey_white)
+    assert 0.3 < np.mean([look["bloom"] > 0 for look in looks]) < 0.5
+    assert all((0 <= look["haze"]).all() and (look["haze"] <= 1).all() for look in looks)
+
+    glaring = next(look for look in looks if look["bloom"] > 0.5)
+    sun = np.array([0.0, 0.6, 0.8])
+    near_sun = np.array([[0.0, 0.42, 0.907]])  # about 15 degrees from the sun
+    plain = {**glaring, "bloom": 0.0, "clouds": 0.0}
+    assert (sky_color(near_sun, sun, {**plain, "bloom": glaring["bloom"]}, np.zeros(3), 1e-3, 0)
+            > sky_color(near_sun, sun, plain, np.zeros(3), 1e-3, 0) + 0.1).all()
+
+    with_sky = [sample_scene(np.random.default_rng(i), "suburb") for i in range(8)]
+    monkeypatch.setattr(scene_module, "_sky_look", lambda rng, look: {})
+    without = [sample_scene(np.random.default_rng(i), "suburb") for i in range(8)]
+    for a, b in zip(with_sky, without):
+        assert a.texture_seed == b.texture_seed and a.camera_xy == b.camera_xy and np.array_equal(a.sun, b.sun)
+        assert np.array_equal(a.objects.lo, b.objects.lo) and np.array_equal(a.objects.hi, b.objects.hi)
+    assert sum(not np.array_equal(a.look["zenith"], b.look["zenith"]) for a, b in zip(with_sky, without)) >= 2

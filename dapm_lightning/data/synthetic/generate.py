@@ -23,7 +23,7 @@ from dapm_lightning.data.uapd import format_uapd_filename
 from dapm_lightning.geometry.constants import MAX_DEPTH_M, POSE_KEYS, POSE_RANGES
 from dapm_lightning.geometry.depth_codec import depth_to_grey
 
-GENERATOR_VERSION = 3
+GENERATOR_VERSION = 4
 """Bumped whenever the same settings would render different pictures (so caches re-render)."""
 _SPLIT_IDS = {"train": 0, "val": 1, "test": 2}
 _THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")

@@ -87,6 +87,30 @@ def _look(rng: np.random.Generator) -> dict[str, Any]:
     }
 
 
+SKY_KINDS = {"clear": 0.45, "hazy": 0.35, "white": 0.20}
+"""Shares of the sky's kinds (generator version 4): the deep blue of a clear day, a pale hazy blue, and the grey-white
+of an overcast or bright hazy day. Version 3's skies were all deep blue; real skies often are not (the UAPD frames
+in ``../shared/uapd_figure``)."""
+
+
+def _sky_look(rng: np.random.Generator, look: dict[str, Any]) -> dict[str, Any]:
+    """The sky's colours of one picture and the sun's bloom, from a stream of their own.
+
+    The rest of the scene is what it was without them. ``haze``: the horizon's colour, also what distant surfaces
+    fade into; ``zenith``; ``bloom``: a wide glare around the sun, 0 in 60 % of the pictures.
+    """
+    kind = rng.choice(list(SKY_KINDS), p=list(SKY_KINDS.values()))
+    haze, zenith = look["haze"], look["zenith"]
+    if kind == "hazy":  # the haze brightens and the zenith pales towards it
+        haze = np.clip(haze + (1 - haze) * rng.uniform(0.0, 0.6), 0, 1)
+        zenith = zenith + (haze - zenith) * rng.uniform(0.5, 0.95)
+    elif kind == "white":
+        haze = np.clip(rng.uniform(0.7, 0.97) + rng.uniform(-0.03, 0.03, 3), 0, 1)
+        zenith = np.clip(haze * rng.uniform(0.85, 1.05), 0, 1)
+    bloom = float(rng.uniform(0.2, 0.9)) if rng.random() < 0.4 else 0.0
+    return {"haze": haze, "zenith": zenith, "bloom": bloom}
+
+
 def normalize_families(families: dict[str, float] | str | None) -> dict[str, float]:
     """Family weights as ``{name: share}`` (summing to 1) from a dict or ``"downtown=2,suburb=1"`` (default: equal)."""
     if families is None:
@@ -142,6 +166,7 @@ def sample_scene(rng: np.random.Generator, family: str | None = None,
     # landmarks draw from a stream of their own, last: the rest of the scene is what it was without them
     objects = add_landmarks(out.objects(), np.random.default_rng(rng.integers(1 << 62)), cam,
                             math.radians(yaw_deg), base, layout)
+    look.update(_sky_look(np.random.default_rng(rng.integers(1 << 62)), look))  # its own stream, after the rest
     if water is not None and len(objects):  # nothing but boats stands in the water
         corners = [(objects.lo[:, 0], objects.lo[:, 1]), (objects.hi[:, 0], objects.hi[:, 1]),
                    (objects.lo[:, 0], objects.hi[:, 1]), (objects.hi[:, 0], objects.lo[:, 1])]

@@ -212,11 +212,14 @@ def object_color(objects: Objects, rows: np.ndarray, points: np.ndarray, normal:
 
 def sky_color(dirs: np.ndarray, sun: np.ndarray, look: dict[str, Any], camera: np.ndarray,
               pixel_angle: float, seed: int) -> np.ndarray:
-    """Sky seen along unit ``dirs``: zenith-to-haze gradient, sun glow and clouds on a layer at ``cloud_height``."""
+    """Sky seen along unit ``dirs``: zenith-to-haze gradient, sun glow and clouds on a layer at ``cloud_height``.
+
+    The glow has a tight disc, a halo and the look's wide ``bloom`` (a camera's glare).
+    """
     up = np.clip(dirs[:, 2], 0.0, 1.0)
     color = _mix(look["haze"][None], look["zenith"][None], up ** 0.5)
     cos_sun = np.clip(dirs @ sun, 0.0, 1.0)
-    glow = (0.7 * cos_sun ** 400 + 0.2 * cos_sun ** 12) * look["sun_strength"]
+    glow = (0.7 * cos_sun ** 400 + 0.2 * cos_sun ** 12 + look["bloom"] * cos_sun ** 6) * look["sun_strength"]
     color = color + np.array([1.0, 0.93, 0.8]) * glow[:, None]
     cover = look["clouds"]
     if cover > 0:
