@@ -239,10 +239,28 @@ def test_an_image_that_cannot_be_written_stops_the_render_naming_it(tmp_path, mo
     assert not list((tmp_path / "d").rglob("*.png"))
 
 
-def test_skies_are_blue_pale_or_white_with_the_rest_of_the_scene_unchanged(monkeypatch):
-    """Generator version 4: the sky's kind and the sun's glare come from their own stream after the rest, so
-    switching them off leaves every object, texture and camera of the scene as it was."""
-    import dapm_lightning.data.synthetic.scene as scene_module
+VERSION_3_SCENES = "3a2022feda9533725ed34fda35a7ae4072bbc25e416d2e61e900e2f43728cb08"
+"""``scene_fingerprint(range(6))`` computed with generator version 3's code (commit 5dbf64c)."""
+
+
+def scene_fingerprint(seeds) -> str:
+    """Everything of a scene but the sky's colours and glare, rounded (floats may differ in the last bit between
+    machines)."""
+    digest = hashlib.sha256()
+    for seed in seeds:
+        scene = sample_scene(np.random.default_rng(seed))
+        look = {k: np.round(np.asarray(v, float), 6).tolist() for k, v in sorted(scene.look.items())
+                if k not in ("haze", "zenith", "bloom")}
+        digest.update(json.dumps([scene.family, scene.texture_seed, round(scene.yaw_deg, 6),
+                                  np.round(scene.camera_xy, 6).tolist(), np.round(scene.sun, 6).tolist(), look,
+                                  np.round(scene.objects.lo, 3).tolist(),
+                                  np.round(scene.objects.hi, 3).tolist()]).encode())
+    return digest.hexdigest()
+
+
+def test_skies_are_blue_pale_or_white_with_the_rest_of_the_scene_unchanged():
+    """Generator version 4: the sky's kind and the sun's glare come from their own stream after the rest, so every
+    object, texture, camera and sun of a scene is version 3's."""
     from dapm_lightning.data.synthetic.shading import sky_color
 
     looks = [sample_scene(np.random.default_rng(i)).look for i in range(400)]
@@ -251,7 +269,7 @@ def test_skies_are_blue_pale_or_white_with_the_rest_of_the_scene_unchanged(monke
     grey_white = ((zeniths.max(1) - zeniths.min(1) < 0.1) & (zeniths.mean(1) > 0.6)).mean()
     assert 0.3 < deep_blue < 0.6 and 0.12 < grey_white < 0.3, (deep_blue, grey_white)
     assert 0.3 < np.mean([look["bloom"] > 0 for look in looks]) < 0.5
-    assert all((0 <= look["haze"]).all() and (look["haze"] <= 1).all() for look in looks)
+    assert all(0 <= look[key].min() and look[key].max() <= 1 for look in looks for key in ("haze", "zenith"))
 
     glaring = next(look for look in looks if look["bloom"] > 0.5)
     sun = np.array([0.0, 0.6, 0.8])
@@ -260,10 +278,4 @@ def test_skies_are_blue_pale_or_white_with_the_rest_of_the_scene_unchanged(monke
     assert (sky_color(near_sun, sun, {**plain, "bloom": glaring["bloom"]}, np.zeros(3), 1e-3, 0)
             > sky_color(near_sun, sun, plain, np.zeros(3), 1e-3, 0) + 0.1).all()
 
-    with_sky = [sample_scene(np.random.default_rng(i), "suburb") for i in range(8)]
-    monkeypatch.setattr(scene_module, "_sky_look", lambda rng, look: {})
-    without = [sample_scene(np.random.default_rng(i), "suburb") for i in range(8)]
-    for a, b in zip(with_sky, without):
-        assert a.texture_seed == b.texture_seed and a.camera_xy == b.camera_xy and np.array_equal(a.sun, b.sun)
-        assert np.array_equal(a.objects.lo, b.objects.lo) and np.array_equal(a.objects.hi, b.objects.hi)
-    assert sum(not np.array_equal(a.look["zenith"], b.look["zenith"]) for a, b in zip(with_sky, without)) >= 2
+    assert scene_fingerprint(range(6)) == VERSION_3_SCENES
