@@ -89,8 +89,8 @@ def _look(rng: np.random.Generator) -> dict[str, Any]:
 
 SKY_KINDS = {"clear": 0.45, "hazy": 0.35, "white": 0.20}
 """Shares of the sky's kinds (generator version 4): the deep blue of a clear day, a pale hazy blue, and the grey-white
-of an overcast or bright hazy day. Version 3's skies were all deep blue; real skies often are not (the UAPD frames
-in ``../shared/uapd_figure``)."""
+of an overcast or bright hazy day. Version 3's skies were all deep blue; the UAPD frames in ``../shared/uapd_figure``
+(CARLA renders) show pale and white ones, which a model trained on version 3 took for distant ground."""
 
 
 def _sky_look(rng: np.random.Generator, look: dict[str, Any]) -> dict[str, Any]:
