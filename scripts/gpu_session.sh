@@ -3,7 +3,7 @@
 # version, ship the result as float16 parts, then time the one-line `predict` with it on rendered frames and a
 # video. Everything it reports goes to $OUT. Run from the repository root with the node's Python:
 #
-#   OUT=/tmp/out bash scripts/gpu_session.sh                                  # one GPU, 16 cores
+#   OUT=/tmp/out COMMIT=abc1234 bash scripts/gpu_session.sh                   # one GPU, 16 cores
 #   OUT=/tmp/out ACCEL=cpu SIZE=64 TRAIN=64 VAL=8 MAX_TIME=00:00:00:20 FRAMES=16 bash scripts/gpu_session.sh  # CPU check
 set -uo pipefail
 OUT=${OUT:?set OUT}; WORK=${WORK:-/tmp/gpu_session}; PY=${PY:-python3}
@@ -11,11 +11,14 @@ ACCEL=${ACCEL:-gpu}; PRECISION=${PRECISION:-bf16-mixed}; SIZE=${SIZE:-256}; TRAI
 MAX_TIME=${MAX_TIME:-00:00:03:45}; SCHEDULE_S=${SCHEDULE_S:-210}; LR=${LR:-0.0005}; SEED=${SEED:-2}
 CORES=$(nproc); FRAMES=${FRAMES:-400}; INIT=${INIT:-models/dapm-synthetic-r18-256}; NAME=${NAME:-dapm-synthetic-r18-256}
 mkdir -p "$OUT" "$WORK"
+# the device's copy may carry an older .git than its files: COMMIT (the caller's `git rev-parse --short HEAD`)
+# names the tree; without it `--dirty` at least says when the files differ from the commit named
+TREE=${COMMIT:-$(git describe --always --dirty 2>/dev/null || echo '?')}
 { nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader 2>/dev/null || echo "no GPU"
   $PY -c "import sys, torch, lightning, timm, torchmetrics, cv2, albumentations; print('python', sys.version.split()[0],
 'torch', torch.__version__, 'lightning', lightning.__version__, 'timm', timm.__version__, 'torchmetrics',
 torchmetrics.__version__, 'opencv', cv2.__version__, 'albumentations', albumentations.__version__)"
-  echo "cores $CORES, dapm-lightning at $(git rev-parse --short HEAD 2>/dev/null || echo '?'), $(date -u +%FT%TZ)"
+  echo "cores $CORES, dapm-lightning at $TREE, $(date -u +%FT%TZ)"
 } | tee "$OUT/fit.log"
 
 # 1. fine-tune: the shipped model's weights, this generator's renders, a fresh warm-up and cosine over the time
@@ -27,6 +30,8 @@ FIT=(fit --config dapm_lightning/configs/quickstart.yaml --model.init_weights "$
      --data.init_args.train_size "$TRAIN" --data.init_args.val_size "$VAL" --data.init_args.render_seed "$SEED"
      --data.init_args.render_workers "$CORES" --data.init_args.num_workers $((CORES - 2))
      --model.optimizer.lr "$LR" --model.optimizer.schedule_seconds "$SCHEDULE_S" --trainer.enable_progress_bar false)
+read -ra MORE <<< "${EXTRA:-}"  # EXTRA: more fit options, e.g. "--data.init_args.augmentation.ground_recolour_p 0.5"
+FIT+=("${MORE[@]}")
 COMMAND="dapm-lightning ${FIT[*]}"
 echo "$COMMAND" >> "$OUT/fit.log"
 $PY -m dapm_lightning "${FIT[@]}" 2>&1 | tail -40 >> "$OUT/fit.log"
@@ -35,7 +40,7 @@ cp "$(find "$RUN" -name metrics.csv | head -1)" "$OUT/metrics.csv" 2>/dev/null
 LAST=$(find "$RUN" -name last.ckpt | head -1)
 echo "fit exit status $FIT_EXIT, last checkpoint: ${LAST:-none}" | tee -a "$OUT/fit.log"
 [ "$FIT_EXIT" = 0 ] && [ -n "$LAST" ] || exit 1
-$PY scripts/ship_model.py "$LAST" "$OUT/$NAME" --card <(echo "{\"command\": \"$COMMAND\"}") \
+$PY scripts/ship_model.py "$LAST" "$OUT/$NAME" --card <(echo "{\"command\": \"$COMMAND\", \"code\": \"$TREE\"}") \
   | tee -a "$OUT/fit.log"
 MODEL=$OUT/$NAME
 

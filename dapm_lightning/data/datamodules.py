@@ -80,7 +80,11 @@ class DAPMDataModule(L.LightningDataModule):
 
     def split_transform(self, train: bool) -> A.Compose | None:
         """The augmentation of a split: only the training split's, only with ``augment``."""
-        return train_transform(self.augmentation) if train and self.augment else None
+        if not (train and self.augment):
+            return None
+        # the UAPD modules know what their depth files hold; the ground recolour's flat ground is of that kind
+        return train_transform(self.augmentation, getattr(self, "depth_kind", "range"),
+                               getattr(self, "max_depth", MAX_DEPTH_M))
 
     def setup(self, stage: str | None = None) -> None:
         if stage in (None, "fit"):

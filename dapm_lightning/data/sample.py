@@ -6,6 +6,7 @@ index), and read the ``(epoch, index)`` keys the training sampler yields.
 
 from __future__ import annotations
 
+import random
 from collections.abc import Callable
 from typing import Any, TypedDict
 
@@ -59,9 +60,19 @@ def split_key(key: SampleKey) -> tuple[int, int]:
 
 
 def seed_augmentation(transform: Transform, seed: int | None, epoch: int, index: int) -> None:
-    """Seed an albumentations pipeline by (seed, epoch, index), so a sample's augmentation is reproducible."""
-    if seed is not None and hasattr(transform, "set_random_seed"):
-        transform.set_random_seed(int(np.random.SeedSequence([seed, epoch, index]).generate_state(1)[0]))
+    """Seed an albumentations pipeline by (seed, epoch, index), so a sample's augmentation is reproducible.
+
+    The pipeline's transforms share one generator and draw from it in turn. (``Compose.set_random_seed`` gives each
+    transform a generator of the same seed: their first draws, which decide whether each applies, are then equal,
+    so transforms of equal probability would apply together or not at all.)
+    """
+    if seed is None:
+        return
+    state = int(np.random.SeedSequence([seed, epoch, index]).generate_state(1)[0])
+    if hasattr(transform, "set_random_state"):
+        transform.set_random_state(np.random.default_rng(state), random.Random(state))
+    elif hasattr(transform, "set_random_seed"):
+        transform.set_random_seed(state)
 
 
 def make_sample(rgb: np.ndarray, depth_m: np.ndarray, pose: np.ndarray | None, name: str, meta: dict[str, Any],

@@ -1,5 +1,8 @@
 """Albumentations pipelines; the pose-aware flip moves image, depth and roll together.
 
+:class:`GroundRecolour` recolours the flat ground of the pose and what stands on it apart, so that no colour tells
+the one from the other.
+
 A data set calls its transform as ``transform(image=rgb [H,W,3] uint8, mask=depth grey [H,W], pose=[4])``
 and reads back the same keys, so any ``albumentations.Compose`` works, with geometric ops limited to
 :class:`PoseAwareHorizontalFlip` (vertical flips and rotations would change the pose).
@@ -14,6 +17,10 @@ import albumentations as A
 import numpy as np
 import torch
 
+from dapm_lightning.data.depth_kind import DepthKind, on_flat_ground
+from dapm_lightning.geometry.constants import MAX_DEPTH_M, SKY_GREY
+from dapm_lightning.geometry.depth_codec import depth_to_grey
+from dapm_lightning.geometry.igd import ideal_ground_depth
 from dapm_lightning.geometry.pose import flip_pose
 
 
@@ -33,6 +40,75 @@ class PoseAwareHorizontalFlip(A.HorizontalFlip):
         return flip_pose(torch.as_tensor(np.asarray(pose, np.float32))).numpy()
 
 
+RGB_TO_YIQ = np.array([[0.299, 0.587, 0.114], [0.596, -0.274, -0.322], [0.211, -0.523, 0.312]])
+"""Luma and the two chroma axes (NTSC YIQ): a hue turn is a rotation in the chroma plane, a saturation change its
+scale."""
+
+
+def colour_matrix(hue_deg: float, saturation: float, brightness: float) -> np.ndarray:
+    """``[3, 3]`` RGB matrix: chroma turned by ``hue_deg``, scaled by ``saturation``; luma by ``brightness``."""
+    turn = np.radians(hue_deg)
+    chroma = saturation * np.array([[np.cos(turn), -np.sin(turn)], [np.sin(turn), np.cos(turn)]])
+    yiq = np.eye(3)
+    yiq[0, 0] = brightness
+    yiq[1:, 1:] = chroma
+    return np.linalg.inv(RGB_TO_YIQ) @ yiq @ RGB_TO_YIQ
+
+
+class GroundRecolour(A.DualTransform):
+    """Recolours the flat ground of the pose and the rest below the horizon, each with its own random colour change.
+
+    Which pixels are ground is read from the depth (the ``mask`` target, grey levels) and the pose: those within
+    :data:`~dapm_lightning.data.depth_kind.AGREE_LEVELS` grey levels of the ideal ground depth. Each region's hue
+    turns by up to ``hue`` degrees either way, its saturation and brightness are scaled by factors drawn from
+    ``saturation`` and ``brightness``; the sky is kept. A model trained with it cannot tell the ground from what
+    stands on it by colour, which differs from world to world, and must use the geometry (and the IGD it is
+    given). Depth and pose are unchanged; an image without a pose (NaN, e.g. Potsdam) or whose depth is not grey
+    levels is left as it is. The IGD is a pinhole camera's: on lens-distorted images the outer flat ground counts
+    as objects.
+    """
+
+    def __init__(self, depth_kind: DepthKind = "range", max_depth: float = MAX_DEPTH_M, hue: float = 180.0,
+                 saturation: tuple[float, float] = (0.3, 1.7), brightness: tuple[float, float] = (0.6, 1.4),
+                 p: float = 0.5) -> None:
+        super().__init__(p=p)
+        self.depth_kind, self.max_depth = depth_kind, float(max_depth)
+        self.hue, self.saturation, self.brightness = float(hue), tuple(saturation), tuple(brightness)
+
+    @property
+    def targets(self) -> dict[str, Any]:
+        return {**super().targets, "pose": self.apply_to_pose}
+
+    def get_params_dependent_on_data(self, params: dict[str, Any], data: dict[str, Any]) -> dict[str, Any]:
+        matrices = [colour_matrix(self.random_generator.uniform(-self.hue, self.hue),
+                                  self.random_generator.uniform(*self.saturation),
+                                  self.random_generator.uniform(*self.brightness)) for _ in range(2)]
+        grey, pose = data.get("mask"), np.asarray(data.get("pose", np.full(4, np.nan)), np.float64)
+        if grey is None or grey.dtype != np.uint8 or grey.ndim != 2 or not np.isfinite(pose).all():
+            return {"regions": []}
+        igd = ideal_ground_depth(torch.from_numpy(pose.astype(np.float32)), grey.shape, depth_kind=self.depth_kind,
+                                 max_depth=self.max_depth)[0, 0].numpy()
+        ground = on_flat_ground(grey, depth_to_grey(igd, self.max_depth).astype(np.int16))
+        return {"regions": [(ground, matrices[0]), ((grey < SKY_GREY) & ~ground, matrices[1])]}
+
+    def apply(self, img: np.ndarray, regions: list[tuple[np.ndarray, np.ndarray]], **params: Any) -> np.ndarray:
+        if not regions:
+            return img
+        out = img.astype(np.float32)
+        for region, matrix in regions:
+            out[region] = out[region] @ matrix.T.astype(np.float32)
+        return np.clip(out + 0.5, 0, 255).astype(img.dtype)
+
+    def apply_to_mask(self, mask: np.ndarray, **params: Any) -> np.ndarray:
+        return mask
+
+    def apply_to_pose(self, pose: np.ndarray, **params: Any) -> np.ndarray:
+        return pose
+
+    def get_transform_init_args_names(self) -> tuple[str, ...]:
+        return ("depth_kind", "max_depth", "hue", "saturation", "brightness")
+
+
 @dataclass(frozen=True)
 class Augmentation:
     """Strengths of the training augmentation; in configs under ``data.init_args.augmentation``.
@@ -50,6 +126,8 @@ class Augmentation:
         noise_std: range of the Gaussian noise's σ, as a share of the full intensity range (0.05 = 12.75 grey levels).
         noise_p: probability of the noise.
         flip_p: probability of the pose-aware horizontal flip (image, depth and roll together).
+        ground_recolour_p: probability of :class:`GroundRecolour` (the ground and what stands on it recoloured
+            apart; 0: off, the paper's).
     """
 
     brightness: float = 0.2
@@ -59,13 +137,14 @@ class Augmentation:
     noise_std: tuple[float, float] = (0.01, 0.04)
     noise_p: float = 0.3
     flip_p: float = 0.5
+    ground_recolour_p: float = 0.0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "noise_std", tuple(float(v) for v in self.noise_std))
         if len(self.noise_std) != 2 or not 0.0 <= self.noise_std[0] <= self.noise_std[1]:
             raise ValueError(f"data.init_args.augmentation.noise_std must be [low, high] with 0 <= low <= high, "
                              f"got {list(self.noise_std)}")
-        for name in ("color_jitter_p", "noise_p", "flip_p"):
+        for name in ("color_jitter_p", "noise_p", "flip_p", "ground_recolour_p"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"data.init_args.augmentation.{name} must be a probability in [0, 1], "
                                  f"got {getattr(self, name)}")
@@ -79,13 +158,18 @@ AUTHORS_AUGMENTATION = Augmentation(brightness=0.5, contrast=0.5, saturation=0.5
 """The authors' augmentation strengths (``train.py``); what the paper configs set."""
 
 
-def train_transform(augmentation: Augmentation = Augmentation()) -> A.Compose:  # noqa: B008 (frozen)
-    """Colour jitter (brightness, contrast, saturation), Gaussian noise, and the pose-aware horizontal flip.
+def train_transform(augmentation: Augmentation = Augmentation(),  # noqa: B008 (frozen)
+                    depth_kind: DepthKind = "range", max_depth: float = MAX_DEPTH_M) -> A.Compose:
+    """The training pipeline: ground recolour (when on), colour jitter, Gaussian noise, pose-aware horizontal flip.
 
-    No vertical flips or rotations (they would change the pose).
+    The colour jitter changes brightness, contrast and saturation. No vertical flips or rotations (they would change
+    the pose). ``depth_kind`` and ``max_depth`` say what the depth's grey levels are, for the ground recolour's flat
+    ground.
     """
     a = augmentation
+    recolour = [GroundRecolour(depth_kind, max_depth, p=a.ground_recolour_p)] if a.ground_recolour_p > 0 else []
     return A.Compose([
+        *recolour,
         A.ColorJitter(brightness=a.brightness, contrast=a.contrast, saturation=a.saturation, hue=0.0,
                       p=a.color_jitter_p),
         A.GaussNoise(std_range=a.noise_std, p=a.noise_p),

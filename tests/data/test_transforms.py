@@ -1,10 +1,19 @@
 import albumentations as A
 import numpy as np
+import pytest
 import torch
 
 from dapm_lightning.data import UAPDDataset
-from dapm_lightning.data.transforms import PoseAwareHorizontalFlip, train_transform
+from dapm_lightning.data.sample import seed_augmentation
+from dapm_lightning.data.transforms import (
+    Augmentation,
+    GroundRecolour,
+    PoseAwareHorizontalFlip,
+    colour_matrix,
+    train_transform,
+)
 from dapm_lightning.geometry import ideal_ground_depth
+from dapm_lightning.geometry.depth_codec import depth_to_grey
 
 
 def test_flip_moves_image_depth_and_roll_together():
@@ -42,3 +51,95 @@ def test_train_pipeline_is_photometric_plus_pose_aware_flip_only():
                        pose=np.array([1.0, 2.0, 3.0, 4.0], np.float32))
         flipped = out["pose"][2] == -3.0
         np.testing.assert_array_equal(out["mask"], depth[:, ::-1] if flipped else depth)
+
+
+def _ground_and_box(pose: np.ndarray, size: tuple[int, int], depth_kind: str = "range",
+                    max_depth: float = 1000.0) -> tuple[np.ndarray, np.ndarray]:
+    """Depth grey levels of a flat ground (the IGD of ``pose``) with a box nearer than it, and the box's mask."""
+    igd = ideal_ground_depth(torch.from_numpy(pose.astype(np.float64)), size, depth_kind=depth_kind,
+                             max_depth=max_depth)[0, 0].numpy()
+    box = np.zeros(size, bool)
+    box[size[0] - 6:size[0] - 2, 2:6] = True
+    return depth_to_grey(np.where(box, igd * 0.5, igd), max_depth).round().astype(np.uint8), box
+
+
+def _colours(image: np.ndarray, where: np.ndarray) -> np.ndarray:
+    return np.unique(image[where], axis=0)
+
+
+def test_colour_matrix_turns_scales_and_keeps_grey():
+    np.testing.assert_allclose(colour_matrix(0.0, 1.0, 1.0), np.eye(3), atol=1e-12)
+    grey = np.array([100.0, 100.0, 100.0])
+    np.testing.assert_allclose(colour_matrix(123.0, 1.6, 0.5) @ grey, grey / 2, atol=1e-9)  # no chroma to turn
+    green = np.array([60.0, 160.0, 40.0])
+    washed = colour_matrix(0.0, 0.0, 1.0) @ green
+    np.testing.assert_allclose(washed, washed.mean(), atol=1e-9)  # saturation 0: the grey of the same luma
+    turned = colour_matrix(180.0, 1.0, 1.0) @ green
+    assert turned[1] < turned[0] and turned[1] < turned[2]  # green turned half-way round: magenta
+
+
+@pytest.mark.parametrize(("depth_kind", "max_depth"), [("range", 1000.0), ("planar", 1000.0), ("range", 300.0)])
+def test_ground_recolour_recolours_ground_and_objects_apart_and_keeps_sky_depth_and_pose(depth_kind, max_depth):
+    pose = np.array([40.0, -10.0, 25.0, 90.0], np.float32)  # the horizon tilted across the picture: sky on top
+    grey, box = _ground_and_box(pose, (24, 24), depth_kind, max_depth)
+    sky = grey == 255
+    assert sky.any() and (~sky & ~box).sum() > 100
+    image = np.full((24, 24, 3), (90, 140, 60), np.uint8)  # ground and box the same colour
+    image[sky] = (120, 160, 230)
+    pipeline = A.Compose([GroundRecolour(depth_kind, max_depth, p=1.0)])
+    pipeline.set_random_seed(3)
+    out = pipeline(image=image, mask=grey, pose=pose)
+    np.testing.assert_array_equal(out["mask"], grey)
+    np.testing.assert_array_equal(out["pose"], pose)
+    np.testing.assert_array_equal(out["image"][sky], image[sky])
+    ground, objects = _colours(out["image"], ~sky & ~box), _colours(out["image"], box)
+    assert len(objects) == 1 and not (objects[0] == image[box][0]).all()
+    assert len(ground) == 1 and not (ground[0] == objects[0]).all()
+    pipeline.set_random_seed(3)
+    np.testing.assert_array_equal(pipeline(image=image, mask=grey, pose=pose)["image"], out["image"])
+    other_kind = "planar" if depth_kind == "range" else "range"  # told the wrong depth, it finds another ground
+    wrong = A.Compose([GroundRecolour(other_kind, max_depth, p=1.0)])
+    wrong.set_random_seed(3)
+    assert len(_colours(wrong(image=image, mask=grey, pose=pose)["image"], ~sky & ~box)) > 1
+
+
+def test_ground_recolour_leaves_images_without_a_pose_or_grey_depth():
+    pose = np.array([40.0, -50.0, 0.0, 70.0], np.float32)
+    grey, _ = _ground_and_box(pose, (16, 16))
+    image = np.random.default_rng(0).integers(0, 255, (16, 16, 3), dtype=np.uint8)
+    recolour = A.Compose([GroundRecolour(p=1.0)])
+    nan_pose = np.full(4, np.nan, np.float32)
+    heights = grey.astype(np.float32) / 8  # Potsdam: metres, not grey levels
+    for mask, given in ((grey, nan_pose), (heights, pose), (heights, nan_pose)):
+        np.testing.assert_array_equal(recolour(image=image, mask=mask, pose=given)["image"], image)
+    assert not (recolour(image=image, mask=grey, pose=pose)["image"] == image).all()
+
+
+def test_ground_recolour_in_the_training_pipeline_uses_the_data_modules_depth_kind(tiny_uapd):
+    from dapm_lightning.data.datamodules import UAPDDataModule
+
+    assert not any(isinstance(t, GroundRecolour) for t in train_transform().transforms)  # off by default
+    module = UAPDDataModule(tiny_uapd, depth_kind="planar", max_depth=500.0,
+                            augmentation=Augmentation(ground_recolour_p=0.4))
+    [recolour] = [t for t in module.split_transform(True).transforms if isinstance(t, GroundRecolour)]
+    assert (recolour.depth_kind, recolour.max_depth, recolour.p) == ("planar", 500.0, 0.4)
+    assert module.split_transform(False) is None
+    with pytest.raises(ValueError, match="ground_recolour_p"):
+        Augmentation(ground_recolour_p=1.5)
+
+
+def test_a_samples_transforms_draw_apart():
+    """Each transform of a seeded pipeline makes its own draws: whether one applies says nothing of another."""
+    pipeline = A.Compose([A.InvertImg(p=0.5), PoseAwareHorizontalFlip(p=0.5)])
+    image = np.full((4, 6, 3), 10, np.uint8)
+    image[:, 0] = 200
+    pose = np.array([40.0, -30.0, 12.5, 70.0], np.float32)
+    inverted, flipped = [], []
+    for index in range(200):
+        seed_augmentation(pipeline, 5, 0, index)
+        out = pipeline(image=image, mask=np.zeros((4, 6), np.uint8), pose=pose)
+        inverted.append(bool(out["image"].max() == 245 or out["image"].min() == 55))
+        flipped.append(bool(out["pose"][2] < 0))
+    agree = sum(a == b for a, b in zip(inverted, flipped, strict=True))
+    assert 60 < sum(flipped) < 140 and 60 < sum(inverted) < 140
+    assert 60 < agree < 140  # one shared seed per transform made them agree on every sample
