@@ -4,6 +4,7 @@
 # video. Everything it reports goes to $OUT. Run from the repository root with the node's Python:
 #
 #   OUT=/tmp/out COMMIT=abc1234 bash scripts/gpu_session.sh                   # one GPU, 16 cores
+#   (COMMIT: the build machine's commit, for the log and the model card; EXTRA="--more fit --options" adds to the fit)
 #   OUT=/tmp/out ACCEL=cpu SIZE=64 TRAIN=64 VAL=8 MAX_TIME=00:00:00:20 FRAMES=16 bash scripts/gpu_session.sh  # CPU check
 set -uo pipefail
 OUT=${OUT:?set OUT}; WORK=${WORK:-/tmp/gpu_session}; PY=${PY:-python3}
@@ -30,7 +31,7 @@ FIT=(fit --config dapm_lightning/configs/quickstart.yaml --model.init_weights "$
      --data.init_args.train_size "$TRAIN" --data.init_args.val_size "$VAL" --data.init_args.render_seed "$SEED"
      --data.init_args.render_workers "$CORES" --data.init_args.num_workers $((CORES - 2))
      --model.optimizer.lr "$LR" --model.optimizer.schedule_seconds "$SCHEDULE_S" --trainer.enable_progress_bar false)
-read -ra MORE <<< "${EXTRA:-}"  # EXTRA: more fit options, e.g. "--data.init_args.augmentation.ground_recolour_p 0.5"
+read -ra MORE <<< "${EXTRA:-}"  # EXTRA: more fit options, split on spaces, no quotes (e.g. "--trainer.max_epochs 5")
 FIT+=("${MORE[@]}")
 COMMAND="dapm-lightning ${FIT[*]}"
 echo "$COMMAND" >> "$OUT/fit.log"
