@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 import torch
 
-from dapm_lightning.geometry.constants import SKY_GREY
+from dapm_lightning.geometry.constants import MAX_DEPTH_M, SKY_GREY
 from dapm_lightning.geometry.depth_codec import depth_to_grey
 from dapm_lightning.geometry.igd import DepthKind, ideal_ground_depth
 
@@ -53,15 +53,24 @@ def on_flat_ground(depth_grey: np.ndarray, igd_grey: np.ndarray) -> np.ndarray:
     return (np.abs(above) <= AGREE_LEVELS) & (igd_grey < SKY_GREY) & (depth_grey < SKY_GREY)
 
 
+def flat_ground_of_pose(depth_grey: np.ndarray, pose: np.ndarray, depth_kind: DepthKind,
+                        max_depth: float = MAX_DEPTH_M) -> np.ndarray:
+    """:func:`on_flat_ground` against the ``depth_kind`` IGD of one ``pose`` (height, pitch, roll, fov).
+
+    ``pose``: ``[4]``, computed in its own floating dtype; ``max_depth``: the metres grey 255 means.
+    """
+    igd = ideal_ground_depth(torch.from_numpy(np.asarray(pose)), depth_grey.shape, depth_kind=depth_kind,
+                             max_depth=max_depth)[0, 0].numpy()
+    return on_flat_ground(depth_grey, depth_to_grey(igd, max_depth).astype(np.int16))
+
+
 def flat_ground_agreement(depth_grey: np.ndarray, pose: np.ndarray, depth_kind: DepthKind) -> float:
     """Share of the non-sky pixels of ``depth_grey`` that lie on the flat ground of ``pose``; 0 when all is sky.
 
     ``depth_grey``: ``[H, W]`` uint8; a pixel counts within :data:`AGREE_LEVELS` grey levels of the ``depth_kind`` IGD
     of ``pose`` (height, pitch, roll, fov).
     """
-    igd = ideal_ground_depth(torch.from_numpy(np.asarray(pose, np.float64)), depth_grey.shape,
-                             depth_kind=depth_kind)[0, 0].numpy()
-    agree = on_flat_ground(depth_grey, depth_to_grey(igd).astype(np.int16))
+    agree = flat_ground_of_pose(depth_grey, np.asarray(pose, np.float64), depth_kind)
     return float(agree.sum() / max(int((depth_grey < SKY_GREY).sum()), 1))
 
 

@@ -17,10 +17,8 @@ import albumentations as A
 import numpy as np
 import torch
 
-from dapm_lightning.data.depth_kind import DepthKind, on_flat_ground
+from dapm_lightning.data.depth_kind import DepthKind, flat_ground_of_pose
 from dapm_lightning.geometry.constants import MAX_DEPTH_M, SKY_GREY
-from dapm_lightning.geometry.depth_codec import depth_to_grey
-from dapm_lightning.geometry.igd import ideal_ground_depth
 from dapm_lightning.geometry.pose import flip_pose
 
 
@@ -86,9 +84,7 @@ class GroundRecolour(A.DualTransform):
         grey, pose = data.get("mask"), np.asarray(data.get("pose", np.full(4, np.nan)), np.float64)
         if grey is None or grey.dtype != np.uint8 or grey.ndim != 2 or not np.isfinite(pose).all():
             return {"regions": []}
-        igd = ideal_ground_depth(torch.from_numpy(pose.astype(np.float32)), grey.shape, depth_kind=self.depth_kind,
-                                 max_depth=self.max_depth)[0, 0].numpy()
-        ground = on_flat_ground(grey, depth_to_grey(igd, self.max_depth).astype(np.int16))
+        ground = flat_ground_of_pose(grey, pose.astype(np.float32), self.depth_kind, self.max_depth)
         return {"regions": [(ground, matrices[0]), ((grey < SKY_GREY) & ~ground, matrices[1])]}
 
     def apply(self, img: np.ndarray, regions: list[tuple[np.ndarray, np.ndarray]], **params: Any) -> np.ndarray:
