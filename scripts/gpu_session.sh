@@ -6,6 +6,8 @@
 #   OUT=/tmp/out COMMIT=abc1234 bash scripts/gpu_session.sh                   # one GPU, 16 cores
 #   (COMMIT: the build machine's commit, for the log and the model card; EXTRA="--more fit --options" adds to the fit)
 #   OUT=/tmp/out ACCEL=cpu SIZE=64 TRAIN=64 VAL=8 MAX_TIME=00:00:00:20 FRAMES=16 bash scripts/gpu_session.sh  # CPU check
+#   OUT=/tmp/out PREDICT_ONLY=1 RUNS="video_bf16_b16_cl" bash scripts/gpu_session.sh  # no fit: time INIT's predict
+#   (RUNS: the predict runs to time, by the names in part 2; default all)
 set -uo pipefail
 OUT=${OUT:?set OUT}; WORK=${WORK:-/tmp/gpu_session}; PY=${PY:-python3}
 ACCEL=${ACCEL:-gpu}; PRECISION=${PRECISION:-bf16-mixed}; SIZE=${SIZE:-256}; TRAIN=${TRAIN:-4000}; VAL=${VAL:-300}
@@ -23,27 +25,32 @@ torchmetrics.__version__, 'opencv', cv2.__version__, 'albumentations', albumenta
 } | tee "$OUT/fit.log"
 
 # 1. fine-tune: the shipped model's weights, this generator's renders, a fresh warm-up and cosine over the time
-RUN=$WORK/run
-rm -rf "$RUN"  # a run left by an earlier call must not be shipped
-FIT=(fit --config dapm_lightning/configs/quickstart.yaml --model.init_weights "$INIT" --trainer.accelerator "$ACCEL"
-     --trainer.precision "$PRECISION" --trainer.max_epochs 1000 --trainer.max_time "$MAX_TIME"
-     --trainer.default_root_dir "$RUN" --data.init_args.root "$WORK/data" --data.init_args.image_size "$SIZE"
-     --data.init_args.train_size "$TRAIN" --data.init_args.val_size "$VAL" --data.init_args.render_seed "$SEED"
-     --data.init_args.render_workers "$CORES" --data.init_args.num_workers $((CORES - 2))
-     --model.optimizer.lr "$LR" --model.optimizer.schedule_seconds "$SCHEDULE_S" --trainer.enable_progress_bar false)
-read -ra MORE <<< "${EXTRA:-}"  # EXTRA: more fit options, split on spaces, no quotes (e.g. "--trainer.max_epochs 5")
-FIT+=("${MORE[@]}")
-COMMAND="dapm-lightning ${FIT[*]}"
-echo "$COMMAND" >> "$OUT/fit.log"
-$PY -m dapm_lightning "${FIT[@]}" 2>&1 | tail -40 >> "$OUT/fit.log"
-FIT_EXIT=${PIPESTATUS[0]}
-cp "$(find "$RUN" -name metrics.csv | head -1)" "$OUT/metrics.csv" 2>/dev/null
-LAST=$(find "$RUN" -name last.ckpt | head -1)
-echo "fit exit status $FIT_EXIT, last checkpoint: ${LAST:-none}" | tee -a "$OUT/fit.log"
-[ "$FIT_EXIT" = 0 ] && [ -n "$LAST" ] || exit 1
-$PY scripts/ship_model.py "$LAST" "$OUT/$NAME" --card <(echo "{\"command\": \"$COMMAND\", \"code\": \"$TREE\"}") \
-  | tee -a "$OUT/fit.log"
-MODEL=$OUT/$NAME
+if [ -n "${PREDICT_ONLY:-}" ]; then
+  MODEL=$INIT
+  echo "PREDICT_ONLY: no fit, predict with $MODEL" | tee -a "$OUT/fit.log"
+else
+  RUN=$WORK/run
+  rm -rf "$RUN"  # a run left by an earlier call must not be shipped
+  FIT=(fit --config dapm_lightning/configs/quickstart.yaml --model.init_weights "$INIT" --trainer.accelerator "$ACCEL"
+       --trainer.precision "$PRECISION" --trainer.max_epochs 1000 --trainer.max_time "$MAX_TIME"
+       --trainer.default_root_dir "$RUN" --data.init_args.root "$WORK/data" --data.init_args.image_size "$SIZE"
+       --data.init_args.train_size "$TRAIN" --data.init_args.val_size "$VAL" --data.init_args.render_seed "$SEED"
+       --data.init_args.render_workers "$CORES" --data.init_args.num_workers $((CORES - 2))
+       --model.optimizer.lr "$LR" --model.optimizer.schedule_seconds "$SCHEDULE_S" --trainer.enable_progress_bar false)
+  read -ra MORE <<< "${EXTRA:-}"  # EXTRA: more fit options, split on spaces, no quotes (e.g. "--trainer.max_epochs 5")
+  FIT+=("${MORE[@]}")
+  COMMAND="dapm-lightning ${FIT[*]}"
+  echo "$COMMAND" >> "$OUT/fit.log"
+  $PY -m dapm_lightning "${FIT[@]}" 2>&1 | tail -40 >> "$OUT/fit.log"
+  FIT_EXIT=${PIPESTATUS[0]}
+  cp "$(find "$RUN" -name metrics.csv | head -1)" "$OUT/metrics.csv" 2>/dev/null
+  LAST=$(find "$RUN" -name last.ckpt | head -1)
+  echo "fit exit status $FIT_EXIT, last checkpoint: ${LAST:-none}" | tee -a "$OUT/fit.log"
+  [ "$FIT_EXIT" = 0 ] && [ -n "$LAST" ] || exit 1
+  $PY scripts/ship_model.py "$LAST" "$OUT/$NAME" --card <(echo "{\"command\": \"$COMMAND\", \"code\": \"$TREE\"}") \
+    | tee -a "$OUT/fit.log"
+  MODEL=$OUT/$NAME
+fi
 
 # 2. the one-line predict with it: 512x512 frames (a folder) and the same frames as a video, each run twice
 # (all frames, then 50) so that the start-up (imports, loading, compiling) drops out of the images/s
@@ -81,8 +88,10 @@ print(json.dumps({"run": name, "options": options, "exit": code, "seconds": roun
 PY
 }
 FAST=(--precision bf16 --batch_size 16 --num_workers 8 --channels_last)
+RUNS=${RUNS:-all}
 both() {  # NAME SOURCE [options]: all frames, then the first 50
   local name=$1 source=$2; shift 2
+  [ "$RUNS" = all ] || [[ " $RUNS " == *" $name "* ]] || return 0
   timed "${name}_all" "$source" "$@"
   if [ "$source" = "$WORK/video.mp4" ]; then timed "${name}_first50" "$source" --max_frames 50 "$@"
   else timed "${name}_first50" "$WORK/first50.txt" "$@"; fi
