@@ -7,12 +7,17 @@
 #   (COMMIT: the build machine's commit, for the log and the model card; EXTRA="--more fit --options" adds to the fit)
 #   OUT=/tmp/out ACCEL=cpu SIZE=64 TRAIN=64 VAL=8 MAX_TIME=00:00:00:20 FRAMES=16 bash scripts/gpu_session.sh  # CPU check
 #   OUT=/tmp/out PREDICT_ONLY=1 RUNS="video_bf16_b16_cl" bash scripts/gpu_session.sh  # no fit: time INIT's predict
-#   (RUNS: the predict runs to time, by the names in part 2; default all)
+#   (RUNS: the predict runs to time, by the names in part 2, which sets their order; default all)
 set -uo pipefail
 OUT=${OUT:?set OUT}; WORK=${WORK:-/tmp/gpu_session}; PY=${PY:-python3}
 ACCEL=${ACCEL:-gpu}; PRECISION=${PRECISION:-bf16-mixed}; SIZE=${SIZE:-256}; TRAIN=${TRAIN:-4000}; VAL=${VAL:-300}
 MAX_TIME=${MAX_TIME:-00:00:03:45}; SCHEDULE_S=${SCHEDULE_S:-210}; LR=${LR:-0.0005}; SEED=${SEED:-2}
 CORES=$(nproc); FRAMES=${FRAMES:-400}; INIT=${INIT:-models/dapm-synthetic-r18-256}; NAME=${NAME:-dapm-synthetic-r18-256}
+RUNS=${RUNS:-all}
+NAMES=" eager_fp32_b4 bf16_b16_w8_cl video_eager_fp32_b4 compile_bf16_b16_w8_cl video_bf16_b16_cl "
+for run in $RUNS; do  # NAMES: the runs of part 2, whose `both` lines they match; checked before the fit
+  [ "$run" = all ] || [[ "$NAMES" == *" $run "* ]] || { echo "RUNS: no predict run '$run' (runs:$NAMES)" >&2; exit 2; }
+done
 mkdir -p "$OUT" "$WORK"
 # the device's copy may carry an older .git than its files: COMMIT (the caller's `git rev-parse --short HEAD`)
 # names the tree; without it `--dirty` at least says when the files differ from the commit named
@@ -88,7 +93,6 @@ print(json.dumps({"run": name, "options": options, "exit": code, "seconds": roun
 PY
 }
 FAST=(--precision bf16 --batch_size 16 --num_workers 8 --channels_last)
-RUNS=${RUNS:-all}
 both() {  # NAME SOURCE [options]: all frames, then the first 50
   local name=$1 source=$2; shift 2
   [ "$RUNS" = all ] || [[ " $RUNS " == *" $name "* ]] || return 0
