@@ -1,7 +1,8 @@
 """Albumentations pipelines; the pose-aware flip moves image, depth and roll together.
 
 :class:`GroundRecolour` recolours the flat ground of the pose and what stands on it apart, so that no colour tells
-the one from the other.
+the one from the other; :class:`GroundPattern` paints stripes, tiles or patches on that ground, laid out in metres on
+the ground plane, so that no texture does either.
 
 A data set calls its transform as ``transform(image=rgb [H,W,3] uint8, mask=depth grey [H,W], pose=[4])``
 and reads back the same keys, so any ``albumentations.Compose`` works, with geometric ops limited to
@@ -18,6 +19,7 @@ import numpy as np
 import torch
 
 from dapm_lightning.data.depth_kind import DepthKind, flat_ground_of_pose
+from dapm_lightning.geometry.camera import camera_rays
 from dapm_lightning.geometry.constants import MAX_DEPTH_M, SKY_GREY
 from dapm_lightning.geometry.pose import flip_pose
 
@@ -53,7 +55,37 @@ def colour_matrix(hue_deg: float, saturation: float, brightness: float) -> np.nd
     return np.linalg.inv(RGB_TO_YIQ) @ yiq @ RGB_TO_YIQ
 
 
-class GroundRecolour(A.DualTransform):
+class FlatGroundTransform(A.DualTransform):
+    """Base of the transforms that change the colours of the flat ground of the pose; depth and pose pass unchanged.
+
+    The flat ground is read from the depth (the ``mask`` target, grey levels of ``depth_kind`` up to ``max_depth``)
+    and the pose: the pixels within :data:`~dapm_lightning.data.depth_kind.AGREE_LEVELS` grey levels of its ideal
+    ground depth.
+    """
+
+    def __init__(self, depth_kind: DepthKind, max_depth: float, p: float) -> None:
+        super().__init__(p=p)
+        self.depth_kind, self.max_depth = depth_kind, float(max_depth)
+
+    @property
+    def targets(self) -> dict[str, Any]:
+        return {**super().targets, "pose": self.apply_to_pose}
+
+    def flat_ground(self, data: dict[str, Any]) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """``(depth grey, flat-ground mask, pose)`` of a sample, or None without a pose or grey-level depth."""
+        grey, pose = data.get("mask"), np.asarray(data.get("pose", np.full(4, np.nan)), np.float64)
+        if grey is None or grey.dtype != np.uint8 or grey.ndim != 2 or not np.isfinite(pose).all():
+            return None
+        return grey, flat_ground_of_pose(grey, pose.astype(np.float32), self.depth_kind, self.max_depth), pose
+
+    def apply_to_mask(self, mask: np.ndarray, **params: Any) -> np.ndarray:
+        return mask
+
+    def apply_to_pose(self, pose: np.ndarray, **params: Any) -> np.ndarray:
+        return pose
+
+
+class GroundRecolour(FlatGroundTransform):
     """Recolours the flat ground of the pose and the rest below the horizon, each with its own random colour change.
 
     Which pixels are ground is read from the depth (the ``mask`` target, grey levels) and the pose: those within
@@ -69,22 +101,17 @@ class GroundRecolour(A.DualTransform):
     def __init__(self, depth_kind: DepthKind = "range", max_depth: float = MAX_DEPTH_M, hue: float = 180.0,
                  saturation: tuple[float, float] = (0.3, 1.7), brightness: tuple[float, float] = (0.6, 1.4),
                  p: float = 0.5) -> None:
-        super().__init__(p=p)
-        self.depth_kind, self.max_depth = depth_kind, float(max_depth)
+        super().__init__(depth_kind, max_depth, p)
         self.hue, self.saturation, self.brightness = float(hue), tuple(saturation), tuple(brightness)
-
-    @property
-    def targets(self) -> dict[str, Any]:
-        return {**super().targets, "pose": self.apply_to_pose}
 
     def get_params_dependent_on_data(self, params: dict[str, Any], data: dict[str, Any]) -> dict[str, Any]:
         matrices = [colour_matrix(self.random_generator.uniform(-self.hue, self.hue),
                                   self.random_generator.uniform(*self.saturation),
                                   self.random_generator.uniform(*self.brightness)) for _ in range(2)]
-        grey, pose = data.get("mask"), np.asarray(data.get("pose", np.full(4, np.nan)), np.float64)
-        if grey is None or grey.dtype != np.uint8 or grey.ndim != 2 or not np.isfinite(pose).all():
+        found = self.flat_ground(data)
+        if found is None:
             return {"regions": []}
-        ground = flat_ground_of_pose(grey, pose.astype(np.float32), self.depth_kind, self.max_depth)
+        grey, ground, _ = found
         return {"regions": [(ground, matrices[0]), ((grey < SKY_GREY) & ~ground, matrices[1])]}
 
     def apply(self, img: np.ndarray, regions: list[tuple[np.ndarray, np.ndarray]], **params: Any) -> np.ndarray:
@@ -95,14 +122,96 @@ class GroundRecolour(A.DualTransform):
             out[region] = out[region] @ matrix.T.astype(np.float32)
         return np.clip(out + 0.5, 0, 255).astype(img.dtype)
 
-    def apply_to_mask(self, mask: np.ndarray, **params: Any) -> np.ndarray:
-        return mask
-
-    def apply_to_pose(self, pose: np.ndarray, **params: Any) -> np.ndarray:
-        return pose
-
     def get_transform_init_args_names(self) -> tuple[str, ...]:
         return ("depth_kind", "max_depth", "hue", "saturation", "brightness")
+
+
+PATTERNS = ("stripes", "tiles", "patches")
+"""What :class:`GroundPattern` paints: parallel bands (fields, furrows, lanes), a chequerboard (paving, lots) or
+blotches (soil and vegetation, the sum of four waves in random directions)."""
+
+ALIAS_FADE_PERIODS_PX = (8.0, 3.0)
+"""A wave of the pattern keeps its full contrast where its period on the image is at least 8 pixels and fades to
+none at 3 (it would alias): far ground shows the pattern's mean colour, as real texture does."""
+
+
+def ground_plane_xy(pose: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """``[H, W, 2]`` world (X, Y) in metres where each pixel's ray meets the ground plane; NaN above the horizon.
+
+    ``pose``: ``[4]`` (height m, pitch, roll, fov deg); the world of design.md §1 (origin under the camera).
+    """
+    height, pitch, roll, fov = (torch.tensor([float(v)], dtype=torch.float64) for v in pose)
+    rays = camera_rays(pitch, roll, fov, size)[0].numpy()
+    down = rays[..., 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        reach = np.where(down < -1e-9, -float(height[0]) / down, np.nan)
+    return rays[..., :2] * reach[..., None]
+
+
+class GroundPattern(FlatGroundTransform):
+    """Paints a pattern on the flat ground of the pose, laid out in metres on the ground plane.
+
+    The ground is found as :class:`GroundRecolour` finds it (the depth within a grey level or two of the pose's IGD).
+    One of :data:`PATTERNS` (stripes, tiles or patches) is drawn with a period log-uniform in ``period`` metres, a
+    random direction and edges from soft to sharp; a random colour change (the hue turned, saturation and
+    brightness scaled, as in :class:`GroundRecolour`) is applied with a weight that follows the pattern, up to a
+    strength drawn from ``strength``. Because the pattern lies on the ground plane it shrinks with distance and is
+    foreshortened as the real ground's texture is; where it would alias it fades (:data:`ALIAS_FADE_PERIODS_PX`).
+    What stands on the ground and the sky are kept; depth and pose unchanged; an image without a pose or grey-level
+    depth is left as it is. A model trained with it cannot take a textured ground for a roof or a canopy by its
+    texture alone, as one trained on a generator's few ground textures does on a world whose ground is painted
+    otherwise.
+    """
+
+    def __init__(self, depth_kind: DepthKind = "range", max_depth: float = MAX_DEPTH_M,
+                 period: tuple[float, float] = (2.0, 60.0), strength: tuple[float, float] = (0.4, 1.0),
+                 hue: float = 180.0, saturation: tuple[float, float] = (0.3, 1.7),
+                 brightness: tuple[float, float] = (0.5, 1.5), p: float = 0.5) -> None:
+        super().__init__(depth_kind, max_depth, p)
+        if not 0 < period[0] <= period[1]:
+            raise ValueError(f"GroundPattern period must be [low, high] metres with 0 < low <= high, got {period}")
+        self.period, self.strength = tuple(period), tuple(strength)
+        self.hue, self.saturation, self.brightness = float(hue), tuple(saturation), tuple(brightness)
+
+    def get_params_dependent_on_data(self, params: dict[str, Any], data: dict[str, Any]) -> dict[str, Any]:
+        rng = self.random_generator
+        kind = PATTERNS[int(rng.integers(len(PATTERNS)))]
+        period = float(np.exp(rng.uniform(np.log(self.period[0]), np.log(self.period[1]))))
+        angle, sharpness, strength = rng.uniform(0, np.pi), float(np.exp(rng.uniform(0.0, np.log(8.0)))), \
+            rng.uniform(*self.strength)
+        waves = {"stripes": [(angle, period)], "tiles": [(angle, period), (angle + np.pi / 2, period)],
+                 "patches": [(rng.uniform(0, np.pi), period * rng.uniform(0.6, 1.6)) for _ in range(4)]}[kind]
+        phases = rng.uniform(0, 2 * np.pi, len(waves))
+        matrix = colour_matrix(rng.uniform(-self.hue, self.hue), rng.uniform(*self.saturation),
+                               rng.uniform(*self.brightness))
+        found = self.flat_ground(data)
+        if found is None or not found[1].any():
+            return {"weight": None, "matrix": matrix}
+        grey, ground, pose = found
+        xy = ground_plane_xy(pose, grey.shape)
+        signal = np.ones(grey.shape) if kind == "tiles" else np.zeros(grey.shape)
+        full, none = (2 * np.pi / v for v in ALIAS_FADE_PERIODS_PX)  # phase steps per pixel
+        for (direction, wave_period), phase0 in zip(waves, phases):
+            along = xy[..., 0] * np.cos(direction) + xy[..., 1] * np.sin(direction)
+            phase = 2 * np.pi * along / wave_period + phase0
+            rows, cols = np.gradient(phase)
+            fade = np.clip((none - np.hypot(rows, cols)) / (none - full), 0.0, 1.0)
+            wave = np.nan_to_num(np.sin(phase) * fade)
+            signal = signal * wave if kind == "tiles" else signal + wave / len(waves) ** 0.5
+        pattern = 0.5 + 0.5 * np.tanh(sharpness * signal) / np.tanh(sharpness)
+        weight = np.where(ground, strength * pattern, 0.0).astype(np.float32)
+        return {"weight": weight, "matrix": matrix}
+
+    def apply(self, img: np.ndarray, weight: np.ndarray | None, matrix: np.ndarray, **params: Any) -> np.ndarray:
+        if weight is None:
+            return img
+        out = img.astype(np.float32)
+        changed = out @ matrix.T.astype(np.float32)
+        out += weight[..., None] * (changed - out)
+        return np.clip(out + 0.5, 0, 255).astype(img.dtype)
+
+    def get_transform_init_args_names(self) -> tuple[str, ...]:
+        return ("depth_kind", "max_depth", "period", "strength", "hue", "saturation", "brightness")
 
 
 @dataclass(frozen=True)
@@ -124,6 +233,8 @@ class Augmentation:
         flip_p: probability of the pose-aware horizontal flip (image, depth and roll together).
         ground_recolour_p: probability of :class:`GroundRecolour` (the ground and what stands on it recoloured
             apart; 0: off, the paper's).
+        ground_pattern_p: probability of :class:`GroundPattern` (stripes, tiles or patches painted on the flat
+            ground, in metres on the ground plane; 0: off, the paper's).
     """
 
     brightness: float = 0.2
@@ -134,13 +245,14 @@ class Augmentation:
     noise_p: float = 0.3
     flip_p: float = 0.5
     ground_recolour_p: float = 0.0
+    ground_pattern_p: float = 0.0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "noise_std", tuple(float(v) for v in self.noise_std))
         if len(self.noise_std) != 2 or not 0.0 <= self.noise_std[0] <= self.noise_std[1]:
             raise ValueError(f"data.init_args.augmentation.noise_std must be [low, high] with 0 <= low <= high, "
                              f"got {list(self.noise_std)}")
-        for name in ("color_jitter_p", "noise_p", "flip_p", "ground_recolour_p"):
+        for name in ("color_jitter_p", "noise_p", "flip_p", "ground_recolour_p", "ground_pattern_p"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"data.init_args.augmentation.{name} must be a probability in [0, 1], "
                                  f"got {getattr(self, name)}")
@@ -156,15 +268,17 @@ AUTHORS_AUGMENTATION = Augmentation(brightness=0.5, contrast=0.5, saturation=0.5
 
 def train_transform(augmentation: Augmentation = Augmentation(),  # noqa: B008 (frozen)
                     depth_kind: DepthKind = "range", max_depth: float = MAX_DEPTH_M) -> A.Compose:
-    """The training pipeline: ground recolour (when on), colour jitter, Gaussian noise, pose-aware horizontal flip.
+    """The training pipeline: ground pattern, ground recolour (when on), colour jitter, noise, pose-aware flip.
 
     The colour jitter changes brightness, contrast and saturation. No vertical flips or rotations (they would change
-    the pose). ``depth_kind`` and ``max_depth`` say what the depth's grey levels are, for the ground recolour's flat
-    ground.
+    the pose). ``depth_kind`` and ``max_depth`` say what the depth's grey levels are, for the flat ground the ground
+    pattern and the ground recolour find.
     """
     a = augmentation
+    pattern = [GroundPattern(depth_kind, max_depth, p=a.ground_pattern_p)] if a.ground_pattern_p > 0 else []
     recolour = [GroundRecolour(depth_kind, max_depth, p=a.ground_recolour_p)] if a.ground_recolour_p > 0 else []
     return A.Compose([
+        *pattern,
         *recolour,
         A.ColorJitter(brightness=a.brightness, contrast=a.contrast, saturation=a.saturation, hue=0.0,
                       p=a.color_jitter_p),
