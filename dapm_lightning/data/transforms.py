@@ -158,9 +158,9 @@ class GroundPattern(FlatGroundTransform):
     strength drawn from ``strength``. Because the pattern lies on the ground plane it shrinks with distance and is
     foreshortened as the real ground's texture is; where it would alias it fades (:data:`ALIAS_FADE_PERIODS_PX`).
     What stands on the ground and the sky are kept; depth and pose unchanged; an image without a pose or grey-level
-    depth is left as it is. A model trained with it cannot take a textured ground for a roof or a canopy by its
-    texture alone, as one trained on a generator's few ground textures does on a world whose ground is painted
-    otherwise.
+    depth is left as it is. Its aim: that the texture alone does not tell the ground from a roof or a canopy, as it
+    does for a model trained on a generator's few ground textures (docs/synthetic.md: measured, it changed nothing
+    at the CPU's budgets).
     """
 
     def __init__(self, depth_kind: DepthKind = "range", max_depth: float = MAX_DEPTH_M,
