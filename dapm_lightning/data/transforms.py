@@ -177,8 +177,9 @@ class GroundPattern(FlatGroundTransform):
         rng = self.random_generator
         kind = PATTERNS[int(rng.integers(len(PATTERNS)))]
         period = float(np.exp(rng.uniform(np.log(self.period[0]), np.log(self.period[1]))))
-        angle, sharpness, strength = rng.uniform(0, np.pi), float(np.exp(rng.uniform(0.0, np.log(8.0)))), \
-            rng.uniform(*self.strength)
+        angle = rng.uniform(0, np.pi)
+        sharpness = float(np.exp(rng.uniform(0.0, np.log(8.0))))  # the edges: 1 soft (a sine) to 8 near-square
+        strength = rng.uniform(*self.strength)
         waves = {"stripes": [(angle, period)], "tiles": [(angle, period), (angle + np.pi / 2, period)],
                  "patches": [(rng.uniform(0, np.pi), period * rng.uniform(0.6, 1.6)) for _ in range(4)]}[kind]
         phases = rng.uniform(0, 2 * np.pi, len(waves))
