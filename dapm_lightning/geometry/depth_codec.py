@@ -66,33 +66,55 @@ def sky_at_limit(depth_m: Tensor, sky: Tensor, max_depth: float = MAX_DEPTH_M) -
 
 
 IGD_RATIO_RANGE = (2.0**-10, 1.25)
-"""What the ``igd_ratio`` parametrisation covers: depth / IGD from 1/1024 (1 m at the 1000 m horizon, a mast
-close to the lens) to 1.25 (ground up to 25 % farther than the flat ground of the pose used: terrain below the
+"""What the ``igd_ratio`` parametrisation covers by default: depth / IGD from 1/1024 (1 m at the 1000 m horizon, a
+mast close to the lens) to 1.25 (ground up to 25 % farther than the flat ground of the pose used: terrain below the
 take-off level, or a pose whose height is too low). Above the horizon the IGD is ``max_depth``, so the ratio is of
-the depth limit and the range spans 1 m to the limit, as the absolute depth does."""
-_RATIO_LOG2 = (math.log2(IGD_RATIO_RANGE[0]), math.log2(IGD_RATIO_RANGE[1]))
-FLAT_GROUND_NORM = -_RATIO_LOG2[0] / (_RATIO_LOG2[1] - _RATIO_LOG2[0])
-"""The normalised log ratio of a depth equal to the IGD (the flat ground itself): about 0.969."""
-FLAT_GROUND_LOGIT = math.log(FLAT_GROUND_NORM / (1.0 - FLAT_GROUND_NORM))
-"""Its logit: the ``igd_ratio`` head's output is a correction to this, so an untrained head predicts the flat
-ground (a sigmoid at 0 would start at a ratio of 0.035, far from every target)."""
+the depth limit and the range spans 1 m to the limit, as the absolute depth does. The upper end is a network setting
+(``model.net.igd_ratio_max``); the lower end is fixed."""
+GROUND_CENTRED_RATIO_MAX = 2.0 ** (10 * 64 / 62.5 - 10)
+"""The upper end (about 1.181) that puts the flat ground (ratio 1) at the centre of a bin of a 64-bin stage (the
+63rd), not on the edge between two as 1.25 does: a mode read from the bins then finds the ground where it is, not
+half a bin (6 %) short. The quickstart's ``model.net.igd_ratio_max``."""
+
+
+def _ratio_log2(ratio_max: float) -> tuple[float, float]:
+    return math.log2(IGD_RATIO_RANGE[0]), math.log2(ratio_max)
+
+
+def flat_ground_norm(ratio_max: float = IGD_RATIO_RANGE[1]) -> float:
+    """The normalised log ratio of a depth equal to the IGD (the flat ground itself): about 0.969 for 1.25."""
+    lo, hi = _ratio_log2(ratio_max)
+    return -lo / (hi - lo)
+
+
+def flat_ground_logit(ratio_max: float = IGD_RATIO_RANGE[1]) -> float:
+    """The logit of :func:`flat_ground_norm`.
+
+    The ``igd_ratio`` head's output is a correction to it, so an untrained head predicts the flat ground (a sigmoid at
+    0 would start at a ratio of 0.035, far from every target).
+    """
+    norm = flat_ground_norm(ratio_max)
+    return math.log(norm / (1.0 - norm))
 
 
 @float32
-def encode_igd_ratio(depth_m: Tensor, igd_m: Tensor, max_depth: float = MAX_DEPTH_M) -> Tensor:
+def encode_igd_ratio(depth_m: Tensor, igd_m: Tensor, max_depth: float = MAX_DEPTH_M,
+                     ratio_max: float = IGD_RATIO_RANGE[1]) -> Tensor:
     """Metres to the normalised log ratio ``(log2(d / igd) - log2 lo) / (log2 hi - log2 lo)`` in [0, 1].
 
-    ``igd_m``: the ideal ground depth of the pose the network uses (:data:`IGD_RATIO_RANGE` ``= (lo, hi)``);
-    depths are clamped to ``[0, max_depth]`` and ratios outside the range to its ends.
+    ``igd_m``: the ideal ground depth of the pose the network uses; ``lo`` is ``IGD_RATIO_RANGE[0]``, ``hi`` is
+    ``ratio_max`` (:data:`IGD_RATIO_RANGE`); depths are clamped to ``[0, max_depth]`` and ratios outside the range to
+    its ends.
     """
     ratio = depth_m.clamp(1e-6, max_depth) / igd_m.clamp(1e-3, max_depth)
-    lo, hi = _RATIO_LOG2
+    lo, hi = _ratio_log2(ratio_max)
     return ((torch.log2(ratio) - lo) / (hi - lo)).clamp(0.0, 1.0)
 
 
 @float32
-def decode_igd_ratio(ratio_norm: Tensor, igd_m: Tensor, max_depth: float = MAX_DEPTH_M) -> Tensor:
+def decode_igd_ratio(ratio_norm: Tensor, igd_m: Tensor, max_depth: float = MAX_DEPTH_M,
+                     ratio_max: float = IGD_RATIO_RANGE[1]) -> Tensor:
     """Inverse of :func:`encode_igd_ratio`: metres in ``[0, max_depth]``."""
-    lo, hi = _RATIO_LOG2
+    lo, hi = _ratio_log2(ratio_max)
     ratio = torch.exp2(lo + ratio_norm.clamp(0.0, 1.0) * (hi - lo))
     return (ratio * igd_m.clamp(1e-3, max_depth)).clamp(max=max_depth)

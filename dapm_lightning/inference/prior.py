@@ -223,7 +223,7 @@ def bound_by_ground(output: InferenceOutput, prior: PosePrior | None, spec: IGDS
     the images whose prior knows the height (the IGD's scale; with the other components from the pose used,
     telemetry or fused); where the IGD is at the depth limit (above the horizon) nothing is capped. A pixel the
     bound reaches cannot be sky: its ``sky_prob`` becomes 0. For models trained in absolute depth (an ``igd_ratio``
-    model bounds itself at 1.25 times the ground of the pose it uses).
+    model bounds itself at ``model.net.igd_ratio_max``, 1.25 by default, times the ground of the pose it uses).
     """
     if prior is None or output.depth_m is None or output.pose is None:
         return output

@@ -6,6 +6,7 @@ from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field, fields
 from typing import Any, Literal
 
+from dapm_lightning.geometry.depth_codec import IGD_RATIO_RANGE
 from dapm_lightning.geometry.igd import IGDSpec
 from dapm_lightning.models.init import WeightInit
 
@@ -76,9 +77,14 @@ class DAPMConfig:
         depth_parametrization: what the refined depth (the bins and the head) predicts: ``"absolute"`` (default,
             the paper's: the normalised log depth) or ``"igd_ratio"``: the normalised log of depth / IGD of the pose
             the network uses (its own, teacher-forced in training, or fused with a prior) over
-            :data:`~dapm_lightning.geometry.depth_codec.IGD_RATIO_RANGE` (1/1024 to 1.25), so nothing below the
-            horizon is predicted farther than 1.25 times the flat ground of that pose. Needs both branches and a
-            refinement head; the decoder's initial depth stays absolute (the pose branch reads it). docs/model.md.
+            1/1024 to ``igd_ratio_max``, so nothing below the horizon is predicted farther than that many times the
+            flat ground of that pose. Needs both branches and a refinement head; the decoder's initial depth stays
+            absolute (the pose branch reads it). docs/model.md.
+        igd_ratio_max: the upper end of the ``igd_ratio`` range, in (1, 4]: 1.25 by default (the default of
+            :data:`~dapm_lightning.geometry.depth_codec.IGD_RATIO_RANGE`, what checkpoints saved without the setting
+            were trained with); :data:`~dapm_lightning.geometry.depth_codec.GROUND_CENTRED_RATIO_MAX` (1.181, the
+            quickstart's) puts the flat ground at the centre of a bin of a 64-bin stage instead of on the edge between
+            two, where the bins' mode reads it 6 % short. Saved with the weights: it is what their depth means.
         depth_readout: where the output depth (``depth_m``) is read: ``"head"`` (default, the paper's: the
             refinement head's regression over every bins stage) or ``"bins_mode"``: the mode of the last depth-bins
             stage: the soft-argmax over the heaviest window of three bins, chosen smoothly (continuous in the
@@ -138,6 +144,7 @@ class DAPMConfig:
     linear_dropout: float = 0.0
     weight_init: WeightInit = "pytorch"
     depth_parametrization: Literal["absolute", "igd_ratio"] = _architecture("absolute")
+    igd_ratio_max: float = _architecture(IGD_RATIO_RANGE[1])
     depth_readout: DepthReadout = "head"
     pose_prior_input: bool = _architecture(False)
     depth_prior_input: bool = _architecture(False)
@@ -177,6 +184,10 @@ class DAPMConfig:
                 self.use_depth and self.use_pose and (self.depth_bins or self.use_igd_feature)):
             raise ValueError("model.net.depth_parametrization 'igd_ratio' needs both branches and a depth refinement "
                              "(depth_bins or use_igd_feature): the ratio is to the IGD of the predicted pose")
+        if isinstance(self.igd_ratio_max, bool) or not 1.0 < float(self.igd_ratio_max) <= 4.0:
+            raise ValueError("model.net.igd_ratio_max must be a number above 1 and at most 4, "
+                             f"got {self.igd_ratio_max!r}")
+        object.__setattr__(self, "igd_ratio_max", float(self.igd_ratio_max))
         if self.depth_readout not in DEPTH_READOUTS:
             raise ValueError(f"model.net.depth_readout must be one of {', '.join(DEPTH_READOUTS)}, "
                              f"got {self.depth_readout!r}")
@@ -197,7 +208,7 @@ class DAPMConfig:
 
     @classmethod
     def architecture_fields(cls) -> tuple[str, ...]:
-        """Names of the settings that change the weights' shapes."""
+        """Names of the settings that change the weights' shapes or what their outputs mean."""
         return tuple(f.name for f in fields(cls) if f.metadata.get("architecture"))
 
     @classmethod

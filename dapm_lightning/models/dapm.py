@@ -11,11 +11,12 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from dapm_lightning.geometry.depth_codec import (
-    FLAT_GROUND_LOGIT,
+    IGD_RATIO_RANGE,
     decode_igd_ratio,
     decode_log_depth,
     encode_igd_ratio,
     encode_log_depth,
+    flat_ground_logit,
 )
 from dapm_lightning.geometry.precision import held_in
 from dapm_lightning.models.blocks import conv_bn_relu
@@ -43,7 +44,8 @@ class DepthPrediction(NamedTuple):
     ``refined``: whether a refinement head produced ``depth_norm``;
     ``igd_m``: with ``depth_parametrization: igd_ratio``, the IGD (metres, full resolution) of the pose the
     network used, which ``depth_norm`` is relative to (:func:`~dapm_lightning.geometry.depth_codec.encode_igd_ratio`);
-    None: ``depth_norm`` is the absolute normalised log depth.
+    None: ``depth_norm`` is the absolute normalised log depth. ``ratio_max``: the upper end of that ratio's range
+    (``model.net.igd_ratio_max``).
     ``readout_norm``: with ``depth_readout: bins_mode``, the depth read from the last bins stage, full resolution, in
     the space of ``depth_norm`` (``depth_m`` is its decoding); None: ``depth_m`` decodes ``depth_norm`` (the head's).
     ``depth_norm`` stays the head's either way: it is what Eq. 17 trains.
@@ -58,18 +60,19 @@ class DepthPrediction(NamedTuple):
     refined: bool
     igd_m: Tensor | None = None
     readout_norm: Tensor | None = None
+    ratio_max: float = IGD_RATIO_RANGE[1]
 
     def encode(self, depth_m: Tensor, max_depth: float) -> Tensor:
         """Metres ``[B, 1, H, W]`` in the space of ``depth_norm`` (targets of the loss and of the bins)."""
         if self.igd_m is None:
             return encode_log_depth(depth_m, max_depth)
-        return encode_igd_ratio(depth_m, self.igd_m, max_depth)
+        return encode_igd_ratio(depth_m, self.igd_m, max_depth, self.ratio_max)
 
     def decode(self, norm: Tensor, max_depth: float) -> Tensor:
         """Inverse of :meth:`encode`: metres."""
         if self.igd_m is None:
             return decode_log_depth(norm, max_depth)
-        return decode_igd_ratio(norm, self.igd_m, max_depth)
+        return decode_igd_ratio(norm, self.igd_m, max_depth, self.ratio_max)
 
     def log_depth_norm(self, max_depth: float) -> Tensor:
         """The output depth as absolute normalised log depth (the readout's; ``depth_norm`` in absolute space)."""
@@ -309,6 +312,7 @@ class DAPMNet(nn.Module):
         feature = self.to_head(F.interpolate(depth_feature, size=head_size, mode="bilinear", align_corners=False))
         init_head = F.interpolate(depth_coarse, size=head_size, mode="bilinear", align_corners=False)
         ratio = self.config.depth_parametrization == "igd_ratio"
+        ratio_max = self.config.igd_ratio_max
         igd_norm = igd_feature = used_norm = None
         if pose is not None and (self.igd_feature is not None or ratio):
             own = pose.pose_norm if pose.used_norm is None else pose.used_norm
@@ -325,9 +329,9 @@ class DAPMNet(nn.Module):
         refined_logit, sky_logit, bin_logits = self.depth_pqb(feature, init_head, igd_feature)
         if self.config.depth_residual_priors and igd_head is not None:  # the initial depth as a ratio
             refined_logit = refined_logit + encode_igd_ratio(decode_log_depth(init_head, igd.max_depth), igd_head,
-                                                             igd.max_depth).to(refined_logit.dtype)
+                                                             igd.max_depth, ratio_max).to(refined_logit.dtype)
         elif igd_head is not None:  # a correction to the flat ground (ratio 1)
-            refined_logit = refined_logit + FLAT_GROUND_LOGIT
+            refined_logit = refined_logit + flat_ground_logit(ratio_max)
         elif self.config.depth_residual_priors:  # the authors' head: logit + initial depth + IGD (both in [0, 1])
             refined_logit = refined_logit + init_head + (0.0 if igd_norm is None else igd_norm)
         refined = self._to_size(torch.sigmoid(refined_logit), feature, size)
@@ -338,11 +342,11 @@ class DAPMNet(nn.Module):
                       else F.interpolate(sky_logit, size=size, mode="bilinear", align_corners=False))
         output = refined if readout is None else readout
         depth_m = (decode_log_depth(output, igd.max_depth) if igd_m is None
-                   else decode_igd_ratio(output, igd_m, igd.max_depth))
+                   else decode_igd_ratio(output, igd_m, igd.max_depth, ratio_max))
         if sky_logits is not None and self.config.sky_override:
             depth_m = torch.where(sky_logits > 0, torch.full_like(depth_m, igd.max_depth), depth_m)
         return DepthPrediction(refined, depth_init, depth_m, sky_logits, tuple(bin_logits), igd_norm, True, igd_m,
-                               readout)
+                               readout, ratio_max)
 
     def _to_size(self, norm: Tensor, feature: Tensor, size: tuple[int, int]) -> Tensor:
         """A ``[B, 1, h, w]`` map in [0, 1] at head resolution to the image size (the convex upsampling's)."""

@@ -57,6 +57,10 @@ class LossConfig:
             the balance rho = 10 was chosen for; the paper configs use ``"log_norm"``.
         use_gradient_loss: the Laplacian-weighted gradient loss of the authors' released code (term
             ``grad``, weight ``weights["grad"]``, 10 there); not in the paper's Eq. 19, so off by default.
+        sky_object_weight: weight of the sky stage's cross-entropy on the pixels that are not sky but lie above the
+            horizon of the true pose (a tower, a tree or a mast standing against the sky), 1 elsewhere: the pixels the
+            sky stage confuses, where calling them sky puts them at ``max_depth``. 1 (the paper's plain mean) by
+            default.
     """
 
     weights: Mapping[str, float] = field(default_factory=_paper_weights)
@@ -66,6 +70,7 @@ class LossConfig:
     igd_loss_stride: int = 4
     depth_space: DepthLossSpace = "metric"
     use_gradient_loss: bool = False
+    sky_object_weight: float = 1.0
 
     def __post_init__(self) -> None:
         known = {**PAPER_WEIGHTS, **CODE_ONLY_WEIGHTS}
@@ -74,6 +79,8 @@ class LossConfig:
             raise ValueError(f"unknown loss weight(s) {sorted(unknown)}; known: {sorted(known)}")
         if self.depth_space not in ("metric", "log_norm"):
             raise ValueError(f"depth_space must be 'metric' or 'log_norm', got {self.depth_space!r}")
+        if not self.sky_object_weight > 0:
+            raise ValueError(f"model.loss.sky_object_weight must be above 0, got {self.sky_object_weight!r}")
         object.__setattr__(self, "weights", {**known, **self.weights})
 
 
@@ -218,6 +225,8 @@ class DAPMLoss(nn.Module):
         counted = (torch.isfinite(depth_m) & (depth_m >= 0) if self.config.depth_space == "log_norm" else valid)
         if depth.sky_logits is not None:
             bce = F.binary_cross_entropy_with_logits(depth.sky_logits, sky.float(), reduction="none")
+            if self.config.sky_object_weight != 1.0:
+                bce = bce * self._sky_weights(targets, metric)
             dq = dq + _masked_mean(bce, counted)
         depth_norm = depth.encode(torch.where(counted, depth_m, torch.zeros_like(depth_m)), max_depth)
         binned = counted & ~sky if self.config.depth_space == "log_norm" else metric
@@ -230,6 +239,21 @@ class DAPMLoss(nn.Module):
         if depth.sky_logits is not None or depth.bin_logits:
             terms["dq"] = dq
         return terms
+
+    def _sky_weights(self, targets: LossTargets, objects: Tensor) -> Tensor:
+        """``[B, 1, H, W]`` weights of the sky stage's cross-entropy.
+
+        :attr:`LossConfig.sky_object_weight` on ``objects`` (valid, not sky) above the horizon of the true pose (its IGD
+        at the depth limit), 1 elsewhere and on images without a pose.
+        """
+        pose = targets["pose"]
+        known = torch.isfinite(pose).all(dim=1)
+        # the IGD of any valid pose where it is unknown (those images are masked out below)
+        stand_in = torch.tensor([50.0, -45.0, 0.0, 60.0], device=pose.device, dtype=pose.dtype)
+        safe = torch.where(known[:, None], pose, stand_in)
+        above = self.igd.depth(safe.float(), (objects.shape[-2], objects.shape[-1])) >= self.igd.max_depth
+        hard = above & objects & known.view(-1, 1, 1, 1)
+        return 1.0 + (self.config.sky_object_weight - 1.0) * hard.float()
 
     def pose_terms(self, pose: PosePrediction, targets: LossTargets,
                    depth: DepthPrediction | None = None) -> dict[str, Tensor]:

@@ -147,3 +147,46 @@ def test_a_head_that_adds_nothing_predicts_the_flat_ground():
         out = net(torch.rand(2, 3, *SIZE), prior=PosePrior(POSES, torch.zeros(4)))
     ground = out.depth.sky_logits <= 0
     torch.testing.assert_close(out.depth_m[ground], ideal_ground_depth(POSES, SIZE)[ground], rtol=1e-4, atol=1e-3)
+
+
+def test_the_centred_range_puts_the_flat_ground_at_a_bin_centre():
+    from dapm_lightning.geometry.bins import bin_centers, quantize
+    from dapm_lightning.geometry.depth_codec import GROUND_CENTRED_RATIO_MAX, flat_ground_norm
+
+    igd = ideal_ground_depth(POSES, SIZE)
+    below = igd < MAX_DEPTH_M
+    for ratio_max, offset in ((IGD_RATIO_RANGE[1], 0.0), (GROUND_CENTRED_RATIO_MAX, 0.5)):
+        norm = encode_igd_ratio(igd, igd, ratio_max=ratio_max)  # a flat ground scene
+        assert ((norm[below] * 64) - (62.0 + offset)).abs().max() < 0.01  # 1.25: on the edge; centred: mid-bin
+        assert flat_ground_norm(ratio_max) * 64 == pytest.approx(62.0 + offset, abs=0.01)
+    # centred: the class the flat ground (and the 8-bit floor just under it, 0.986) falls in decodes to the ground
+    for ratio in (1.0, 0.986):
+        norm = encode_igd_ratio(ratio * igd, igd, ratio_max=GROUND_CENTRED_RATIO_MAX)
+        centre = bin_centers(64, norm)[quantize(norm, 64)]
+        decoded = decode_igd_ratio(centre, igd, ratio_max=GROUND_CENTRED_RATIO_MAX)
+        torch.testing.assert_close(decoded[below], igd[below], rtol=1e-4, atol=1e-3)
+    # 1.25: that class's centre is 5.5 % short of the ground
+    norm = encode_igd_ratio(0.986 * igd, igd)
+    short = decode_igd_ratio(bin_centers(64, norm)[quantize(norm, 64)], igd)[below] / igd[below]
+    assert short.max() < 0.95
+
+
+def test_igd_ratio_max_bounds_the_depth_is_checked_and_saved_with_the_weights():
+    from dapm_lightning.geometry.depth_codec import GROUND_CENTRED_RATIO_MAX
+
+    net = tiny_net(igd_ratio_max=GROUND_CENTRED_RATIO_MAX, depth_readout="bins_mode")
+    prior = PosePrior(POSES, torch.zeros(4))
+    with torch.no_grad():
+        out = net(torch.rand(2, 3, *SIZE), prior=prior)
+    igd = ideal_ground_depth(POSES, SIZE)
+    ground = out.depth.sky_logits <= 0
+    assert out.depth.ratio_max == GROUND_CENTRED_RATIO_MAX
+    assert (out.depth_m[ground] <= GROUND_CENTRED_RATIO_MAX * igd[ground] * (1 + 1e-5) + 1e-3).all()
+    readout = out.depth.decode(out.depth.readout_norm, MAX_DEPTH_M)
+    torch.testing.assert_close(readout[ground], out.depth_m[ground])
+    assert "igd_ratio_max" in DAPMConfig.architecture_fields()  # a checkpoint's depth means what it was trained as
+    saved = {k: v for k, v in DAPMConfig(**TINY).to_dict().items() if k != "igd_ratio_max"}
+    assert DAPMConfig.from_dict(saved).igd_ratio_max == IGD_RATIO_RANGE[1]  # saved before the setting: 1.25
+    for bad in (1.0, 0.5, 5.0, True):
+        with pytest.raises(ValueError, match="igd_ratio_max"):
+            DAPMConfig(**{**TINY, "igd_ratio_max": bad})

@@ -129,3 +129,27 @@ def test_authors_space_counts_zero_metre_pixels_in_the_bins():
     assert authors["dq"].item() == pytest.approx(LN2 + math.log(16) / 2, rel=1e-6)  # CE: mean over both pixels
     assert metric["dq"].item() == pytest.approx(LN2 + math.log(16), rel=1e-6)  # CE: the 10 m pixel alone
     assert torch.isfinite(authors["depth"]) and authors["depth"].item() == pytest.approx(10 * math.sqrt(1e-3))
+
+
+def test_sky_object_weight_weighs_what_stands_against_the_sky():
+    """Row 0 of a level camera's picture lies above the horizon; a mast there (not sky) is weighted, the rest is not."""
+    height, width = 8, 4
+    pose = torch.tensor([[50.0, 0.0, 0.0, 60.0]])  # level: the top half above the horizon
+    depth = torch.full((1, 1, height, width), MAX_DEPTH_M)
+    depth[..., height // 2:, :] = 100.0  # ground below the horizon
+    depth[..., 0, 0] = 80.0  # a mast above it
+    logits = torch.full((1, 1, height, width), 3.0)  # everything called sky
+
+    def dq(weight, has_pose=True):
+        norm = encode_log_depth(depth.clamp(max=MAX_DEPTH_M))
+        prediction = DepthPrediction(depth_norm=norm, depth_init_norm=norm, depth_m=depth, sky_logits=logits,
+                                     bin_logits=(), igd_norm=None, refined=True)
+        targets = dict(depth=depth, sky=depth >= MAX_DEPTH_M, valid=torch.ones_like(depth, dtype=torch.bool),
+                       pose=pose if has_pose else torch.full_like(pose, float("nan")))
+        return DAPMLoss(LossConfig(sky_object_weight=weight)).depth_terms(prediction, targets)["dq"].item()
+
+    wrong = torch.nn.functional.softplus(torch.tensor(3.0)).item()  # BCE of a non-sky pixel called sky at logit 3
+    assert dq(5.0) - dq(1.0) == pytest.approx(4 * wrong / (height * width), rel=1e-5)  # the mast alone, x5
+    assert dq(5.0, has_pose=False) == pytest.approx(dq(1.0, has_pose=False))  # no pose: no horizon, no weight
+    with pytest.raises(ValueError, match="sky_object_weight"):
+        LossConfig(sky_object_weight=0.0)
