@@ -248,12 +248,11 @@ class DAPMLoss(nn.Module):
         """
         pose = targets["pose"]
         known = torch.isfinite(pose).all(dim=1)
-        # the IGD of any valid pose where it is unknown (those images are masked out below)
-        stand_in = torch.tensor([50.0, -45.0, 0.0, 60.0], device=pose.device, dtype=pose.dtype)
-        safe = torch.where(known[:, None], pose, stand_in)
-        above = self.igd.depth(safe.float(), (objects.shape[-2], objects.shape[-1])) >= self.igd.max_depth
-        hard = above & objects & known.view(-1, 1, 1, 1)
-        return 1.0 + (self.config.sky_object_weight - 1.0) * hard.float()
+        above = torch.zeros_like(objects)
+        if known.any():
+            size = (objects.shape[-2], objects.shape[-1])
+            above[known] = self.igd.depth(pose[known].float(), size) >= self.igd.max_depth
+        return 1.0 + (self.config.sky_object_weight - 1.0) * (above & objects).float()
 
     def pose_terms(self, pose: PosePrediction, targets: LossTargets,
                    depth: DepthPrediction | None = None) -> dict[str, Tensor]:
