@@ -6,6 +6,8 @@ STAMP := $(VENV)/.installed
 OUT ?= outputs/quickstart
 CKPT_OUT ?= outputs/checkpoint_demo
 WHEELS ?= wheels
+# the fast tier's pytest workers (pytest-xdist): one per core, at most 4; TEST_WORKERS=0 runs it in one process
+TEST_WORKERS ?= auto
 INT8_CKPT ?= $(lastword $(wildcard $(OUT)/tensorboard/version_*/checkpoints/best-*.ckpt))
 
 .PHONY: install demo test test-all bench bench-gpu wheels install-offline lint clean
@@ -23,9 +25,9 @@ demo: $(STAMP)
 	$(BIN)/python -m dapm_lightning.tools.quickstart $(if $(CKPT),--out $(CKPT_OUT) --checkpoint $(CKPT),--out $(OUT))
 
 test: $(STAMP)
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --maxprocesses 4
 
-test-all: test  # the README's fast tier first, then the slow tier
+test-all: test  # the README's fast tier first, then the slow tier (in one process: its tests start their own)
 	$(BIN)/python -m pytest -q -m slow
 
 # benchmarks/ beside the package (not in the wheel), run from the repository root

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import shutil
 import signal
 import tempfile
@@ -10,6 +11,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+import torch
 
 from dapm_lightning.data.synthetic import generate_uapd, render_scene, sample_scene
 from dapm_lightning.geometry import MAX_DEPTH_M, depth_to_grey
@@ -17,12 +19,29 @@ from dapm_lightning.training.lightning_cli import run_lightning_cli
 
 TINY_HW = (24, 40)  # non-square, so an H/W swap fails
 
+
+def _threads_per_worker() -> int | None:
+    """Under pytest-xdist (``make test``), the cores shared out among the workers; None in one process."""
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "0"))
+    if workers < 2:
+        return None
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    return max(1, cores // workers)
+
+
+# N workers each with every core would run N times more threads than there are cores: this worker's share, for
+# torch here and for the processes its tests start
+if (_THREADS := _threads_per_worker()) is not None:
+    torch.set_num_threads(_THREADS)
+    os.environ["OMP_NUM_THREADS"] = str(_THREADS)
+
 # Ctrl-C as in a terminal: a suite started as a background job inherits SIGINT ignored, and so would the processes
 # the Ctrl-C tests start; Python's own handler here gives this process and (reset on exec) its children the default
 signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 SUITE_DISK_GIB = 1.5  # the peak of the fast or the slow tier: checkpoints of 190 MB, a passed test's folder removed
+WORKER_DISK_GIB = 0.5  # each pytest-xdist worker past the first (the fast tier's peak: 1.3 GB in one, 1.5 GB in two)
 
 
 def _free_temporary_disk(config) -> tuple[Path, float]:
@@ -34,16 +53,26 @@ def _free_temporary_disk(config) -> tuple[Path, float]:
 
 def pytest_report_header(config) -> str:
     folder, free = _free_temporary_disk(config)
-    return f"free disk for temporary files ({folder}): {free:.1f} GiB (the suite needs ~{SUITE_DISK_GIB})"
+    return f"free disk for temporary files ({folder}): {free:.1f} GiB (the suite needs ~{_suite_disk_gib(config):.1f})"
+
+
+def _suite_disk_gib(config) -> float:
+    """The peak for this run: each pytest-xdist worker holds its own session fixtures and running test."""
+    workers = int(config.getoption("numprocesses", None) or 1)  # xdist has resolved "auto" to a count here
+    return SUITE_DISK_GIB + WORKER_DISK_GIB * (max(1, workers) - 1)
 
 
 def pytest_configure(config) -> None:
     """Too little disk is named up front: "no space left" failures are then the machine, not the code."""
+    if "PYTEST_XDIST_WORKER" in os.environ:
+        return  # checked once, by the process that started the workers
     folder, free = _free_temporary_disk(config)
-    if free < SUITE_DISK_GIB:
+    need = _suite_disk_gib(config)
+    if free < need:
         config.issue_config_time_warning(pytest.PytestConfigWarning(
-            f"only {free:.1f} GiB free in {folder}; the suite needs ~{SUITE_DISK_GIB} GiB at its peak: free space "
-            "there, or point TMPDIR (or --basetemp) at a larger disk"), stacklevel=2)
+            f"only {free:.1f} GiB free in {folder}; the suite needs ~{need:.1f} GiB at its peak: free space "
+            "there, point TMPDIR (or --basetemp) at a larger disk, or run the tests in one process (make test TEST_WORKERS=0)"),
+            stacklevel=2)
 
 
 def write_pair(root: Path, split: str, name: str, pose, seed: int = 0, size=TINY_HW) -> None:
