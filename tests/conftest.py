@@ -71,7 +71,7 @@ def pytest_configure(config) -> None:
     if free < need:
         config.issue_config_time_warning(pytest.PytestConfigWarning(
             f"only {free:.1f} GiB free in {folder}; the suite needs ~{need:.1f} GiB at its peak: free space there, "
-            "point TMPDIR (or --basetemp) at a larger disk, or run the tests in one process (make test TEST_WORKERS=0)"),
+            "point TMPDIR (or --basetemp) at a larger disk, or test in one process (make test TEST_WORKERS=0)"),
             stacklevel=2)
 
 
