@@ -63,6 +63,12 @@ class DAPMDataModule(L.LightningDataModule):
                  image_dtype: Literal["float32", "uint8"] = "uint8", eval_batch_size: int | None = None,
                  seed: int = 0, augmentation: Augmentation = Augmentation()) -> None:  # noqa: B008 (frozen)
         super().__init__()
+        counts = (("batch_size", batch_size, 1, 8), ("eval_batch_size", eval_batch_size, 1, 8),
+                  ("num_workers", num_workers, 0, 2))
+        for name, value, least, example in counts:
+            if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < least):
+                raise ValueError(f"data.init_args.{name}: {value!r}, but it must be a whole number of at least "
+                                 f"{least}.\nFix: e.g. --data.init_args.{name} {example}")
         self.batch_size, self.num_workers = batch_size, num_workers
         self.pin_memory, self.persistent_workers = pin_memory, persistent_workers and num_workers > 0
         self.augment, self.image_dtype = augment, image_dtype

@@ -11,6 +11,7 @@ valid options and exit status 2 (:class:`~dapm_lightning.training.lightning_cli.
 
 from __future__ import annotations
 
+import errno
 import os
 import re
 import sys
@@ -21,6 +22,15 @@ DEBUG_FLAG = "--debug"
 DEBUG_ENV = "DAPM_DEBUG"
 EXIT_ERROR = 1
 EXIT_INTERRUPTED = 130
+_OUTPUT_FIX = "write to another folder (the command's --out; fit and test: --trainer.default_root_dir)"
+_WRITE_ERRORS = {
+    errno.EROFS: ("on a read-only file system", _OUTPUT_FIX),
+    errno.ENOSPC: ("no space left on its disk", f"free space there, or {_OUTPUT_FIX}"),
+    errno.EACCES: ("permission denied", f"check its permissions (ls -ld); for outputs, {_OUTPUT_FIX}"),
+    errno.ENOTDIR: ("a part of this path is a file, not a folder", f"{_OUTPUT_FIX}, or move that file away"),
+    errno.EEXIST: ("a file, where a folder is needed", f"{_OUTPUT_FIX}, or move that file away"),
+}
+"""OS errors of writing outputs, by errno: (what happened to the path, the fix)."""
 _PATH_ERRORS = (FileNotFoundError, NotADirectoryError, IsADirectoryError, PermissionError)
 _WORKER_TAIL = re.compile(r"^(?:[\w.]+\.)?(\w*(?:Error|Exception)): ", re.MULTILINE)
 
@@ -68,9 +78,25 @@ def _end_progress_line(stream: Any) -> None:
         print(file=stream)
 
 
+def _union_cause(message: str) -> str | None:
+    """The error of the class that was meant, from jsonargparse's report on a union that refused a value.
+
+    ``data`` is a union (a data module or None): a data module refusing its settings is reported as neither type
+    fitting, its own message in the middle. None for any other message.
+    """
+    if not message.startswith("Does not validate against any of the Union subtypes"):
+        return None
+    errors = message.partition("\nErrors:\n")[2].partition("\nGiven value")[0]
+    causes = ["\n".join(line.strip() for line in c.strip().splitlines())
+              for c in re.split(r"^  - ", errors, flags=re.MULTILINE) if c.strip()]
+    meant = [c for c in causes if not c.startswith("Expected a <class 'NoneType'>")]
+    return meant[0] if meant else None
+
+
 def describe(error: BaseException) -> tuple[str, bool]:
     """``(message, expected)`` for an exception: ``expected`` is False for what looks like a bug."""
     name, message = _unwrap(error)
+    message = _union_cause(message) or message
     if _is_dataset_error(error, name):
         fix = getattr(error, "fix", None) or (
             "Fix: correct or remove the files listed (`dapm-lightning doctor ROOT` reports on a whole data set), or "
@@ -82,6 +108,9 @@ def describe(error: BaseException) -> tuple[str, bool]:
         return (f"{name}: {message}\nFix: the backbone's pretrained (ImageNet) weights could not be downloaded (no "
                 "internet here?): pass --model.net.weights_path FILE with the weights saved on a machine that has it, "
                 "or --model.net.pretrained false to train from random weights (docs/model.md)."), True
+    if isinstance(error, OSError) and error.errno in _WRITE_ERRORS and error.filename:
+        what, fix = _WRITE_ERRORS[error.errno]
+        return f"{error.filename}: {what}.\nFix: {fix}", True
     if isinstance(error, _PATH_ERRORS):
         fix = f"Fix: check the path (relative paths start from the current directory, {os.getcwd()})."
         return (message if "Fix" in message else f"{message}\n{fix}"), True

@@ -19,6 +19,7 @@ Settings can come from a YAML file (--config FILE; --print_config shows one).
 
 from __future__ import annotations
 
+import errno
 import os
 import shutil
 import tempfile
@@ -182,13 +183,24 @@ def check_export_size(height: int | None, width: int | None) -> None:
 
 
 def check_export_path(out: Path, ckpt_path: Path) -> None:
-    """Refuse an ``--out`` that is a folder, does not end in .onnx, or is the checkpoint itself."""
+    """Refuse an ``--out`` where no model can be written, before the export's minutes.
+
+    A folder, a name not ending in .onnx, the checkpoint itself, a path under a file, a read-only or unwritable folder.
+    """
     if out.is_dir():
         raise ValueError(f"--out {out} is a folder.\nFix: give the file to write, e.g. --out "
                          f"{out / (ckpt_path.stem + '.onnx')}")
     if out.suffix.lower() != ".onnx" or out.resolve() == ckpt_path.resolve():
         raise ValueError(f"--out {out}: an exported model is written to a file ending in .onnx (an existing one "
                          f"is replaced, and nothing else is).\nFix: --out {out.with_suffix('.onnx')}")
+    folder = out.parent
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    if not folder.is_dir():  # before the export's minutes, not after
+        raise NotADirectoryError(errno.ENOTDIR, os.strerror(errno.ENOTDIR), str(folder))
+    if not os.access(folder, os.W_OK):
+        code = errno.EROFS if os.statvfs(folder).f_flag & os.ST_RDONLY else errno.EACCES
+        raise OSError(code, os.strerror(code), str(folder))
 
 
 def _move_exported(staged: Path, final: Path) -> None:

@@ -406,6 +406,15 @@ def _refused_globals(source: str | Path | bytes) -> list[str]:
     return [name for name in found if name not in allowed]
 
 
+def _folder_not_checkpoint(folder: Path) -> str:
+    """What to say when a folder is given as a checkpoint: the checkpoints below it, the latest first."""
+    found = sorted(folder.rglob("*.ckpt"), key=lambda p: p.stat().st_mtime, reverse=True)
+    if not found:
+        return f"{folder}: a folder, not a checkpoint file, and no *.ckpt is below it.\nFix: give a checkpoint file."
+    listed = ", ".join(str(p) for p in found[:3]) + (f" ({len(found)} in all)" if len(found) > 3 else "")
+    return f"{folder}: a folder, not a checkpoint file; below it: {listed}.\nFix: give one of them, e.g. {found[0]}"
+
+
 def read_checkpoint(path: str | Path, map_location: Any = "cpu") -> dict[str, Any]:
     """Load a checkpoint safely: ``weights_only=True`` with :data:`SAFE_GLOBALS`, from any kind of path.
 
@@ -421,6 +430,7 @@ def read_checkpoint(path: str | Path, map_location: Any = "cpu") -> dict[str, An
 
     Raises:
         FileNotFoundError: no such local file.
+        IsADirectoryError: a folder that is not a split checkpoint (naming the checkpoints below it).
         UnsafeCheckpointError: the file holds pickled objects that could run code (refused, nothing run).
         CheckpointReadError: the file is damaged or not a PyTorch file (``not a readable checkpoint``).
         CheckpointFetchError: a remote file that cannot be fetched.
@@ -432,6 +442,8 @@ def read_checkpoint(path: str | Path, map_location: Any = "cpu") -> dict[str, An
         source = join_split_checkpoint(path)
     else:
         source = local_path(path)
+        if source.is_dir():
+            raise IsADirectoryError(_folder_not_checkpoint(source))
         if not source.is_file():
             raise FileNotFoundError(f"{path}: no such checkpoint file")
     try:

@@ -71,6 +71,9 @@ _GROUP_OPTION = re.compile(r"(?:Group|Subcommand) '(?P<group>[\w.]+)' does not a
 _INIT_ARG = re.compile(r"Parser key \"(?P<key>[\w.]+)\":(?:.|\n)*?"
                        r"Problem with given class_path '(?P<class_path>[\w.]+)':"
                        r"\s*(?:Option|Key) '(?P<name>\w+)' is not (?:accepted|expected)")
+_INIT_VALUE = re.compile(r"Parser key \"(?P<key>[\w.]+)\":(?:.|\n)*?"
+                         r"Problem with given class_path '(?P<class_path>[\w.]+)':"
+                         r"\s*Parser key \"(?P<name>\w+)\":\s*(?P<problem>[^\n]+)")
 
 
 class DAPMArgumentParser(LightningArgumentParser):
@@ -176,6 +179,9 @@ def short_parse_error(message: str, options: Sequence[str], subcommand: str | No
         unknown = [f"--{key}.init_args.{name}"]
         options = _init_options(class_path, key)
         message = f"{key}: {class_path.rpartition('.')[2]} has no setting {name!r} ({unknown[0]})"
+    elif match := _INIT_VALUE.search(message):  # a value of the wrong type under a class_path (data: the union)
+        problem = re.sub(r"Expected a <class '(\w+)'>", r"expected \1", match.group("problem").strip())
+        message = f"--{match.group('key')}.init_args.{match.group('name')}: {problem}"
     lines = [f"error: {message.strip()}"]
     for option in unknown:
         found = closest(option, options)

@@ -74,6 +74,23 @@ def test_changed_settings_rerender_and_are_recorded(tmp_path):
         generate_uapd(out, train=2, val=1, size=16, seed=2, workers=1, shard=(0, 2))
 
 
+def test_settings_that_cannot_render_leave_the_old_set_whole(tmp_path, monkeypatch):
+    from dapm_lightning.data.synthetic import generate
+
+    out = generate_uapd(tmp_path / "d", train=2, val=1, size=16, seed=1, workers=1)
+    before = {p: p.read_bytes() for p in sorted(out.rglob("*")) if p.is_file()}
+    with pytest.raises(ValueError, match="size 100000x100000: each side must be 1 to 8192 pixels"):
+        generate_uapd(out, train=1, val=0, size=100000, seed=1, workers=1)
+
+    def out_of_memory(*args, **kwargs):
+        raise MemoryError("can't allocate memory")
+
+    monkeypatch.setattr(generate, "render_sample", out_of_memory)  # e.g. a size this machine cannot hold
+    with pytest.raises(MemoryError):
+        generate_uapd(out, train=1, val=0, size=4096, seed=1, workers=1)
+    assert {p: p.read_bytes() for p in sorted(out.rglob("*")) if p.is_file()} == before
+
+
 def test_family_weights_are_followed():
     assert normalize_families("downtown=3,forest=1") == {"downtown": 0.75, "forest": 0.25}
     assert set(normalize_families(None)) == set(FAMILIES)

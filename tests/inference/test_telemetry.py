@@ -269,6 +269,18 @@ def test_csv_columns_in_any_order_bom_and_extra_column_warning(tmp_path):
     assert len(caught) == 1 and "lat" in str(caught[0].message)
 
 
+def test_csv_in_utf16_is_read_and_other_encodings_are_errors_naming_file_and_line(tmp_path):
+    text = "name,height_m,pitch_deg\nvue_élevée.jpg,40,-45\n"
+    utf16 = tmp_path / "excel_unicode.csv"
+    utf16.write_bytes(text.encode("utf-16"))  # with its byte-order mark, as a spreadsheet's "Unicode text"
+    assert_pose(read_telemetry_csv(utf16)["vue_élevée"], [40.0, -45.0, NAN, NAN])
+    latin1 = tmp_path / "latin1.csv"
+    latin1.write_bytes(text.encode("latin-1"))  # é is one byte 0xe9, not UTF-8
+    with pytest.raises(TelemetryError, match=r"latin1.csv: not UTF-8 text \(byte 0xe9 on line 2\); save it as CSV "
+                                             r"UTF-8"):
+        read_telemetry_csv(latin1)
+
+
 @pytest.mark.parametrize(("cell", "column", "match"), [
     ("abc", "pitch_deg", r"'abc' is not a number"),
     ("0", "height_m", "must be > 0 m"),

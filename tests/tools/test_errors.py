@@ -1,5 +1,6 @@
 """User errors end in a short message naming the file and the fix, exit status 1, and no traceback."""
 
+import errno
 import os
 import subprocess
 import sys
@@ -163,3 +164,25 @@ def test_an_explained_error_about_a_hub_address_keeps_its_own_fix():
     message, expected = describe(CheckpointFetchError(
         "https://huggingface.co/x/y/resolve/main/m.ckpt: cannot be fetched (no network?)\nFix: copy it here."))
     assert expected and "Fix: copy it here." in message and "pretrained" not in message
+
+
+@pytest.mark.parametrize(("code", "what"), [
+    (errno.EROFS, "on a read-only file system"),
+    (errno.ENOSPC, "no space left on its disk"),
+    (errno.EACCES, "permission denied"),
+    (errno.ENOTDIR, "a part of this path is a file, not a folder"),
+    (errno.EEXIST, "a file, where a folder is needed"),
+])
+def test_os_errors_of_writing_name_the_path_what_happened_and_the_fix(code, what):
+    message, expected = describe(OSError(code, os.strerror(code), "/runs/out/model.onnx"))
+    assert message.startswith(f"/runs/out/model.onnx: {what}.\nFix: ") and expected, message
+    assert "--out" in message and "Errno" not in message
+
+
+def test_synth_into_a_file_and_export_under_a_file_say_so(capsys, tmp_path):
+    a_file = tmp_path / "notes.txt"
+    a_file.write_text("kept")
+    code, err = run_main(["synth", "--out", str(a_file / "data"), "--train", "1", "--val", "0", "--size", "8",
+                          "--workers", "1", "--quiet"], capsys)
+    assert code == 1 and f"{a_file}" in err and "a part of this path is a file, not a folder" in err, err
+    assert "Fix: write to another folder" in err and a_file.read_text() == "kept"

@@ -412,6 +412,13 @@ def test_a_refused_pickle_and_a_damaged_file_get_their_own_messages(tmp_path):
         read_checkpoint(cut)
     with pytest.raises(FileNotFoundError, match="missing.ckpt: no such checkpoint file"):
         read_checkpoint(tmp_path / "missing.ckpt")
+    run = tmp_path / "run"
+    (run / "checkpoints").mkdir(parents=True)
+    with pytest.raises(IsADirectoryError, match="run: a folder, not a checkpoint file, and no \\*.ckpt is below it"):
+        read_checkpoint(run)
+    save_atomically({"x": torch.ones(2)}, run / "checkpoints" / "last.ckpt")
+    with pytest.raises(IsADirectoryError, match=r"below it: .*last.ckpt.\nFix: give one of them, e.g. .*last.ckpt"):
+        read_checkpoint(run)
     save_atomically({"x": torch.ones(2)}, f"file://{tmp_path / 'url.ckpt'}")
     assert read_checkpoint(f"file://{tmp_path / 'url.ckpt'}")["x"].sum() == 2
 

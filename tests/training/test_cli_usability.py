@@ -105,6 +105,32 @@ def test_unknown_options_are_a_few_lines_with_the_closest(capsys, tmp_path, monk
     assert code == 2 and "trainer.max_stpes" in err and "did you mean --trainer.max_steps?" in err, err
 
 
+@pytest.mark.parametrize(("option", "value", "expected"), [
+    ("batch_size", "two", "error: --data.init_args.batch_size: expected int. Got value: two"),
+    ("on_bad_file", "skipp", "error: --data.init_args.on_bad_file: Expected a typing.Literal['raise', 'skip']. Got "
+                             "value: skipp"),
+])
+def test_a_data_setting_of_the_wrong_type_is_one_line_naming_it(option, value, expected, capsys, tmp_path,
+                                                                 monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    config = tmp_path / "wrong.yaml"
+    config.write_text(f"data:\n  init_args:\n    {option}: {value}\n")
+    for args in ([f"--data.init_args.{option}", value], ["--config", str(config)]):
+        code, err = run_main(["fit", "--config", str(QUICKSTART), *args], capsys)
+        assert code == 2 and expected in err and len(err.splitlines()) <= 3 and "Union" not in err, err
+
+
+@pytest.mark.parametrize(("option", "value"), [("batch_size", "-2"), ("eval_batch_size", "0"), ("num_workers", "-1")])
+def test_a_data_setting_out_of_range_is_refused_before_anything_is_rendered(option, value, capsys, tmp_path,
+                                                                            monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    code, err = run_main(["fit", "--config", str(QUICKSTART), f"--data.init_args.{option}", value,
+                          "--data.init_args.root", str(tmp_path / "never_rendered")], capsys)
+    assert code == 1 and f"error: data.init_args.{option}: {value}, but it must be a whole number" in err, err
+    assert f"Fix: e.g. --data.init_args.{option}" in err and "Union" not in err and "Namespace" not in err, err
+    assert not (tmp_path / "never_rendered").exists()
+
+
 @pytest.mark.parametrize("subcommand", ["fit", "test"])
 def test_a_config_that_is_not_yaml_is_named_with_its_line(subcommand, capsys, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)

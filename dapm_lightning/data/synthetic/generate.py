@@ -26,6 +26,8 @@ from dapm_lightning.geometry.depth_codec import depth_to_grey
 GENERATOR_VERSION = 4
 """Bumped whenever the same settings would render different pictures (so caches re-render)."""
 _SPLIT_IDS = {"train": 0, "val": 1, "test": 2}
+MAX_IMAGE_SIDE = 8192
+"""The largest image side rendered (the network's, ``inference.onnx.MAX_EXPORT_SIDE``)."""
 _THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
 
@@ -151,6 +153,8 @@ def generate_uapd(out: str | Path, *, train: int = 200, val: int = 50, size: int
     """
     out = Path(out)
     hw = (size, size) if isinstance(size, int) else (int(size[0]), int(size[1]))
+    if not all(1 <= side <= MAX_IMAGE_SIDE for side in hw):
+        raise ValueError(f"size {hw[0]}x{hw[1]}: each side must be 1 to {MAX_IMAGE_SIDE} pixels")
     chosen = {"train": train, "val": val, "size": hw, "seed": seed, "families": families, "effects": effects,
               "distortion": distortion, "max_depth": max_depth}
     info = settings(**chosen)
@@ -159,17 +163,20 @@ def generate_uapd(out: str | Path, *, train: int = 200, val: int = 50, size: int
     if stale and shard[1] > 1:
         raise ValueError(f"{out} holds a data set rendered with other settings ({out / 'synth.json'}); "
                          "remove it or choose another folder before rendering shards into it")
+    jobs = [(out, split, i, seed, hw, weights, effects, distortion, max_depth)
+            for split, count in (("train", train), ("val", val)) for i in range(count)]
+    jobs = [jobs[i] for i in shard_range(len(jobs), shard)]
     if stale:
+        if jobs:  # one image rendered first: settings that cannot render (memory) fail with the old set still whole
+            _, split, index, *_ = jobs[0]
+            render_sample(seed, split, index, hw, weights, effects, distortion, max_depth)
         for split in ("train", "val"):
             for sub in ("rgb", "depth"):
                 for path in (out / split / sub).glob("synth_*.png"):
                     path.unlink()
-    jobs = []
-    for split, count in (("train", train), ("val", val)):
+    for split in ("train", "val"):
         for sub in ("rgb", "depth"):
             (out / split / sub).mkdir(parents=True, exist_ok=True)
-        jobs += [(out, split, i, seed, hw, weights, effects, distortion, max_depth) for i in range(count)]
-    jobs = [jobs[i] for i in shard_range(len(jobs), shard)]
     workers = workers or min(os.cpu_count() or 1, 8)
     if workers > 1 and len(jobs) > 1:
         saved = {k: os.environ.get(k) for k in _THREAD_VARS}

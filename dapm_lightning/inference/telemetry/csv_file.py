@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import codecs
 import csv
+import io
 import math
 import warnings
 from pathlib import Path
@@ -46,6 +48,19 @@ def _show(t: PoseTelemetry) -> str:
     return ", ".join(f"{k}={'' if math.isnan(v) else f'{v:g}'}" for k, v in zip(POSE_FIELDS, t.values().tolist()))
 
 
+def _csv_text(path: Path) -> str:
+    """The file as text: UTF-8 (a byte-order mark allowed), or UTF-16 with its mark (Excel's "Unicode text")."""
+    data = path.read_bytes()
+    if data.startswith((codecs.BOM_UTF16_LE, codecs.BOM_UTF16_BE)):
+        return data.decode("utf-16")
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as error:
+        line = data[:error.start].count(b"\n") + 1
+        raise TelemetryError(f"{path}: not UTF-8 text (byte 0x{data[error.start]:02x} on line {line}); save it as "
+                             "CSV UTF-8 (in a spreadsheet: CSV UTF-8, comma-delimited)") from None
+
+
 def read_telemetry_csv(path: StrPath) -> dict[str, PoseTelemetry]:
     """Per-image telemetry from a CSV with header ``name,height_m,pitch_deg,roll_deg,fov_deg``, keyed by stem.
 
@@ -57,11 +72,12 @@ def read_telemetry_csv(path: StrPath) -> dict[str, PoseTelemetry]:
         TelemetryError: no ``name`` column (names the expected header); a value that is not a number or is
             physically impossible (height <= 0 or not finite, |pitch| > 180, |roll| > 180, fov outside
             (0, 180)), naming the file, line and column; an empty name; the same name twice with different
-            values (naming both lines).
+            values (naming both lines); text that is neither UTF-8 nor UTF-16 with a byte-order mark (naming the
+            line).
     """
     path = Path(path)
     header_hint = f"the first line must be the header `{','.join(CSV_COLUMNS)}` (value columns optional)"
-    with path.open(newline="", encoding="utf-8-sig") as stream:
+    with io.StringIO(_csv_text(path), newline="") as stream:
         reader = csv.reader(stream)
         header = next(reader, None)
         if header is None:
