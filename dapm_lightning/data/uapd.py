@@ -278,7 +278,8 @@ class UAPDDataset(SkipsBadFiles, torch.utils.data.Dataset[Sample]):
         rgb_dir, depth_dir = split_dir / self.rgb_dir, split_dir / self.depth_dir
         layout = f"ROOT/{self.split}/{{{self.rgb_dir},{self.depth_dir}}}/NAME.png"
         if not self.root.is_dir():
-            raise DatasetError(self.root, [f"{self.root}: no such folder"], fix=(
+            what = "a file, not a folder" if self.root.exists() else "no such folder"
+            raise DatasetError(self.root, [f"{self.root}: {what}"], fix=(
                 f"Fix: give data.init_args.root the folder of a UAPD-format set ({layout}; relative paths start "
                 "from the current directory); `dapm-lightning synth --out ROOT` renders a synthetic one."))
         for folder in (split_dir, rgb_dir, depth_dir):

@@ -326,7 +326,8 @@ def doctor(root: Path, splits: list[str] | None = None, depth_kind: DepthKind = 
     root = Path(root)
     problem = None
     if not root.is_dir():
-        problem = f"{root}: no such folder (give the data set's root, which holds train/ and val/)"
+        what = "a file, not a folder" if root.exists() else "no such folder"
+        problem = f"{root}: {what} (give the data set's root, which holds train/ and val/)"
     else:
         found = sorted(p.name for p in root.iterdir() if (p / "rgb").is_dir() or (p / "depth").is_dir())
         missing = [split for split in splits or [] if split not in found]

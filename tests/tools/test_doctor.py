@@ -158,6 +158,10 @@ def test_a_root_that_is_not_a_data_set_exits_2(synthetic, tmp_path, capsys):
     with pytest.raises(SystemExit) as info:
         main(["doctor", str(tmp_path / "missing")])
     assert info.value.code == 2 and f"{tmp_path / 'missing'}: no such folder" in capsys.readouterr().err
+    (tmp_path / "notes.txt").write_text("not a data set")
+    with pytest.raises(SystemExit) as info:
+        main(["doctor", str(tmp_path / "notes.txt")])
+    assert info.value.code == 2 and f"{tmp_path / 'notes.txt'}: a file, not a folder" in capsys.readouterr().err
     with pytest.raises(SystemExit) as info:
         main(["doctor", str(synthetic), "--no_such_option", "1"])  # a usage error
     assert info.value.code == 2

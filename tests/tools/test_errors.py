@@ -22,6 +22,11 @@ def test_missing_data_folder(tmp_path, capsys, monkeypatch):
     assert code == 1
     assert f"{tmp_path / 'nowhere'}: no such folder" in err and "Fix: give data.init_args.root" in err
     assert "--debug" in err and "on_bad_file" not in err  # no files to leave out: the root is wrong
+    (tmp_path / "notes.txt").write_text("not a data set")
+    code, err = run_main(["fit", "--config", str(QUICKSTART), "--data.class_path",
+                          "dapm_lightning.data.datamodules.UAPDDataModule", "--data.init_args.root",
+                          str(tmp_path / "notes.txt"), "--trainer.logger", "false"], capsys)
+    assert code == 1 and f"{tmp_path / 'notes.txt'}: a file, not a folder" in err, err
     (tmp_path / "nosplit" / "val" / "rgb").mkdir(parents=True)
     code, err = run_main(["fit", "--config", str(QUICKSTART), "--data.class_path",
                           "dapm_lightning.data.datamodules.UAPDDataModule", "--data.init_args.root",
