@@ -199,7 +199,8 @@ def check_export_path(out: Path, ckpt_path: Path) -> None:
     if not folder.is_dir():  # before the export's minutes, not after
         raise NotADirectoryError(errno.ENOTDIR, os.strerror(errno.ENOTDIR), str(folder))
     if not os.access(folder, os.W_OK):
-        code = errno.EROFS if os.statvfs(folder).f_flag & os.ST_RDONLY else errno.EACCES
+        read_only = hasattr(os, "statvfs") and bool(os.statvfs(folder).f_flag & os.ST_RDONLY)
+        code = errno.EROFS if read_only else errno.EACCES
         raise OSError(code, os.strerror(code), str(folder))
 
 
