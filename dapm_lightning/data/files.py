@@ -33,6 +33,9 @@ except ImportError:  # pragma: no cover  (Windows: no advisory locks; concurrent
 
 _FULL = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
 _DENIED = (errno.EROFS, errno.EACCES, errno.EPERM)
+_NOT_A_FOLDER = (errno.ENOTDIR, errno.EEXIST)  # a file where the path needs a folder
+WRITE_ERRNOS = (*_FULL, *_DENIED, *_NOT_A_FOLDER)
+"""The errors of writing a file that :func:`write_error` explains."""
 _TEMP_PREFIX = "."
 _TEMP_SUFFIX = ".tmp"
 
@@ -55,6 +58,8 @@ def _fix(error: OSError) -> str:
         return "free space on that disk, or write to another folder"
     if error.errno in _DENIED:
         return "write to a folder you may write to (this one is read-only or not yours)"
+    if error.errno in _NOT_A_FOLDER:
+        return "a part of the path is a file, not a folder: write to another folder, or move that file away"
     return "check the folder, or write to another one"
 
 
@@ -62,7 +67,8 @@ def _reason(error: OSError) -> str:
     return error.strerror or str(error) or type(error).__name__
 
 
-def _write_error(path: Path, error: OSError) -> WriteError:
+def write_error(path: Path, error: OSError) -> WriteError:
+    """``error`` of writing ``path`` as a :class:`WriteError`: the path, the reason and the fix."""
     if isinstance(error, WriteError):
         return error
     if isinstance(error, FileNotFoundError) and not path.parent.is_dir():
@@ -106,7 +112,7 @@ def open_atomic(path: str | Path, mode: str = "wb", *, durable: bool = False) ->
         except FileExistsError:  # pragma: no cover  (48 random bits taken: draw again)
             continue
         except OSError as error:
-            raise _write_error(path, error) from error
+            raise write_error(path, error) from error
     try:
         handle: IO[Any] = (os.fdopen(fd, "wb") if mode == "wb"
                            else os.fdopen(fd, "w", encoding="utf-8", newline=""))
@@ -123,7 +129,7 @@ def open_atomic(path: str | Path, mode: str = "wb", *, durable: bool = False) ->
         os.replace(temp, path)
     except OSError as error:  # a full disk shows at a write, at the flush or at the close
         _remove(temp)
-        raise _write_error(path, error) from error
+        raise write_error(path, error) from error
     except BaseException:
         _remove(temp)
         raise
@@ -190,7 +196,7 @@ def exclusive_lock(path: str | Path) -> Iterator[Path]:
         try:
             fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o666)
         except OSError as error:
-            raise _write_error(lock, error) from error
+            raise write_error(lock, error) from error
         try:
             fcntl.flock(fd, fcntl.LOCK_EX)
             try:

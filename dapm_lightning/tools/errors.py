@@ -11,26 +11,17 @@ valid options and exit status 2 (:class:`~dapm_lightning.training.lightning_cli.
 
 from __future__ import annotations
 
-import errno
 import os
 import re
 import sys
 from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import Any, TextIO
 
 DEBUG_FLAG = "--debug"
 DEBUG_ENV = "DAPM_DEBUG"
 EXIT_ERROR = 1
 EXIT_INTERRUPTED = 130
-_OUTPUT_FIX = "write to another folder (the command's --out; fit and test: --trainer.default_root_dir)"
-_WRITE_ERRORS = {
-    errno.EROFS: ("on a read-only file system", _OUTPUT_FIX),
-    errno.ENOSPC: ("no space left on its disk", f"free space there, or {_OUTPUT_FIX}"),
-    errno.EACCES: ("permission denied", f"check its permissions (ls -ld); for outputs, {_OUTPUT_FIX}"),
-    errno.ENOTDIR: ("a part of this path is a file, not a folder", f"{_OUTPUT_FIX}, or move that file away"),
-    errno.EEXIST: ("a file, where a folder is needed", f"{_OUTPUT_FIX}, or move that file away"),
-}
-"""OS errors of writing outputs, by errno: (what happened to the path, the fix)."""
 _PATH_ERRORS = (FileNotFoundError, NotADirectoryError, IsADirectoryError, PermissionError)
 _WORKER_TAIL = re.compile(r"^(?:[\w.]+\.)?(\w*(?:Error|Exception)): ", re.MULTILINE)
 
@@ -108,9 +99,11 @@ def describe(error: BaseException) -> tuple[str, bool]:
         return (f"{name}: {message}\nFix: the backbone's pretrained (ImageNet) weights could not be downloaded (no "
                 "internet here?): pass --model.net.weights_path FILE with the weights saved on a machine that has it, "
                 "or --model.net.pretrained false to train from random weights (docs/model.md)."), True
-    if isinstance(error, OSError) and error.errno in _WRITE_ERRORS and error.filename:
-        what, fix = _WRITE_ERRORS[error.errno]
-        return f"{error.filename}: {what}.\nFix: {fix}", True
+    if isinstance(error, OSError) and error.filename and not isinstance(error, FileNotFoundError):
+        from dapm_lightning.data import files  # here, not at the top: --help imports no data code
+
+        if error.errno in files.WRITE_ERRNOS:  # a full or read-only disk, a folder not ours, a file in the way
+            return str(files.write_error(Path(error.filename), error)), True
     if isinstance(error, _PATH_ERRORS):
         fix = f"Fix: check the path (relative paths start from the current directory, {os.getcwd()})."
         return (message if "Fix" in message else f"{message}\n{fix}"), True

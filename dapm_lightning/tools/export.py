@@ -19,7 +19,6 @@ Settings can come from a YAML file (--config FILE; --print_config shows one).
 
 from __future__ import annotations
 
-import errno
 import os
 import shutil
 import tempfile
@@ -27,6 +26,7 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
+from dapm_lightning.data.files import check_folder_writable
 from dapm_lightning.inference.inputs import SIZE_MULTIPLE, checkpoint_network_size, network_size
 from dapm_lightning.inference.onnx import (
     CHECK_DRAW,
@@ -193,15 +193,7 @@ def check_export_path(out: Path, ckpt_path: Path) -> None:
     if out.suffix.lower() != ".onnx" or out.resolve() == ckpt_path.resolve():
         raise ValueError(f"--out {out}: an exported model is written to a file ending in .onnx (an existing one "
                          f"is replaced, and nothing else is).\nFix: --out {out.with_suffix('.onnx')}")
-    folder = out.parent
-    while not folder.exists() and folder != folder.parent:
-        folder = folder.parent
-    if not folder.is_dir():  # before the export's minutes, not after
-        raise NotADirectoryError(errno.ENOTDIR, os.strerror(errno.ENOTDIR), str(folder))
-    if not os.access(folder, os.W_OK):
-        read_only = hasattr(os, "statvfs") and bool(os.statvfs(folder).f_flag & os.ST_RDONLY)
-        code = errno.EROFS if read_only else errno.EACCES
-        raise OSError(code, os.strerror(code), str(folder))
+    check_folder_writable(out.parent, "--out")  # before the export's minutes, not after
 
 
 def _move_exported(staged: Path, final: Path) -> None:

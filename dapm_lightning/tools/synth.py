@@ -8,6 +8,7 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
+from dapm_lightning.data.files import check_folder_writable
 from dapm_lightning.data.synthetic import FAMILIES, generate_uapd, normalize_families, shard_range
 from dapm_lightning.geometry.constants import MAX_DEPTH_M
 from dapm_lightning.tools.progress import progress_bar
@@ -77,6 +78,7 @@ def synth_main(argv: Sequence[str]) -> None:
         parser.error("--train and --val must be >= 0")
     size = args.size[0] if len(args.size) == 1 else (args.size[0], args.size[1])
     part = shard_range(args.train + args.val, args.shard)
+    check_folder_writable(args.out, "--out")
     start = time.perf_counter()
     try:
         with progress_bar(len(part), quiet=args.quiet, what="rendering") as bar:

@@ -68,12 +68,10 @@ EXIT_USAGE = 2
 _UNKNOWN = re.compile(r"unrecognized arguments: (?P<args>.*)")
 _GROUP_OPTION = re.compile(r"(?:Group|Subcommand) '(?P<group>[\w.]+)' does not accept (?:nested key|option) "
                            r"'(?P<key>[\w.]+)'")
-_INIT_ARG = re.compile(r"Parser key \"(?P<key>[\w.]+)\":(?:.|\n)*?"
-                       r"Problem with given class_path '(?P<class_path>[\w.]+)':"
-                       r"\s*(?:Option|Key) '(?P<name>\w+)' is not (?:accepted|expected)")
-_INIT_VALUE = re.compile(r"Parser key \"(?P<key>[\w.]+)\":(?:.|\n)*?"
-                         r"Problem with given class_path '(?P<class_path>[\w.]+)':"
-                         r"\s*Parser key \"(?P<name>\w+)\":\s*(?P<problem>[^\n]+)")
+_IN_CLASS = r"Parser key \"(?P<key>[\w.]+)\":(?:.|\n)*?Problem with given class_path '(?P<class_path>[\w.]+)':"
+"""jsonargparse's report on a setting under a ``class_path`` (``data.init_args.NAME``)."""
+_INIT_ARG = re.compile(_IN_CLASS + r"\s*(?:Option|Key) '(?P<name>\w+)' is not (?:accepted|expected)")
+_INIT_VALUE = re.compile(_IN_CLASS + r"\s*Parser key \"(?P<name>\w+)\":\s*(?P<problem>[^\n]+)")
 
 
 class DAPMArgumentParser(LightningArgumentParser):

@@ -104,7 +104,8 @@ def test_export_refuses_an_out_it_would_wrongly_replace_and_sizes_it_cannot_expo
     for argv, message in ((["--out", str(ckpt)], "model.ckpt: an exported model is written to a file ending in .onnx"),
                           (["--out", str(tmp_path / "notes.txt")], "Fix: --out " + str(tmp_path / "notes.onnx")),
                           (["--out", str(tmp_path)], "is a folder.\nFix: give the file to write"),
-                          (["--out", str(ckpt / "m.onnx")], f"{ckpt}: a part of this path is a file, not a folder"),
+                          (["--out", str(ckpt / "m.onnx")],
+                           f"{ckpt}: cannot be written (it is a file, not a folder)\nFix: give another output folder"),
                           (["--height", "16"], "--height 16: an exported model takes sides of 32 to 8192"),
                           (["--width", "9000"], "--width 9000: an exported model takes sides of 32 to 8192")):
         with pytest.raises(SystemExit) as info:
