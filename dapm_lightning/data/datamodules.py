@@ -77,6 +77,7 @@ class DAPMDataModule(L.LightningDataModule):
         self.seed = seed
         self._resume_position: dict[str, int] | None = None
         self.datasets: dict[str, Dataset[Sample]] = {}
+        self._read_early: dict[tuple[str, bool], Dataset[Sample]] = {}
         self.skipped_while_loading: list[str] = []
         """Files that failed after the scan and were left out (``on_bad_file: skip``), in this process, once each."""
 
@@ -92,15 +93,31 @@ class DAPMDataModule(L.LightningDataModule):
         return train_transform(self.augmentation, getattr(self, "depth_kind", "range"),
                                getattr(self, "max_depth", MAX_DEPTH_M))
 
+    def _stage_splits(self, stage: str | None) -> list[tuple[str, str, bool]]:
+        """``(key in datasets, folder split, augmented)`` of each data set a stage uses."""
+        splits = [("train", "train", True, ("fit",)), ("val", "val", False, ("fit", "validate")),
+                  ("test", self.test_split, False, ("test",)), ("predict", self.test_split, False, ("predict",))]
+        return [(key, split, train) for key, split, train, stages in splits if stage is None or stage in stages]
+
     def setup(self, stage: str | None = None) -> None:
-        if stage in (None, "fit"):
-            self.datasets["train"] = self.make_dataset("train", True)
-        if stage in (None, "fit", "validate"):
-            self.datasets["val"] = self.make_dataset("val", False)
-        if stage in (None, "test"):
-            self.datasets["test"] = self.make_dataset(self.test_split, False)
-        if stage in (None, "predict"):
-            self.datasets["predict"] = self.make_dataset(self.test_split, False)
+        for key, split, train in self._stage_splits(stage):
+            early = self._read_early.pop((split, train), None)
+            self.datasets[key] = early if early is not None else self.make_dataset(split, train)
+
+    def read_early(self, stage: str) -> None:
+        """Scan the data sets of ``stage`` now (their problems raised now), for :meth:`setup` to use.
+
+        The command line calls it before the trainer starts, so a wrong data root or a broken file stops the run
+        before the loggers create their version folders (an empty ``version_0`` left behind would send the next run
+        to ``version_1``). Data made by :meth:`prepare_data` (the synthetic set) is read in :meth:`setup` only.
+        """
+        if self.reads_prepared_data:
+            return
+        for _, split, train in self._stage_splits(stage):
+            self._read_early[(split, train)] = self.make_dataset(split, train)
+
+    reads_prepared_data = False
+    """True where :meth:`prepare_data` makes the data (it runs in one process per node, after the trainer starts)."""
 
     test_split = "val"
 
@@ -237,6 +254,8 @@ class SyntheticDataModule(UAPDDataModule):
             "families": families, "effects": effects, "distortion": distortion, "max_depth": self.max_depth}
         self.render_workers = render_workers
 
+    reads_prepared_data = True
+
     def prepare_data(self) -> None:
         settings = self.render_settings
         changes = settings_changes(self.root, **settings)  # synth.json records every setting and the version
@@ -269,6 +288,8 @@ class PotsdamDataModule(DAPMDataModule):
         super().__init__(**kwargs)
         self.root, self.crop_size, self.val_fraction, self.split_seed = Path(root), crop_size, val_fraction, split_seed
         self.product, self.ndsm_scale, self.on_bad_file = product, ndsm_scale, on_bad_file
+
+    reads_prepared_data = True
 
     def prepare_data(self) -> None:
         PotsdamCrops(self.root, crop_size=self.crop_size, product=self.product, ndsm_scale=self.ndsm_scale).prepare()

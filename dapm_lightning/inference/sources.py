@@ -79,8 +79,12 @@ def _folder(path: Path) -> tuple[list[tuple[Path, str]], list[str]]:
     images = [_named(p, path) for p in files if file_kind(p) == "image"]
     videos = [p.relative_to(path).as_posix() for p in files if file_kind(p) == "video"]
     if not images:
-        hint = f" (it holds video(s) {', '.join(videos[:3])}: give the video file itself)" if videos else ""
-        raise ValueError(f"{path}: no images ({', '.join(IMAGE_SUFFIXES)}, any case, sub-folders included){hint}")
+        fix = (f"give the video file itself, e.g. {path / videos[0]}" if videos
+               else "give a folder that holds images, an image or a video, a glob such as 'DIR/*.JPG', or a .txt "
+               "list of files")
+        held = f" (it holds video(s) {', '.join(videos[:3])})" if videos else ""
+        raise ValueError(f"{path}: no images ({', '.join(IMAGE_SUFFIXES)}, any case, sub-folders included){held}"
+                         f"\nFix: {fix}")
     notes = []
     if videos:
         notes.append(f"{path}: {len(videos)} video(s) not predicted ({', '.join(videos[:2])}"
@@ -162,8 +166,8 @@ def resolve_sources(sources: Sources) -> tuple[list[SourceFile], list[str]]:
 
     A folder gives its images, sub-folders included (videos in it are noted, not predicted); a glob pattern
     (``**`` recursive) its images and videos; an image or a video file itself; a ``.txt`` file the paths it
-    lists, one a line, relative to its own folder. Raises ``FileNotFoundError`` / ``ValueError`` in one line
-    saying what to give instead.
+    lists, one a line, relative to its own folder. Raises ``FileNotFoundError`` / ``ValueError`` naming the
+    source and saying what to give instead.
     """
     found: list[tuple[Path, str]] = []
     notes: list[str] = []

@@ -10,6 +10,7 @@ from pathlib import Path
 
 from dapm_lightning.data.files import check_folder_writable
 from dapm_lightning.data.synthetic import FAMILIES, generate_uapd, normalize_families, shard_range
+from dapm_lightning.data.synthetic.generate import SynthFolderError
 from dapm_lightning.geometry.constants import MAX_DEPTH_M
 from dapm_lightning.tools.progress import progress_bar
 
@@ -85,6 +86,8 @@ def synth_main(argv: Sequence[str]) -> None:
             out = generate_uapd(args.out, train=args.train, val=args.val, size=size, seed=args.seed,
                                 workers=args.workers, families=args.families, effects=args.effects, shard=args.shard,
                                 distortion=args.distortion, max_depth=args.max_depth, progress=bar.update)
+    except SynthFolderError:
+        raise  # a folder problem, not a wrong option: its message and fix, without the usage
     except ValueError as error:
         parser.error(str(error))
     seconds = time.perf_counter() - start

@@ -388,6 +388,21 @@ class DAPMCLI(LightningCLI):
         resumes = self.config["fit"].get("ckpt_path")
         if isinstance(model, DAPMModule) and model.init_weights is not None and not resumes:
             model.load_initial_weights()
+        self._read_data_early("fit")
+
+    def before_validate(self) -> None:
+        self._read_data_early("validate")
+
+    def before_test(self) -> None:
+        self._read_data_early("test")
+
+    def _read_data_early(self, stage: str) -> None:
+        """Scan the data sets before the trainer starts (:meth:`DAPMDataModule.read_early`).
+
+        A wrong root or a broken file then stops the run before the loggers make their version folders.
+        """
+        if isinstance(self.datamodule, DAPMDataModule):
+            self.datamodule.read_early(stage)
 
     def before_instantiate_classes(self) -> None:
         subcommand = self.config.get("subcommand")

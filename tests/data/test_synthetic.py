@@ -29,6 +29,7 @@ from dapm_lightning.data.synthetic.scene import BUILDING, M_CAR, draw_family
 from dapm_lightning.geometry import MAX_DEPTH_M, depth_to_grey, ideal_ground_depth
 from dapm_lightning.tools.doctor import diagnose_split
 from dapm_lightning.tools.synth import synth_main
+from tests.conftest import run_main
 
 
 def digest(root):
@@ -72,6 +73,22 @@ def test_changed_settings_rerender_and_are_recorded(tmp_path):
     assert info["families"] == {"forest": 1.0} and info["train"] == 2
     with pytest.raises(ValueError, match="other settings"):  # shards never delete another run's files
         generate_uapd(out, train=2, val=1, size=16, seed=2, workers=1, shard=(0, 2))
+
+
+def test_a_folder_of_other_images_is_not_rendered_into(tmp_path, capsys):
+    """A real UAPD set (images, no synth.json) given as --out: refused, nothing added, no usage text."""
+    real = tmp_path / "uapd"
+    (real / "val" / "depth").mkdir(parents=True)
+    photo = real / "val" / "depth" / "h100_p-45_r0_f60.png"
+    photo.write_bytes(b"a real frame")
+    code, err = run_main(["synth", "--out", str(real), "--train", "1", "--val", "1", "--size", "16"], capsys)
+    assert code == 1 and f"{real}: holds 1 image(s) not rendered by the generator (e.g. {photo})" in err, err
+    assert "Fix: render into an empty folder" in err and "usage" not in err
+    assert [p for p in real.rglob("*") if p.is_file()] == [photo] and photo.read_bytes() == b"a real frame"
+    out = generate_uapd(tmp_path / "crashed", train=1, val=1, size=16, seed=1, workers=1)
+    (out / "synth.json").unlink()  # a render cut short: its own images only, taken over
+    generate_uapd(out, train=1, val=1, size=16, seed=1, workers=1)
+    assert len(list(out.rglob("*.png"))) == 4 and (out / "synth.json").is_file()
 
 
 def test_settings_that_cannot_render_leave_the_old_set_whole(tmp_path, monkeypatch):

@@ -64,7 +64,10 @@ def test_several_sources_and_lists_keep_names_unique(sd_card, tmp_path):
         resolve_sources(listing)
     empty = tmp_path / "empty"
     empty.mkdir()
-    with pytest.raises(ValueError, match="no images .*any case, sub-folders included"):
+    with pytest.raises(ValueError, match="no images .*any case, sub-folders included\\)\nFix: give a folder that"):
+        resolve_sources(empty)
+    (empty / "FLIGHT.MP4").write_bytes(b"")
+    with pytest.raises(ValueError, match=r"holds video\(s\) FLIGHT.MP4\)\nFix: give the video file itself, e.g. "):
         resolve_sources(empty)
 
 

@@ -6,8 +6,10 @@ import subprocess
 import sys
 
 import pytest
+import torch
 
 from dapm_lightning.cli import main
+from dapm_lightning.data.datamodules import UAPDDataModule
 from dapm_lightning.data.errors import DatasetError
 from dapm_lightning.tools.errors import debug_requested, describe, run_reporting_errors
 from dapm_lightning.training.checkpoint_files import CheckpointSaveError, UnsafeCheckpointError
@@ -33,6 +35,36 @@ def test_missing_data_folder(tmp_path, capsys, monkeypatch):
                           str(tmp_path / "nosplit"), "--trainer.logger", "false"], capsys)
     assert code == 1 and f"{tmp_path / 'nosplit' / 'train'}: missing folder" in err and "holds val/" in err
     assert "Fix: put the train split in ROOT/train/{rgb,depth}/NAME.png" in err and "on_bad_file" not in err
+
+
+def test_data_problems_stop_a_run_before_its_log_folders_are_made(uapd_copy, tmp_path, capsys, monkeypatch):
+    """An empty tensorboard/version_0 left by a run that never started would send the next run to version_1."""
+    run = tmp_path / "run"
+    run.mkdir()
+    monkeypatch.chdir(run)
+    uapd = ["--data.class_path", "dapm_lightning.data.datamodules.UAPDDataModule"]
+    for subcommand in ("fit", "validate", "test"):
+        code, err = run_main([subcommand, "--config", str(QUICKSTART), *uapd, "--data.init_args.root",
+                              str(tmp_path / "nowhere")], capsys)
+        assert code == 1 and "no such folder" in err, err
+    broken = uapd_copy
+    damaged = sorted((broken / "train" / "depth").iterdir())[0]
+    damaged.write_bytes(damaged.read_bytes()[:40])
+    code, err = run_main(["fit", "--config", str(QUICKSTART), *uapd, "--data.init_args.root", str(broken)], capsys)
+    assert code == 1 and str(damaged) in err, err
+    assert list(run.iterdir()) == []
+
+
+def test_data_read_early_is_what_setup_uses(tiny_uapd, monkeypatch):
+    data = UAPDDataModule(root=str(tiny_uapd), batch_size=2)
+    made = []
+    make = data.make_dataset
+    monkeypatch.setattr(data, "make_dataset", lambda split, train: made.append((split, train)) or make(split, train))
+    data.read_early("fit")
+    data.setup("fit")
+    assert made == [("train", True), ("val", False)]  # scanned once, before the trainer starts
+    data.setup("test")
+    assert made[2:] == [("val", False)] and len(data.datasets["test"]) == len(data.datasets["val"])
 
 
 def test_missing_and_damaged_checkpoints_and_sources(checkpoint, tmp_path, capsys, monkeypatch):
@@ -75,6 +107,15 @@ def test_messages_of_wrapped_and_unexpected_errors():
     assert "/d/x.png: bad" in message and expected
     message, expected = describe(TypeError("unsupported operand"))
     assert not expected and "possibly a bug" in message and "--debug" in message
+
+
+def test_batch_norm_of_a_one_pixel_batch_says_what_to_change():
+    """torch's own message (training on one image whose deepest map is 1x1), explained with the fix."""
+    with pytest.raises(ValueError) as info:
+        torch.nn.BatchNorm2d(4).train()(torch.zeros(1, 4, 1, 1))
+    message, expected = describe(info.value)
+    assert expected and message.startswith(str(info.value)) and "divides each side by 32" in message
+    assert "Fix: batches of at least 2 images (--data.init_args.batch_size" in message
 
 
 def test_refused_checkpoints_and_failed_saves_keep_their_own_fix():

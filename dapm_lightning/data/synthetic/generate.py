@@ -125,6 +125,24 @@ def shard_range(count: int, shard: tuple[int, int]) -> range:
     return range(count * k // n, count * (k + 1) // n)
 
 
+class SynthFolderError(ValueError):
+    """The output folder cannot take this render (it holds other images); the message names it and the fix."""
+
+
+def _refuse_foreign_images(out: Path) -> None:
+    """Refuse a folder without ``synth.json`` that holds images of its own (a real UAPD set).
+
+    The synthetic images would mix with them, and a later render of other settings would delete only its own.
+    """
+    foreign = [path for split in ("train", "val") for sub in ("rgb", "depth")
+               for path in sorted((out / split / sub).glob("*.png")) if not path.name.startswith("synth_")]
+    if foreign:
+        raise SynthFolderError(f"{out}: holds {len(foreign)} image(s) not rendered by the generator (e.g. "
+                               f"{foreign[0]}) and no synth.json, so rendering there would mix synthetic images "
+                               "into that set.\nFix: render into an empty folder (or a synthetic set's, which holds "
+                               "synth.json)")
+
+
 def generate_uapd(out: str | Path, *, train: int = 200, val: int = 50, size: int | tuple[int, int] = 128,
                   seed: int = 0, workers: int | None = None, families: dict[str, float] | str | None = None,
                   effects: bool = True, shard: tuple[int, int] = (0, 1), distortion: bool = False,
@@ -149,7 +167,8 @@ def generate_uapd(out: str | Path, *, train: int = 200, val: int = 50, size: int
 
     Returns:
         ``out``; it also holds ``synth.json`` with the settings (:func:`settings`). A folder holding a
-        data set of other settings is emptied of its images first (refused for a shard).
+        data set of other settings is emptied of its images first (refused for a shard); one holding images the
+        generator did not render (no ``synth.json``) is refused.
     """
     out = Path(out)
     hw = (size, size) if isinstance(size, int) else (int(size[0]), int(size[1]))
@@ -159,10 +178,13 @@ def generate_uapd(out: str | Path, *, train: int = 200, val: int = 50, size: int
               "distortion": distortion, "max_depth": max_depth}
     info = settings(**chosen)
     weights = info["families"]
+    if not (out / "synth.json").is_file():
+        _refuse_foreign_images(out)
     stale = (out / "synth.json").is_file() and not is_current(out, **chosen)
     if stale and shard[1] > 1:
-        raise ValueError(f"{out} holds a data set rendered with other settings ({out / 'synth.json'}); "
-                         "remove it or choose another folder before rendering shards into it")
+        raise SynthFolderError(f"{out}: holds a data set rendered with other settings ({out / 'synth.json'}), "
+                               "which shards cannot replace (each would delete the others' images).\n"
+                               "Fix: remove that set, or render the shards into another folder")
     jobs = [(out, split, i, seed, hw, weights, effects, distortion, max_depth)
             for split, count in (("train", train), ("val", val)) for i in range(count)]
     jobs = [jobs[i] for i in shard_range(len(jobs), shard)]
