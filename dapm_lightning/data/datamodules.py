@@ -109,15 +109,13 @@ class DAPMDataModule(L.LightningDataModule):
 
         The command line calls it before the trainer starts, so a wrong data root or a broken file stops the run
         before the loggers create their version folders (an empty ``version_0`` left behind would send the next run
-        to ``version_1``). Data made by :meth:`prepare_data` (the synthetic set) is read in :meth:`setup` only.
+        to ``version_1``). A module whose :meth:`prepare_data` makes its data (the synthetic set, Potsdam's crops, a
+        subclass's download) is read in :meth:`setup` only, after it.
         """
-        if self.reads_prepared_data:
+        if type(self).prepare_data is not L.LightningDataModule.prepare_data:  # it makes the data, after this
             return
         for _, split, train in self._stage_splits(stage):
             self._read_early[(split, train)] = self.make_dataset(split, train)
-
-    reads_prepared_data = False
-    """True where :meth:`prepare_data` makes the data (it runs in one process per node, after the trainer starts)."""
 
     test_split = "val"
 
@@ -254,8 +252,6 @@ class SyntheticDataModule(UAPDDataModule):
             "families": families, "effects": effects, "distortion": distortion, "max_depth": self.max_depth}
         self.render_workers = render_workers
 
-    reads_prepared_data = True
-
     def prepare_data(self) -> None:
         settings = self.render_settings
         changes = settings_changes(self.root, **settings)  # synth.json records every setting and the version
@@ -288,8 +284,6 @@ class PotsdamDataModule(DAPMDataModule):
         super().__init__(**kwargs)
         self.root, self.crop_size, self.val_fraction, self.split_seed = Path(root), crop_size, val_fraction, split_seed
         self.product, self.ndsm_scale, self.on_bad_file = product, ndsm_scale, on_bad_file
-
-    reads_prepared_data = True
 
     def prepare_data(self) -> None:
         PotsdamCrops(self.root, crop_size=self.crop_size, product=self.product, ndsm_scale=self.ndsm_scale).prepare()

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from dapm_lightning.cli import main
-from dapm_lightning.data.datamodules import UAPDDataModule
+from dapm_lightning.data.datamodules import SyntheticDataModule, UAPDDataModule
 from dapm_lightning.data.errors import DatasetError
 from dapm_lightning.tools.errors import debug_requested, describe, run_reporting_errors
 from dapm_lightning.training.checkpoint_files import CheckpointSaveError, UnsafeCheckpointError
@@ -55,7 +55,7 @@ def test_data_problems_stop_a_run_before_its_log_folders_are_made(uapd_copy, tmp
     assert list(run.iterdir()) == []
 
 
-def test_data_read_early_is_what_setup_uses(tiny_uapd, monkeypatch):
+def test_data_read_early_is_what_setup_uses(tiny_uapd, tmp_path, monkeypatch):
     data = UAPDDataModule(root=str(tiny_uapd), batch_size=2)
     made = []
     make = data.make_dataset
@@ -65,6 +65,9 @@ def test_data_read_early_is_what_setup_uses(tiny_uapd, monkeypatch):
     assert made == [("train", True), ("val", False)]  # scanned once, before the trainer starts
     data.setup("test")
     assert made[2:] == [("val", False)] and len(data.datasets["test"]) == len(data.datasets["val"])
+    synthetic = SyntheticDataModule(root=str(tmp_path / "rendered by prepare_data"), train_size=2, val_size=1)
+    synthetic.read_early("fit")  # its data does not exist before prepare_data: read in setup, after it
+    assert not (tmp_path / "rendered by prepare_data").exists()
 
 
 def test_missing_and_damaged_checkpoints_and_sources(checkpoint, tmp_path, capsys, monkeypatch):
