@@ -109,11 +109,15 @@ class DAPMDataModule(L.LightningDataModule):
 
         The command line calls it before the trainer starts, so a wrong data root or a broken file stops the run
         before the loggers create their version folders (an empty ``version_0`` left behind would send the next run
-        to ``version_1``). A module whose :meth:`prepare_data` makes its data (the synthetic set, Potsdam's crops, a
-        subclass's download) is read in :meth:`setup` only, after it.
+        to ``version_1``). Only the project's own modules are read early (UAPD): one whose :meth:`prepare_data` makes
+        its data (the synthetic set, Potsdam's crops, a subclass's download) or a subclass with its own
+        :meth:`setup` or :meth:`make_dataset` is read in :meth:`setup`, as Lightning does.
         """
-        if type(self).prepare_data is not L.LightningDataModule.prepare_data:  # it makes the data, after this
+        cls = type(self)
+        if cls.prepare_data is not L.LightningDataModule.prepare_data:  # it makes the data, after this
             return
+        if cls.setup.__module__ != __name__ or cls.make_dataset.__module__ != __name__:
+            return  # a subclass's own setup or data sets may depend on what setup or the trainer sets: read there
         for _, split, train in self._stage_splits(stage):
             self._read_early[(split, train)] = self.make_dataset(split, train)
 

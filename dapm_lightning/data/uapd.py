@@ -170,6 +170,14 @@ def read_depth_grey(path: Path) -> np.ndarray:
     return grey
 
 
+def is_uapd_image(path: Path) -> bool:
+    """Whether the UAPD reader pairs this file: ``NAME.png`` in any case, not a folder, not hidden.
+
+    macOS leaves hidden ``._NAME.png`` files on FAT drives.
+    """
+    return path.suffix.lower() == ".png" and not path.name.startswith(".") and not path.is_dir()
+
+
 def _looks_like_data(path: Path) -> bool:
     """Whether a file that is not ``NAME.png`` looks meant as an image or a depth map (its suffix or first bytes).
 
@@ -290,11 +298,8 @@ class UAPDDataset(SkipsBadFiles, torch.utils.data.Dataset[Sample]):
                     f"Fix: put the {self.split} split in {layout}, or give data.init_args.root the folder that holds "
                     "it (UAPD's layout: docs/data.md)."))
         files = {folder: sorted(folder.iterdir()) for folder in (rgb_dir, depth_dir)}
-        def pairable(path: Path) -> bool:  # NAME.png, not a folder, not hidden (macOS leaves ._NAME.png on FAT drives)
-            return path.suffix.lower() == ".png" and not path.name.startswith(".") and not path.is_dir()
-
-        rgb = {p.name: p for p in files[rgb_dir] if pairable(p)}
-        depth = {p.name: p for p in files[depth_dir] if pairable(p)}
+        rgb = {p.name: p for p in files[rgb_dir] if is_uapd_image(p)}
+        depth = {p.name: p for p in files[depth_dir] if is_uapd_image(p)}
         problems, explained = [], set()
         for folder, same, other in ((rgb_dir, rgb, depth), (depth_dir, depth, rgb)):
             for p in files[folder]:

@@ -65,6 +65,10 @@ class PredictDataModule(DAPMDataModule):
         self.prior_settings = PriorSettings(telemetry_mode, telemetry_sigma, igd_bound)
 
     def setup(self, stage: str | None = None) -> None:
+        self.read_early(stage)
+
+    def read_early(self, stage: str | None) -> None:
+        """Refuse any stage but predict (before the trainer starts, when the command line calls it)."""
         if stage not in (None, "predict"):
             raise ValueError(f"{type(self).__name__} serves predict only (no labels), not {stage!r}; "
                              "use a labelled data module (e.g. UAPDDataModule) to validate or test")

@@ -111,10 +111,10 @@ def describe(error: BaseException) -> tuple[str, bool]:
         return (f"{message}\nFix: copy the checkpoint again (a file cut short by a full disk or an interrupted "
                 "transfer cannot be read) or pick another one, e.g. the run's last.ckpt."), True
     if message.startswith("Expected more than 1 value per channel when training"):  # BatchNorm of a 1x1 map
-        return (f"{message}: a training batch of one image whose deepest feature map is one pixel (the encoder "
-                "divides each side by 32), on which batch normalisation cannot be computed.\nFix: batches of at "
-                "least 2 images (--data.init_args.batch_size, and as many training images) or images of at least 33 "
-                "pixels a side."), True
+        return (f"{message}: a training batch of one image whose deepest feature map is one pixel (the default "
+                "encoder divides each side by 32), on which batch normalisation cannot be computed.\nFix: batches of "
+                "at least 2 images (--data.init_args.batch_size, and at least that many training images per "
+                "process) or images with a side above 32 pixels."), True
     if "EADDRINUSE" in message:  # DDP's rendezvous port (torch's DistNetworkError)
         port = os.environ.get("MASTER_PORT")
         held = f"MASTER_PORT={port} is" if port else "the port is"

@@ -9,8 +9,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from dapm_lightning.data.files import check_folder_writable
-from dapm_lightning.data.synthetic import FAMILIES, generate_uapd, normalize_families, shard_range
-from dapm_lightning.data.synthetic.generate import SynthFolderError
+from dapm_lightning.data.synthetic import FAMILIES, SynthFolderError, generate_uapd, normalize_families, shard_range
 from dapm_lightning.geometry.constants import MAX_DEPTH_M
 from dapm_lightning.tools.progress import progress_bar
 

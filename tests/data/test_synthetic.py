@@ -16,6 +16,7 @@ from dapm_lightning.data.synthetic import (
     SKY,
     VEHICLE,
     WATER,
+    SynthFolderError,
     generate_uapd,
     image_seed,
     is_current,
@@ -82,11 +83,17 @@ def test_a_folder_of_other_images_is_not_rendered_into(tmp_path, capsys):
     photo = real / "val" / "depth" / "h100_p-45_r0_f60.png"
     photo.write_bytes(b"a real frame")
     code, err = run_main(["synth", "--out", str(real), "--train", "1", "--val", "1", "--size", "16"], capsys)
-    assert code == 1 and f"{real}: holds 1 image(s) not rendered by the generator (e.g. {photo})" in err, err
-    assert "Fix: render into an empty folder" in err and "usage" not in err
+    assert code == 1 and f"{real}: holds images not rendered by the generator (e.g. {photo})" in err, err
+    assert "Fix: render into an empty folder" in err and "UAPDDataModule" in err and "usage" not in err
     assert [p for p in real.rglob("*") if p.is_file()] == [photo] and photo.read_bytes() == b"a real frame"
-    out = generate_uapd(tmp_path / "crashed", train=1, val=1, size=16, seed=1, workers=1)
-    (out / "synth.json").unlink()  # a render cut short: its own images only, taken over
+    photo.rename(photo.with_suffix(".PNG"))  # the reader pairs NAME.PNG too
+    with pytest.raises(SynthFolderError, match="h100_p-45_r0_f60.PNG"):
+        generate_uapd(real, train=1, val=1, size=16, seed=1, workers=1)
+    (real / "val" / "depth" / "h100_p-45_r0_f60.PNG").unlink()
+    (real / "val" / "depth" / "._h100_p-45_r0_f60.png").write_bytes(b"macOS metadata")  # hidden: not an image
+    generate_uapd(real, train=1, val=1, size=16, seed=1, workers=1)
+    out = generate_uapd(tmp_path / "crashed", train=3, val=1, size=16, seed=1, workers=1)
+    (out / "synth.json").unlink()  # a render cut short: its images replaced, even of other settings
     generate_uapd(out, train=1, val=1, size=16, seed=1, workers=1)
     assert len(list(out.rglob("*.png"))) == 4 and (out / "synth.json").is_file()
 

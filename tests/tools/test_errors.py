@@ -55,6 +55,18 @@ def test_data_problems_stop_a_run_before_its_log_folders_are_made(uapd_copy, tmp
     assert list(run.iterdir()) == []
 
 
+def test_validate_or_test_with_the_predict_data_module_is_refused_before_any_log(checkpoint, tmp_path, capsys,
+                                                                                    monkeypatch):
+    run = tmp_path / "run"
+    run.mkdir()
+    monkeypatch.chdir(run)
+    for subcommand in ("validate", "test"):
+        code, err = run_main([subcommand, "--config", str(CONFIGS / "predict.yaml"), "--ckpt_path", str(checkpoint),
+                              "--data.init_args.source", str(tmp_path), "--trainer.logger", "true"], capsys)
+        assert code == 1 and f"PredictDataModule serves predict only (no labels), not '{subcommand}'" in err, err
+    assert list(run.iterdir()) == []
+
+
 def test_data_read_early_is_what_setup_uses(tiny_uapd, tmp_path, monkeypatch):
     data = UAPDDataModule(root=str(tiny_uapd), batch_size=2)
     made = []

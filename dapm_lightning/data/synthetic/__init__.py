@@ -12,6 +12,7 @@ See docs/synthetic.md.
 
 from dapm_lightning.data.synthetic.generate import (
     GENERATOR_VERSION,
+    SynthFolderError,
     generate_uapd,
     image_seed,
     is_current,
@@ -39,6 +40,6 @@ from dapm_lightning.data.synthetic.scene import (
 )
 
 __all__ = ["BUILDING", "CLASS_NAMES", "FAMILIES", "GENERATOR_VERSION", "GROUND", "PERSON", "SKY", "TREE", "VEHICLE",
-           "WATER", "Scene", "generate_uapd", "image_seed", "is_current", "normalize_families", "render_sample",
-           "settings_changes",
+           "WATER", "Scene", "SynthFolderError", "generate_uapd", "image_seed", "is_current", "normalize_families",
+           "render_sample", "settings_changes",
            "render_scene", "sample_pose", "sample_scene", "settings", "shard_range", "uapd_name"]

@@ -19,7 +19,7 @@ from dapm_lightning.data.synthetic.lens import distort, sample_lens
 from dapm_lightning.data.synthetic.render import render_scene
 from dapm_lightning.data.synthetic.scene import Scene, normalize_families, sample_scene
 from dapm_lightning.data.synthetic.shading import camera_effects
-from dapm_lightning.data.uapd import format_uapd_filename
+from dapm_lightning.data.uapd import format_uapd_filename, is_uapd_image
 from dapm_lightning.geometry.constants import MAX_DEPTH_M, POSE_KEYS, POSE_RANGES
 from dapm_lightning.geometry.depth_codec import depth_to_grey
 
@@ -134,13 +134,15 @@ def _refuse_foreign_images(out: Path) -> None:
 
     The synthetic images would mix with them, and a later render of other settings would delete only its own.
     """
-    foreign = [path for split in ("train", "val") for sub in ("rgb", "depth")
-               for path in sorted((out / split / sub).glob("*.png")) if not path.name.startswith("synth_")]
-    if foreign:
-        raise SynthFolderError(f"{out}: holds {len(foreign)} image(s) not rendered by the generator (e.g. "
-                               f"{foreign[0]}) and no synth.json, so rendering there would mix synthetic images "
-                               "into that set.\nFix: render into an empty folder (or a synthetic set's, which holds "
-                               "synth.json)")
+    folders = [out / split / sub for split in ("train", "val") for sub in ("rgb", "depth")]
+    foreign = next((path for folder in folders if folder.is_dir() for path in folder.iterdir()
+                    if is_uapd_image(path) and not path.name.startswith("synth_")), None)
+    if foreign is not None:
+        raise SynthFolderError(f"{out}: holds images not rendered by the generator (e.g. {foreign}) and no "
+                               "synth.json, so rendering there would mix synthetic images into that set.\nFix: "
+                               "render into an empty folder (synth --out, or the synthetic data module's "
+                               "data.init_args.root); to train on that set, use --data.class_path "
+                               "dapm_lightning.data.datamodules.UAPDDataModule")
 
 
 def generate_uapd(out: str | Path, *, train: int = 200, val: int = 50, size: int | tuple[int, int] = 128,
@@ -167,8 +169,9 @@ def generate_uapd(out: str | Path, *, train: int = 200, val: int = 50, size: int
 
     Returns:
         ``out``; it also holds ``synth.json`` with the settings (:func:`settings`). A folder holding a
-        data set of other settings is emptied of its images first (refused for a shard); one holding images the
-        generator did not render (no ``synth.json``) is refused.
+        data set of other settings, or the images of a render cut short (no ``synth.json``), is emptied of its
+        images first (refused for a shard of a set of other settings; a shard keeps a cut-short render's images);
+        one holding images the generator did not render (no ``synth.json``) is refused.
     """
     out = Path(out)
     hw = (size, size) if isinstance(size, int) else (int(size[0]), int(size[1]))
@@ -178,9 +181,14 @@ def generate_uapd(out: str | Path, *, train: int = 200, val: int = 50, size: int
               "distortion": distortion, "max_depth": max_depth}
     info = settings(**chosen)
     weights = info["families"]
-    if not (out / "synth.json").is_file():
+    recorded = (out / "synth.json").is_file()
+    if not recorded:
         _refuse_foreign_images(out)
-    stale = (out / "synth.json").is_file() and not is_current(out, **chosen)
+    # a render cut short (images, no synth.json yet) may have had other settings: replaced like a stale set, except
+    # by a shard, whose siblings may be writing those images now
+    cut_short = not recorded and shard[1] == 1 and any((out / split / sub).glob("synth_*.png")
+                                                       for split in ("train", "val") for sub in ("rgb", "depth"))
+    stale = (recorded and not is_current(out, **chosen)) or cut_short
     if stale and shard[1] > 1:
         raise SynthFolderError(f"{out}: holds a data set rendered with other settings ({out / 'synth.json'}), "
                                "which shards cannot replace (each would delete the others' images).\n"
