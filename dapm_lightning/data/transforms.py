@@ -6,7 +6,8 @@ the ground plane, so that no texture does either.
 
 A data set calls its transform as ``transform(image=rgb [H,W,3] uint8, mask=depth grey [H,W], pose=[4])``
 and reads back the same keys, so any ``albumentations.Compose`` works, with geometric ops limited to
-:class:`PoseAwareHorizontalFlip` (vertical flips and rotations would change the pose).
+:class:`PoseAwareHorizontalFlip` and :class:`PoseAwareCentreZoom` (vertical flips and rotations would change the
+pose).
 """
 
 from __future__ import annotations
@@ -15,12 +16,13 @@ from dataclasses import dataclass
 from typing import Any
 
 import albumentations as A
+import cv2
 import numpy as np
 import torch
 
 from dapm_lightning.data.depth_kind import DepthKind, flat_ground_of_pose
 from dapm_lightning.geometry.camera import camera_rays
-from dapm_lightning.geometry.constants import MAX_DEPTH_M, SKY_GREY
+from dapm_lightning.geometry.constants import MAX_DEPTH_M, POSE_RANGES, SKY_GREY
 from dapm_lightning.geometry.pose import flip_pose
 
 
@@ -38,6 +40,64 @@ class PoseAwareHorizontalFlip(A.HorizontalFlip):
     def apply_to_pose(self, pose: np.ndarray, **params: Any) -> np.ndarray:
         """``[4]`` (height, pitch, roll, fov) -> roll negated."""
         return flip_pose(torch.as_tensor(np.asarray(pose, np.float32))).numpy()
+
+
+class PoseAwareCentreZoom(A.DualTransform):
+    """Zoom into the image centre (image and depth alike) and narrow the FoV of a ``pose`` target to match.
+
+    A pinhole camera with its principal point at the centre, its focal length ``zoom`` times longer, sees the
+    centre ``1 / zoom`` of the picture over the whole frame: ``tan(fov' / 2) = tan(fov / 2) / zoom``; height, pitch
+    and roll are kept, and every pixel keeps its depth (range or planar alike). So one scene is shown at several FoVs
+    and object sizes, and the FoV must be read from the perspective, not from what is in the picture. ``zoom`` is
+    drawn from ``[1, max_zoom]``, at most what keeps the FoV at or above ``min_fov`` (the FoV range's lower end).
+    The image is resampled bilinearly, the depth by nearest neighbour (no depths blended across an edge). An image
+    without a pose (NaN, e.g. Potsdam) is left as it is. Lens-distorted images are zoomed as pinhole ones are (their
+    distortion then no longer matches its recorded strength): keep it off for those.
+    """
+
+    def __init__(self, max_zoom: float = 1.4, min_fov: float = POSE_RANGES["fov"][0], p: float = 0.5) -> None:
+        super().__init__(p=p)
+        if not max_zoom >= 1.0:
+            raise ValueError(f"max_zoom must be >= 1, got {max_zoom}")
+        self.max_zoom, self.min_fov = float(max_zoom), float(min_fov)
+
+    @property
+    def targets(self) -> dict[str, Any]:
+        return {**super().targets, "pose": self.apply_to_pose}
+
+    def get_params_dependent_on_data(self, params: dict[str, Any], data: dict[str, Any]) -> dict[str, Any]:
+        draw = self.random_generator.uniform(0.0, 1.0)  # drawn always: the random stream does not depend on the pose
+        pose = np.asarray(data.get("pose", np.full(4, np.nan)), np.float64)
+        if pose.shape != (4,) or not np.isfinite(pose).all():
+            return {"zoom": 1.0}
+        limit = np.tan(np.radians(pose[3]) / 2) / np.tan(np.radians(self.min_fov) / 2)
+        return {"zoom": float(1.0 + draw * (min(self.max_zoom, max(1.0, limit)) - 1.0))}
+
+    @staticmethod
+    def zoomed(array: np.ndarray, zoom: float, interpolation: int) -> np.ndarray:
+        """The centre ``1 / zoom`` of ``array`` over its whole size (pixel centres at ``i + 0.5``)."""
+        if zoom <= 1.0:
+            return array
+        height, width = array.shape[:2]
+        matrix = np.array([[zoom, 0.0, (1.0 - zoom) * (width - 1) / 2],
+                           [0.0, zoom, (1.0 - zoom) * (height - 1) / 2]])
+        out = cv2.warpAffine(array, matrix, (width, height), flags=interpolation, borderMode=cv2.BORDER_REPLICATE)
+        return out.reshape(array.shape)
+
+    def apply(self, img: np.ndarray, zoom: float = 1.0, **params: Any) -> np.ndarray:
+        return self.zoomed(img, zoom, cv2.INTER_LINEAR)
+
+    def apply_to_mask(self, mask: np.ndarray, zoom: float = 1.0, **params: Any) -> np.ndarray:
+        return self.zoomed(mask, zoom, cv2.INTER_NEAREST)
+
+    def apply_to_pose(self, pose: np.ndarray, zoom: float = 1.0, **params: Any) -> np.ndarray:
+        """``[4]`` (height, pitch, roll, fov) -> the FoV narrowed by ``zoom``."""
+        out = np.array(pose, dtype=np.float32, copy=True)
+        out[3] = np.degrees(2 * np.arctan(np.tan(np.radians(float(pose[3])) / 2) / zoom))
+        return out
+
+    def get_transform_init_args_names(self) -> tuple[str, ...]:
+        return ("max_zoom", "min_fov")
 
 
 RGB_TO_YIQ = np.array([[0.299, 0.587, 0.114], [0.596, -0.274, -0.322], [0.211, -0.523, 0.312]])
@@ -236,6 +296,9 @@ class Augmentation:
             apart; 0: off, the paper's).
         ground_pattern_p: probability of :class:`GroundPattern` (stripes, tiles or patches painted on the flat
             ground, in metres on the ground plane; 0: off, the paper's).
+        zoom_p: probability of :class:`PoseAwareCentreZoom` (the centre zoomed, the FoV narrowed to match; 0: off,
+            the paper's).
+        max_zoom: the largest zoom it draws.
     """
 
     brightness: float = 0.2
@@ -247,13 +310,17 @@ class Augmentation:
     flip_p: float = 0.5
     ground_recolour_p: float = 0.0
     ground_pattern_p: float = 0.0
+    zoom_p: float = 0.0
+    max_zoom: float = 1.4
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "noise_std", tuple(float(v) for v in self.noise_std))
         if len(self.noise_std) != 2 or not 0.0 <= self.noise_std[0] <= self.noise_std[1]:
             raise ValueError(f"data.init_args.augmentation.noise_std must be [low, high] with 0 <= low <= high, "
                              f"got {list(self.noise_std)}")
-        for name in ("color_jitter_p", "noise_p", "flip_p", "ground_recolour_p", "ground_pattern_p"):
+        if not self.max_zoom >= 1.0:
+            raise ValueError(f"data.init_args.augmentation.max_zoom must be >= 1 (1: no zoom), got {self.max_zoom}")
+        for name in ("color_jitter_p", "noise_p", "flip_p", "ground_recolour_p", "ground_pattern_p", "zoom_p"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"data.init_args.augmentation.{name} must be a probability in [0, 1], "
                                  f"got {getattr(self, name)}")
@@ -269,16 +336,18 @@ AUTHORS_AUGMENTATION = Augmentation(brightness=0.5, contrast=0.5, saturation=0.5
 
 def train_transform(augmentation: Augmentation = Augmentation(),  # noqa: B008 (frozen)
                     depth_kind: DepthKind = "range", max_depth: float = MAX_DEPTH_M) -> A.Compose:
-    """The training pipeline: ground pattern, ground recolour (when on), colour jitter, noise, pose-aware flip.
+    """The training pipeline: centre zoom, ground pattern, ground recolour (when on), colour jitter, noise, flip.
 
     The colour jitter changes brightness, contrast and saturation. No vertical flips or rotations (they would change
     the pose). ``depth_kind`` and ``max_depth`` say what the depth's grey levels are, for the flat ground the ground
     pattern and the ground recolour find.
     """
     a = augmentation
+    zoom = [PoseAwareCentreZoom(a.max_zoom, p=a.zoom_p)] if a.zoom_p > 0 else []
     pattern = [GroundPattern(depth_kind, max_depth, p=a.ground_pattern_p)] if a.ground_pattern_p > 0 else []
     recolour = [GroundRecolour(depth_kind, max_depth, p=a.ground_recolour_p)] if a.ground_recolour_p > 0 else []
     return A.Compose([
+        *zoom,
         *pattern,
         *recolour,
         A.ColorJitter(brightness=a.brightness, contrast=a.contrast, saturation=a.saturation, hue=0.0,
