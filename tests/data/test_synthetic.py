@@ -98,6 +98,17 @@ def test_a_folder_of_other_images_is_not_rendered_into(tmp_path, capsys):
     assert len(list(out.rglob("*.png"))) == 4 and (out / "synth.json").is_file()
 
 
+def test_a_new_folder_renders_each_image_once(tmp_path, monkeypatch):
+    """Only a set being replaced renders its first image ahead (to fail before deleting); a new folder does not."""
+    from dapm_lightning.data.synthetic import generate
+
+    rendered = []
+    render = generate.render_sample
+    monkeypatch.setattr(generate, "render_sample", lambda *args: rendered.append(args[1:3]) or render(*args))
+    generate_uapd(tmp_path / "new", train=2, val=1, size=16, seed=1, workers=1)
+    assert rendered == [("train", 0), ("train", 1), ("val", 0)]
+
+
 def test_settings_that_cannot_render_leave_the_old_set_whole(tmp_path, monkeypatch):
     from dapm_lightning.data.synthetic import generate
 

@@ -129,13 +129,17 @@ class SynthFolderError(ValueError):
     """The output folder cannot take this render (it holds other images); the message names it and the fix."""
 
 
+def _image_folders(out: Path) -> list[Path]:
+    """The four folders a set's images go to: ``out/{train,val}/{rgb,depth}``."""
+    return [out / split / sub for split in ("train", "val") for sub in ("rgb", "depth")]
+
+
 def _refuse_foreign_images(out: Path) -> None:
     """Refuse a folder without ``synth.json`` that holds images of its own (a real UAPD set).
 
     The synthetic images would mix with them, and a later render of other settings would delete only its own.
     """
-    folders = [out / split / sub for split in ("train", "val") for sub in ("rgb", "depth")]
-    foreign = next((path for folder in folders if folder.is_dir() for path in folder.iterdir()
+    foreign = next((path for folder in _image_folders(out) if folder.is_dir() for path in folder.iterdir()
                     if is_uapd_image(path) and not path.name.startswith("synth_")), None)
     if foreign is not None:
         raise SynthFolderError(f"{out}: holds images not rendered by the generator (e.g. {foreign}) and no "
@@ -186,8 +190,8 @@ def generate_uapd(out: str | Path, *, train: int = 200, val: int = 50, size: int
         _refuse_foreign_images(out)
     # a render cut short (images, no synth.json yet) may have had other settings: replaced like a stale set, except
     # by a shard, whose siblings may be writing those images now
-    cut_short = not recorded and shard[1] == 1 and any((out / split / sub).glob("synth_*.png")
-                                                       for split in ("train", "val") for sub in ("rgb", "depth"))
+    cut_short = not recorded and shard[1] == 1 and any(any(folder.glob("synth_*.png"))
+                                                       for folder in _image_folders(out))
     stale = (recorded and not is_current(out, **chosen)) or cut_short
     if stale and shard[1] > 1:
         raise SynthFolderError(f"{out}: holds a data set rendered with other settings ({out / 'synth.json'}), "
@@ -200,13 +204,11 @@ def generate_uapd(out: str | Path, *, train: int = 200, val: int = 50, size: int
         if jobs:  # one image rendered first: settings that cannot render (memory) fail with the old set still whole
             _, split, index, *_ = jobs[0]
             render_sample(seed, split, index, hw, weights, effects, distortion, max_depth)
-        for split in ("train", "val"):
-            for sub in ("rgb", "depth"):
-                for path in (out / split / sub).glob("synth_*.png"):
-                    path.unlink()
-    for split in ("train", "val"):
-        for sub in ("rgb", "depth"):
-            (out / split / sub).mkdir(parents=True, exist_ok=True)
+        for folder in _image_folders(out):
+            for path in folder.glob("synth_*.png"):
+                path.unlink()
+    for folder in _image_folders(out):
+        folder.mkdir(parents=True, exist_ok=True)
     workers = workers or min(os.cpu_count() or 1, 8)
     if workers > 1 and len(jobs) > 1:
         saved = {k: os.environ.get(k) for k in _THREAD_VARS}
