@@ -82,8 +82,8 @@ class DAPMConfig:
             absolute (the pose branch reads it). docs/model.md.
         igd_ratio_max: the upper end of the ``igd_ratio`` range, in (1, 4]: 1.25 by default (the default of
             :data:`~dapm_lightning.geometry.depth_codec.IGD_RATIO_RANGE`, what checkpoints saved without the setting
-            were trained with); :data:`~dapm_lightning.geometry.depth_codec.GROUND_CENTRED_RATIO_MAX` (1.181, the
-            quickstart's) puts the flat ground at the centre of a bin of a 64-bin stage instead of on the edge between
+            were trained with); :data:`~dapm_lightning.geometry.depth_codec.GROUND_CENTRED_RATIO_MAX` (1.181)
+            puts the flat ground at the centre of a bin of a 64-bin stage instead of on the edge between
             two, where the bins' mode reads it 6 % short. Saved with the weights: it is what their depth means.
         depth_readout: where the output depth (``depth_m``) is read: ``"head"`` (default, the paper's: the
             refinement head's regression over every bins stage) or ``"bins_mode"``: the mode of the last depth-bins
