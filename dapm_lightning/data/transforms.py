@@ -219,7 +219,7 @@ class GroundPattern(FlatGroundTransform):
     foreshortened as the real ground's texture is; where it would alias it fades (:data:`ALIAS_FADE_PERIODS_PX`).
     What stands on the ground and the sky are kept; depth and pose unchanged; an image without a pose or grey-level
     depth is left as it is. Its aim: that the texture alone does not tell the ground from a roof or a canopy, as it
-    does for a model trained on a generator's few ground textures (docs/synthetic.md: measured, it changed nothing
+    does for a model trained on a generator's few ground textures (docs/transfer.md: measured, it changed nothing
     at the CPU's budgets).
     """
 

@@ -74,7 +74,7 @@ the depth limit and the range spans 1 m to the limit, as the absolute depth does
 GROUND_CENTRED_RATIO_MAX = 2.0 ** (10 * 64 / 62.5 - 10)
 """The upper end (about 1.181) that puts the flat ground (ratio 1) at the centre of a bin of a 64-bin stage (the
 63rd), not on the edge between two as 1.25 does: a mode read from the bins then finds the ground where it is, not
-half a bin (6 %) short. A value of ``model.net.igd_ratio_max`` (not the default: docs/synthetic.md)."""
+half a bin (6 %) short. A value of ``model.net.igd_ratio_max`` (not the default: docs/transfer.md)."""
 
 
 def _ratio_log2(ratio_max: float) -> tuple[float, float]:

@@ -1,12 +1,12 @@
 """Tall structures outside downtown: tower blocks, office blocks, chimneys, silos, masts.
 
 Towers of 20-150 m were downtown's alone, so a model that never saw downtown took its towers for the
-ground behind them (docs/synthetic.md, "The grid"). Real towns and countryside put tall things
+ground behind them (docs/transfer.md, "The grid"). Real towns and countryside put tall things
 anywhere: tower blocks among houses, chimneys and silos beside halls, grain silos on farms, masts in
 forests. :func:`add_landmarks` stands 3-8 of them (each kind with real sizes) near the camera of most
 scenes of every family but downtown, clear of roads, and removes what they would stand in. A dose of
 1-4 in a third to a half of the scenes did not change what a model that never saw downtown makes of it;
-this one did (docs/synthetic.md, "Landmarks").
+this one did (docs/transfer.md, "Landmarks").
 """
 
 from __future__ import annotations
