@@ -1,10 +1,12 @@
-"""The leave-one-family-out benchmark (`bench_synth transfer`) on tiny settings."""
+"""The synthetic benchmarks on tiny settings: the generator's speed, leave-one-family-out (`transfer`, `grid`)."""
 
+import argparse
 import json
 
 import pytest
 import torch
 
+from benchmarks import bench_synth
 from benchmarks.bench_synth import GRID_ROWS, grid_summary, main, target_check
 from dapm_lightning.tools.evaluate import TELEMETRY_IGD_ROW, TELEMETRY_ROWS, bound_rows
 
@@ -80,3 +82,25 @@ def test_grid_summary_averages_seeds_then_families_and_names_the_worst():
     assert full["families"]["forest"] == pytest.approx({"d1": 0.7, "abs_rel": 0.2})
     assert full["d1"] == pytest.approx(0.8) and full["abs_rel"] == pytest.approx(0.15) and full["worst"] == "forest"
     assert set(summary) == {"full/cond+bound"} and "full/cond+bound" in dict(GRID_ROWS)
+
+
+def test_speed_row_separates_the_workers_start_from_the_steady_rate(monkeypatch):
+    # a run with workers: 3 s to start them, then 10 images/s; twice the images take 5 s more
+    monkeypatch.setattr(bench_synth, "render_seconds", lambda size, count, workers, rounds=2: 3.0 + count / 10)
+    row = bench_synth.speed_row(64, 50, workers=2)
+    assert row["images_per_s"] == pytest.approx(50 / 8) and row["steady_images_per_s"] == pytest.approx(10)
+    assert row["start_s"] == pytest.approx(3.0)
+    one = bench_synth.speed_row(64, 50, workers=1)  # in the calling process: nothing to start
+    assert one["steady_images_per_s"] == one["images_per_s"] == pytest.approx(50 / 8) and one["start_s"] == 0
+    # noise: the longer run no slower than the short one: no rate is made up
+    monkeypatch.setattr(bench_synth, "render_seconds", lambda size, count, workers, rounds=2: 4.0)
+    row = bench_synth.speed_row(64, 50, workers=2)
+    assert row["steady_images_per_s"] is None and row["start_s"] is None
+
+
+def test_speed_prints_a_row_per_size_and_worker_count(capsys):
+    rows = bench_synth.speed(argparse.Namespace(sizes=[16], images=4))["speed"]
+    assert [(r["size"], r["workers"], r["images"]) for r in rows] == [(16, 1, 4), (16, 2, 4)]
+    assert all(r["images_per_s"] > 0 for r in rows)
+    printed = capsys.readouterr().out
+    assert "steady" in printed and "start s" in printed
