@@ -59,8 +59,7 @@ def render_seconds(size: int, count: int, workers: int, rounds: int = 2) -> floa
 
 
 def speed_row(size: int, count: int, workers: int, rounds: int = 2) -> dict[str, Any]:
-    """One row of :func:`speed`: images/s of a whole run of ``count`` images, and with worker processes the rate once
-    they are up and their start.
+    """One row of :func:`speed`: images/s of a whole run, and with worker processes the steady rate and their start.
 
     A run with workers starts them (each imports PyTorch: seconds), so a short run's images/s is mostly that start.
     The steady rate is the marginal one, ``count / (t(2 count) - t(count))``, and the start what the first run took
@@ -93,7 +92,8 @@ def speed(args: argparse.Namespace) -> dict[str, Any]:
                   f"{row['previous'] or '-':>10}")
     print("images/s: the whole run, worker processes' start included; steady: once the workers are up (the rate of a\n"
           "run twice as long beyond this one), start s: the workers' start (each imports PyTorch).\n"
-          "previous: the single-town generator this one replaced, whole runs of 2 workers, same machine class (2 cores).")
+          "previous: the single-town generator this one replaced, whole runs of 2 workers, same machine class "
+          "(2 cores).")
     return {"speed": rows}
 
 
