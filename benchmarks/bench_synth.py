@@ -46,15 +46,22 @@ PREVIOUS_GENERATOR = {64: 46.5, 128: 16.9}
 QUICKSTART_CONFIG = Path(dapm_lightning.__file__).resolve().parent / "configs" / "quickstart.yaml"
 
 
-def render_seconds(size: int, count: int, workers: int, rounds: int = 2) -> float:
-    """Best (shortest) of ``rounds`` timings of ``generate_uapd`` writing ``count`` images (a warm-up run first)."""
-    best = math.inf
+STEADY_RUN_FACTOR = 4
+"""The steady rate is timed on a run this many times longer than the row's: the extra images must take well over the
+workers' start, whose time varies by seconds from run to run (with twice the images the rate varied 47-596 img/s)."""
+
+
+def render_seconds(size: int, counts: Sequence[int], workers: int, rounds: int = 2) -> list[float]:
+    """Best (shortest) of ``rounds`` timings of ``generate_uapd`` writing each of ``counts`` images (one warm-up)."""
+    best = [math.inf] * len(counts)
     with tempfile.TemporaryDirectory() as tmp:
         generate_uapd(Path(tmp) / "warm", train=2, val=0, size=size, seed=99, workers=1)
         for attempt in range(rounds):
-            start = time.perf_counter()
-            generate_uapd(Path(tmp) / f"r{attempt}", train=count, val=0, size=size, seed=attempt, workers=workers)
-            best = min(best, time.perf_counter() - start)
+            for k, count in enumerate(counts):
+                start = time.perf_counter()
+                generate_uapd(Path(tmp) / f"r{attempt}_{k}", train=count, val=0, size=size, seed=attempt,
+                              workers=workers)
+                best[k] = min(best[k], time.perf_counter() - start)
     return best
 
 
@@ -62,16 +69,17 @@ def speed_row(size: int, count: int, workers: int, rounds: int = 2) -> dict[str,
     """One row of :func:`speed`: images/s of a whole run, and with worker processes the steady rate and their start.
 
     A run with workers starts them (each imports PyTorch: seconds), so a short run's images/s is mostly that start.
-    The steady rate is the marginal one, ``count / (t(2 count) - t(count))``, and the start what the first run took
-    beyond ``count`` images at that rate; both None when noise makes the longer run no slower.
+    The steady rate is the marginal one over a run :data:`STEADY_RUN_FACTOR` times longer, ``(n - 1) count / (t(n
+    count) - t(count))``, and the start what the row's run took beyond ``count`` images at that rate; both None when
+    noise makes the longer run no slower.
     """
-    seconds = render_seconds(size, count, workers, rounds)
+    longer_count = STEADY_RUN_FACTOR * count
+    seconds, *longer = render_seconds(size, (count, longer_count) if workers > 1 else (count,), workers, rounds)
     row: dict[str, Any] = {"size": size, "workers": workers, "images": count, "images_per_s": count / seconds,
                            "steady_images_per_s": count / seconds, "start_s": 0.0}
-    if workers > 1:
-        longer = render_seconds(size, 2 * count, workers, rounds)
-        steady = count / (longer - seconds) if longer > seconds else None
-        row.update(steady_images_per_s=steady, start_s=None if steady is None else max(0.0, 2 * seconds - longer))
+    if longer:
+        steady = (longer_count - count) / (longer[0] - seconds) if longer[0] > seconds else None
+        row.update(steady_images_per_s=steady, start_s=None if steady is None else max(0.0, seconds - count / steady))
     return row
 
 
@@ -91,7 +99,7 @@ def speed(args: argparse.Namespace) -> dict[str, Any]:
                   f"{'-' if steady is None else f'{steady:.1f}':>8}{'-' if start is None else f'{start:.1f}':>9}"
                   f"{row['previous'] or '-':>10}")
     print("images/s: the whole run, worker processes' start included; steady: once the workers are up (the rate of a\n"
-          "run twice as long beyond this one), start s: the workers' start (each imports PyTorch).\n"
+          f"run {STEADY_RUN_FACTOR}x as long beyond this one), start s: the workers' start (each imports PyTorch).\n"
           "previous: the single-town generator this one replaced, whole runs of 2 workers, same machine class "
           "(2 cores).")
     return {"speed": rows}

@@ -85,15 +85,16 @@ def test_grid_summary_averages_seeds_then_families_and_names_the_worst():
 
 
 def test_speed_row_separates_the_workers_start_from_the_steady_rate(monkeypatch):
-    # a run with workers: 3 s to start them, then 10 images/s; twice the images take 5 s more
-    monkeypatch.setattr(bench_synth, "render_seconds", lambda size, count, workers, rounds=2: 3.0 + count / 10)
+    # a run with workers: 3 s to start them, then 10 images/s
+    monkeypatch.setattr(bench_synth, "render_seconds",
+                        lambda size, counts, workers, rounds=2: [3.0 + c / 10 for c in counts])
     row = bench_synth.speed_row(64, 50, workers=2)
     assert row["images_per_s"] == pytest.approx(50 / 8) and row["steady_images_per_s"] == pytest.approx(10)
     assert row["start_s"] == pytest.approx(3.0)
     one = bench_synth.speed_row(64, 50, workers=1)  # in the calling process: nothing to start
     assert one["steady_images_per_s"] == one["images_per_s"] == pytest.approx(50 / 8) and one["start_s"] == 0
     # noise: the longer run no slower than the short one: no rate is made up
-    monkeypatch.setattr(bench_synth, "render_seconds", lambda size, count, workers, rounds=2: 4.0)
+    monkeypatch.setattr(bench_synth, "render_seconds", lambda size, counts, workers, rounds=2: [4.0 for _ in counts])
     row = bench_synth.speed_row(64, 50, workers=2)
     assert row["steady_images_per_s"] is None and row["start_s"] is None
 
