@@ -476,6 +476,8 @@ def test_srt_structure_errors(tmp_path):
      [("SS", "30.15"), ("ISO", "260"), ("EV", "-1.7"), ("GPS", "(-121.7458, 48.0771, 17)"), ("D", "221.21m"),
       ("H", "200.70m")]),
     ("2022.06.21 16:06:17", []),
+    ("ISO:100 Shutter:60 EV: Fnum:2.2", [("iso", "100"), ("shutter", "60"), ("ev", ""), ("fnum", "2.2")]),  # Mavic Pro
+    ("[rel_alt:  abs_alt: 327.0] [gb_roll: ]", [("rel_alt", ""), ("abs_alt", "327.0"), ("gb_roll", "")]),
 ])
 def test_srt_tokenizer_gives_field_name_and_value_text_pairs(text, pairs):
     assert srt.srt_field_pairs(text) == pairs
@@ -483,6 +485,14 @@ def test_srt_tokenizer_gives_field_name_and_value_text_pairs(text, pairs):
 
 def test_srt_fields_keep_each_names_first_value_and_labels_apart_from_names():
     assert srt.srt_fields("[rel_alt: 5.0] [REL_ALT: 6.0] H 7m [h: 8]") == {"rel_alt": "5.0", "h": "8", "H": "7m"}
+    assert srt.srt_fields("ISO:100 EV: Fnum:2.2") == {"iso": "100", "fnum": "2.2"}  # an empty field is left out
+
+
+def test_srt_an_empty_field_is_unknown_and_the_next_field_is_read_as_itself(tmp_path):
+    path = one_subtitle(tmp_path / "empty.srt", "[rel_alt:  abs_alt: 327.0] [gb_yaw: 1.0 gb_pitch: -30.0 gb_roll: ]")
+    frames, caught = record(read_srt, path)
+    assert_pose(frames[0], [NAN, -30.0, NAN, NAN])
+    assert not caught
 
 
 SRT_ROW_VALUES = {"height": ("12.5", 12.5), "pitch": ("-30.5", -30.5), "roll": ("2.5", 2.5),

@@ -33,8 +33,9 @@ _MARKUP = re.compile(r"<[^>]*>")
 
 SRT_TOKEN_RULES: tuple[tuple[re.Pattern[str], bool], ...] = (
     # `[rel_alt: 54.821 abs_alt: 535.407]`, `[fnum : 280]`, `BAROMETER:1.9`: a name, a colon, the value up to
-    # the next space or bracket; the name in lower case (DJI writes `Fnum`, `fnum`, `BAROMETER`)
-    (re.compile(r"(?P<name>[A-Za-z_][A-Za-z0-9_]*)\s*:\s*(?P<value>[^\s\[\]]+)"), True),
+    # the next space or bracket, empty where the next name follows (`EV: Fnum:2.2`); the name in lower case (DJI
+    # writes `Fnum`, `fnum`, `BAROMETER`)
+    (re.compile(r"(?P<name>[A-Za-z_]\w*)\s*:\s*(?P<value>(?![A-Za-z_]\w*\s*:)[^\s\[\]]+)?", re.ASCII), True),
     # `H 45.60m`, `EV -1.7`, `GPS (8.2090, 47.4692, 18)`, `G.PRY (-24.4°, 0.0°, 110.4°)`: an upper-case label as
     # written, then a number (up to the next space or comma) or a parenthesised list
     (re.compile(r"(?<![\w.])(?P<name>[A-Z][A-Z.]*)(?!\w)\s*(?P<value>\([^()]*\)|-?\d[^\s,]*)"), False),
@@ -66,18 +67,23 @@ def srt_field_pairs(text: str) -> list[tuple[str, str]]:
 
     The pairs of each rule of :data:`SRT_TOKEN_RULES` in turn, each rule's in the order written:
     ``"[REL_ALT: 54.821 abs_alt: 535.407] H 45.60m"`` gives ``("rel_alt", "54.821")``,
-    ``("abs_alt", "535.407")``, ``("H", "45.60m")``.
+    ``("abs_alt", "535.407")``, ``("H", "45.60m")``; an empty field gives an empty value (``"EV: Fnum:2.2"``:
+    ``("ev", "")``, ``("fnum", "2.2")``).
     """
     plain = _MARKUP.sub(" ", text)
-    return [(match["name"].lower() if lower_case else match["name"], match["value"])
+    return [(match["name"].lower() if lower_case else match["name"], match["value"] or "")
             for rule, lower_case in SRT_TOKEN_RULES for match in rule.finditer(plain)]
 
 
 def srt_fields(text: str) -> dict[str, str]:
-    """A subtitle's fields: the first value text of each field name (:func:`srt_field_pairs`)."""
+    """A subtitle's fields: the first value text of each field name (:func:`srt_field_pairs`).
+
+    An empty field (``EV:``) is left out: unknown, as a missing one.
+    """
     fields: dict[str, str] = {}
     for name, value in srt_field_pairs(text):
-        fields.setdefault(name, value)
+        if value:
+            fields.setdefault(name, value)
     return fields
 
 
