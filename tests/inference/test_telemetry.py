@@ -393,10 +393,48 @@ def test_srt_per_frame_values(tmp_path):
     assert_pose(frames[0], [45.2, -45.0, 0.0, FOV_24MM_4_3])
     assert_pose(frames[1], [46.0, -90.0, 1.5, FOV_24MM_4_3])
     assert_pose(frames[2], [47.5, NAN, NAN, FOV_24MM_4_3])
-    assert frames[1].source == "DJI_0002.SRT frame 1"
+    assert frames[1].source == "DJI_0002.SRT subtitle 2"
     assert_pose(read_srt(path)[0], [45.2, -45.0, 0.0, NAN])  # no video size: fov unknown
     with pytest.raises(ValueError, match="both width and height"):
         read_srt(path, width=4000)
+
+
+def timed_srt(path: Path, edges_ms: list[tuple[int, int]]) -> Path:
+    """Per-frame subtitles 1, 2, ..., subtitle k shown from ``edges_ms[k - 1]`` (start, end in ms), height 10 + k."""
+    def clock(ms: int) -> str:
+        return f"{ms // 3_600_000:02d}:{ms // 60_000 % 60:02d}:{ms // 1000 % 60:02d},{ms % 1000:03d}"
+
+    path.write_text("".join(f"{k}\n{clock(a)} --> {clock(b)}\n[rel_alt: {10 + k}.000 abs_alt: 300.0]\n\n"
+                            for k, (a, b) in enumerate(edges_ms, 1)))
+    return path
+
+
+def subtitle_of_each_frame(frames: dict[int, PoseTelemetry]) -> dict[int, int]:
+    """``{frame: the number of the subtitle its telemetry came from}``, read from the provenance."""
+    return {f: int(t.provenance[0].split(" subtitle ")[1].split()[0]) for f, t in frames.items()}
+
+
+def test_srt_per_frame_subtitles_are_placed_on_frames_by_their_timing(tmp_path):
+    """At 30 fps with DJI's millisecond timings (as the Mavic 3T writes them): subtitle 4 lasts 2 frames, 5 lasts 3,
+    nothing covers frames 10 and 11; each frame's centre (f + 0.5) / fps says which subtitle it shows."""
+    path = timed_srt(tmp_path / "t.SRT", [(0, 33), (33, 66), (66, 99), (99, 166), (166, 266), (266, 299),
+                                          (299, 333), (400, 433)])
+    frames, caught = record(read_srt, path, fps=30.0)
+    assert not caught
+    assert subtitle_of_each_frame(frames) == {0: 1, 1: 2, 2: 3, 3: 4, 4: 4, 5: 5, 6: 5, 7: 5, 8: 6, 9: 7, 12: 8}
+    assert frames[6].height_m == 15.0 and frames[6].source == "t.SRT subtitle 5"
+    assert frames[6].provenance[0] == "t.SRT subtitle 5 rel_alt"
+    assert subtitle_of_each_frame(read_srt(path)) == {k - 1: k for k in range(1, 9)}  # no frame rate: by number
+
+
+@pytest.mark.parametrize("fps", [30.0, 30000 / 1001, 25.0])
+@pytest.mark.parametrize("to_ms", [math.floor, round], ids=["truncated", "rounded"])
+def test_srt_millisecond_timings_never_move_a_frame_to_its_neighbours_subtitle(tmp_path, fps, to_ms):
+    """A subtitle per frame for 10 minutes, timed to the ms (33 / 34 ms at 29.97 fps): frame f shows subtitle f + 1."""
+    count = int(600 * fps)
+    edges = [to_ms(1000 * k / fps) for k in range(count + 1)]
+    frames = read_srt(timed_srt(tmp_path / "ms.SRT", list(zip(edges, edges[1:]))), fps=fps)
+    assert subtitle_of_each_frame(frames) == {f: f + 1 for f in range(count)}
 
 
 def test_srt_fixed_point_format_altitude_and_ground_frames(tmp_path):
@@ -515,7 +553,7 @@ def test_srt_each_table_row_gives_its_component_and_only_it(tmp_path, row):
     frames, _ = record(read_srt, one_subtitle(tmp_path / "one.srt", f"[{row.name}: {text}]"), 4000, 3000)
     expected = [value if key == row.key else NAN for key in POSE_KEYS]
     assert_pose(frames[0], expected)
-    assert frames[0].source == "one.srt frame 0"
+    assert frames[0].source == "one.srt subtitle 1"
 
 
 def test_srt_a_component_comes_from_its_first_row_that_is_there(tmp_path):

@@ -99,7 +99,8 @@ SUBTITLE = re.compile(rf"(?:^|\n)(\d+)\r?\n\d\d:\d\d:\d\d[,.]\d+ --> [^\n]*\n(.*
 @pytest.mark.parametrize("name", sorted(n for n in SRT_EXPECTED  # read at collection: only when the files are here
                                         if REAL.is_dir() and "rel_alt" in (REAL / "srt" / n).read_text()))
 def test_every_frame_matches_an_independent_reading_of_the_raw_text(name):
-    """rel_alt, gb_pitch, gb_roll of each subtitle, found by a plain search in its raw text, are frame k - 1's."""
+    """rel_alt, gb_pitch, gb_roll of each subtitle, found by a plain search in its raw text, are frame k - 1's (no
+    frame rate given: placed by number)."""
     text = (REAL / "srt" / name).read_text(encoding="utf-8-sig")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -113,6 +114,31 @@ def test_every_frame_matches_an_independent_reading_of_the_raw_text(name):
         for key, value in (("pitch", t.pitch_deg), ("roll", t.roll_deg)):
             found = re.search(rf"gb_{key}: (-?[\d.]+)", body)
             assert (value == float(found.group(1))) if found else math.isnan(value)
+
+
+TIMED = re.compile(r"(?:^|\n)(\d+)\r?\n(\d\d):(\d\d):(\d\d)[,.](\d{3}) --> (\d\d):(\d\d):(\d\d)[,.](\d{3})")
+
+
+@pytest.mark.parametrize(("name", "fps", "some"), [
+    # 56 of the Mavic 2 Pro's 200 subtitles last 80 ms, two frames (subtitle 2 the first), so subtitle 200 (10.200 s)
+    # is frame 255, not 199
+    ("juanirache__mavic_2pro_new.SRT", 25.0, {0: 1, 1: 2, 2: 2, 3: 3, 150: 119, 199: 155, 254: 199, 255: 200}),
+    ("ruz76__DJI_MAVIC_3T.SRT", 30.0, {7: 8, 8: 9, 9: 9, 10: 9, 11: 9, 12: 10, 14: 12}),  # subtitle 9: 133 ms
+])
+def test_real_subtitles_are_placed_on_the_frames_their_timing_covers(name, fps, some):
+    """Each frame gets the subtitle whose timing, read by a plain search in the raw text, holds its centre."""
+    text = (REAL / "srt" / name).read_text(encoding="utf-8-sig")
+    def seconds(h: str, m: str, s: str, ms: str) -> float:
+        return int(h) * 3600 + int(m) * 60 + int(s) + int(ms) / 1000
+
+    spans = [(int(found[0]), seconds(*found[1:5]), seconds(*found[5:])) for found in TIMED.findall(text)]
+    expected = {f: n for n, start, end in spans for f in range(int(end * fps) + 1) if start <= (f + 0.5) / fps < end}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        frames = read_srt(REAL / "srt" / name, *UHD, fps=fps)
+    assert {f: int(t.source.rsplit(" ", 1)[1]) for f, t in frames.items()} == expected
+    assert {f: expected[f] for f in some} == some and sorted(frames) == list(range(max(some) + 1))
+    assert frames[max(some)].provenance[3] == f"{name} subtitle {some[max(some)]} focal_len"
 
 
 @pytest.mark.parametrize("name", sorted(XMP_EXPECTED))

@@ -183,3 +183,15 @@ def test_api_and_video_predictions_carry_provenance(checkpoint, tmp_path):
                                                         "roll": "clip.SRT subtitle 4 gb_roll",
                                                         "fov": "clip.SRT subtitle 4 focal_len"}, None, None]
     assert sum("cover frames up to 3" in str(w.message) for w in caught) == 1
+
+
+def test_the_srt_coverage_warning_counts_the_frames_its_timing_covers(tmp_path):
+    srt = tmp_path / "v.SRT"  # subtitle 2 lasts 2 frames at 10 fps: 3 subtitles cover frames 0-3
+    srt.write_text("".join(f"{k}\n00:00:00,{a:03d} --> 00:00:00,{b:03d}\n[rel_alt: {20 + k}.000 abs_alt: 300.0]\n\n"
+                           for k, (a, b) in enumerate([(0, 100), (100, 300), (300, 400)], 1)))
+    (frames, _), caught = record(video_telemetry, tmp_path / "v.avi", range(9), srt, fps=10.0)
+    assert [frames[f].provenance[0] for f in sorted(frames)] == [
+        "v.SRT subtitle 1 rel_alt", "v.SRT subtitle 2 rel_alt", "v.SRT subtitle 2 rel_alt", "v.SRT subtitle 3 rel_alt"]
+    assert len(caught) == 1 and "cover frames up to 3 of v.avi; 5 of the 9 frame(s) predicted (the first: 4)" in \
+        caught[0]
+

@@ -64,7 +64,7 @@ class PoseTelemetry:
         height_m: metres above the ground under the camera. pitch_deg: 0 = horizontal, -90 = nadir.
         roll_deg: positive = camera turned clockwise seen from behind (horizon's right end up).
         fov_deg: horizontal field of view across the image width. source: where the known values came
-            from (``"flight.csv line 4"``, ``"DJI_0001.JPG XMP/EXIF"``, ``"DJI_0002.SRT frame 12"``).
+            from (``"flight.csv line 4"``, ``"DJI_0001.JPG XMP/EXIF"``, ``"DJI_0002.SRT subtitle 13"``).
         provenance: per component, the file and the place in it its value was read from
             (``"flight.csv line 12"``, ``"DJI_0001.JPG XMP drone-dji:RelativeAltitude"``,
             ``"DJI_0005.SRT subtitle 215 rel_alt"``); by default ``source`` for each known component.

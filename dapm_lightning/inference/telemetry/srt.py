@@ -4,9 +4,9 @@ Four steps: :func:`~dapm_lightning.inference.telemetry.srt_text.subtitles` strea
 subtitles; :func:`srt_field_pairs` tokenizes a subtitle's text into (field name, value text) pairs
 (:data:`SRT_TOKEN_RULES`); the tables say which field gives which pose component and how its value converts --
 :data:`SRT_FIELDS` for DJI's per-frame layout, :data:`SRT_CAPTION_FIELDS` for its one-per-second captions, each
-field's meaning a row of :data:`~dapm_lightning.inference.telemetry.fields.FIELD_MEANINGS`; per-second values are
-placed on frames by their timing (``srt_frames.py``). A new DJI variant is a row in a table, a new way of writing
-fields a rule in :data:`SRT_TOKEN_RULES`.
+field's meaning a row of :data:`~dapm_lightning.inference.telemetry.fields.FIELD_MEANINGS`; the values are placed
+on frames by their timing, given the video's frame rate (``srt_frames.py``). A new DJI variant is a row in a table, a
+new way of writing fields a rule in :data:`SRT_TOKEN_RULES`.
 """
 
 from __future__ import annotations
@@ -246,13 +246,16 @@ def read_srt(path: StrPath, width: int | None = None, height: int | None = None,
              fps: float | None = None) -> dict[int, PoseTelemetry]:
     """Per-frame telemetry from a DJI video's subtitle file: ``{frame index (0-based): PoseTelemetry}``.
 
-    Per-frame subtitles (up to 0.5 s): subtitle ``k`` is frame ``k - 1``, read through :data:`SRT_FIELDS` (height
-    from ``rel_alt``, else ``altitude`` as its layout says; ``gb_pitch``, ``gb_roll``; FoV from ``focal_len`` and
-    the fixed-point ``dzoom_ratio`` when ``width`` and ``height`` are given, not for a 2:1 360-degree video).
-    Per-second subtitles: their captions (:data:`SRT_CAPTION_FIELDS`: ``H``, ``BAROMETER``, ``Hb``, ``G.PRY``)
-    interpolated onto the frames by their timing at ``fps``. A height below 1 m is left unknown. Each component's
-    ``provenance`` names the file, subtitle and field (``DJI_0005.SRT subtitle 215 rel_alt``). Nothing usable
-    (also: no timing lines and no field read here) gives one "no usable telemetry" warning, not an error.
+    Per-frame subtitles (up to 0.5 s), read through :data:`SRT_FIELDS` (height from ``rel_alt``, else
+    ``altitude`` as its layout says; ``gb_pitch``, ``gb_roll``; FoV from ``focal_len`` and the fixed-point
+    ``dzoom_ratio`` when ``width`` and ``height`` are given, not for a 2:1 360-degree video), are placed by their
+    timing when ``fps`` is given, as a player shows them: each on the frames whose centre time ``(f + 0.5) / fps``
+    it covers (a Mavic 2 Pro subtitle lasting 80 ms at 25 fps is two frames; frames none covers are absent);
+    without ``fps``, subtitle ``k`` is frame ``k - 1``. Per-second subtitles: their captions
+    (:data:`SRT_CAPTION_FIELDS`: ``H``, ``BAROMETER``, ``Hb``, ``G.PRY``) interpolated onto the frames by their
+    timing at ``fps``. A height below 1 m is left unknown. Each component's ``provenance`` names the file, subtitle
+    and field (``DJI_0005.SRT subtitle 215 rel_alt``). Nothing usable (also: no timing lines and no field read
+    here) gives one "no usable telemetry" warning, not an error.
 
     Raises:
         TelemetryError: text that is not an SRT, a subtitle number twice, a field read here that is not a number
@@ -266,7 +269,7 @@ def read_srt(path: StrPath, width: int | None = None, height: int | None = None,
     if width is not None and height is not None and not (width > 0 and height > 0):
         raise ValueError(f"read_srt: width and height must be positive, got {width} x {height}")
     size = (width, height) if width is not None and height is not None else None
-    reading = SrtReading(path, NOTES)
+    reading = SrtReading(path, fps, NOTES)
     for raw in subtitles(path):
         where = f"{path}, subtitle {raw.number} (line {raw.line})"
         subtitle = Subtitle(srt_fields(raw.text), where, size)
@@ -279,7 +282,7 @@ def read_srt(path: StrPath, width: int | None = None, height: int | None = None,
             continue
         values, read = _pose_values(subtitle, SRT_FIELDS)
         if raw.end - raw.start <= MAX_SUBTITLE_S:
-            reading.add_frame(raw.number, values, read, subtitle.notes)
+            reading.add_frame(raw.number, raw.start, raw.end, values, read, subtitle.notes)
             continue
         if not all(math.isnan(v) for v in values):
             raise TelemetryError(f"{where}: the subtitle lasts {raw.end - raw.start:.3f} s; DJI writes these fields "
@@ -287,7 +290,7 @@ def read_srt(path: StrPath, width: int | None = None, height: int | None = None,
                                  "or it is damaged; give per-frame telemetry in a CSV instead")
         values, read = _pose_values(subtitle, SRT_CAPTION_FIELDS)
         reading.add_sample(raw.number, raw.start, raw.end, values, read, subtitle.notes)
-    return reading.frames(fps)
+    return reading.frames()
 
 
 def _pose_values(subtitle: Subtitle, table: tuple[SrtField, ...]) -> tuple[list[float], list[str]]:

@@ -1,9 +1,12 @@
-"""An SRT's values onto video frames: per-frame subtitles by number, per-second ones by their timing; one warning.
+"""An SRT's values onto video frames, as a player shows them; one warning for the file.
 
 :class:`SrtReading` collects what ``read_srt`` (``srt.py``) reads from each subtitle, then :meth:`SrtReading.frames`
-gives ``{frame: PoseTelemetry}``: subtitle ``k`` of a per-frame SRT is frame ``k - 1``; a per-second subtitle's value
-holds at its start time and is interpolated linearly to the next subtitle's start when the two follow each other
-(each frame ``f`` at time ``f / fps``, as a per-frame subtitle ``f + 1`` starts), held to its own end otherwise.
+gives ``{frame: PoseTelemetry}``. With the video's frame rate, a per-frame subtitle is the telemetry of every frame
+whose centre time ``(f + 0.5) / fps`` it covers (``start <= t < end``): DJI's timings are rounded to the millisecond
+(33, 66, 99, 133 ms at 30 fps), which never moves a centre across a subtitle's edge, and a subtitle lasting two
+frames (many of the Mavic 2 Pro's last 80 ms at 25 fps) covers both. Without it, subtitle ``k`` is frame ``k - 1``.
+A per-second subtitle's value holds at its start time and is interpolated linearly to the next subtitle's start when
+the two follow each other (frame ``f`` at time ``f / fps``), held to its own end otherwise.
 """
 
 from __future__ import annotations
@@ -23,6 +26,11 @@ _GAP_S = 0.05
 """Two per-second subtitles follow each other when the second starts within this of the first's end."""
 
 
+def first_frame_from(t: float, fps: float) -> int:
+    """The first frame whose centre time ``(f + 0.5) / fps`` is at or after ``t`` seconds."""
+    return math.ceil(t * fps - 0.5 - 1e-9)
+
+
 @dataclass(frozen=True)
 class Sample:
     """A per-second subtitle's values: its number, start and end (s), values and the field each came from."""
@@ -35,10 +43,11 @@ class Sample:
 
 
 class SrtReading:
-    """What one SRT file gave, subtitle by subtitle; :meth:`frames` places it on frames and warns once."""
+    """What one SRT file gave a video at ``fps`` (None: not known), frame by frame; :meth:`frames` warns once."""
 
-    def __init__(self, path: Path, notes_first: Sequence[str] = ()) -> None:
+    def __init__(self, path: Path, fps: float | None, notes_first: Sequence[str] = ()) -> None:
         self.path = path
+        self.fps = fps if fps is not None and fps > 0 else None
         self.notes: Counter[str] = Counter(dict.fromkeys(notes_first, 0))
         self.per_frame: dict[int, PoseTelemetry] = {}
         self.samples: list[Sample] = []
@@ -55,14 +64,22 @@ class SrtReading:
         for note in dict.fromkeys(notes):
             self.notes[note] += 1
 
-    def add_frame(self, number: int, values: Sequence[float], read: Sequence[str], notes: Sequence[str]) -> None:
-        """A per-frame subtitle: frame ``number - 1``."""
+    def add_frame(self, number: int, start: float, end: float, values: Sequence[float], read: Sequence[str],
+                  notes: Sequence[str]) -> None:
+        """A per-frame subtitle shown from ``start`` to ``end`` (s): on the frames whose centre it covers.
+
+        A frame two subtitles cover gets the later one; without the frame rate, the subtitle is frame ``number - 1``.
+        """
         self._count(notes)
         known = not all(math.isnan(v) for v in values)
         where = f"{self.path.name} subtitle {number}"
         provenance = [f"{where} {name}" if name else "" for name in read]
-        self.per_frame[number - 1] = PoseTelemetry.from_values(
-            values, f"{self.path.name} frame {number - 1}" if known else "", provenance)
+        telemetry = PoseTelemetry.from_values(values, where if known else "", provenance)
+        if self.fps is None:
+            self.per_frame[number - 1] = telemetry
+        else:
+            covered = range(first_frame_from(start, self.fps), first_frame_from(end, self.fps))
+            self.per_frame.update(dict.fromkeys(covered, telemetry))
 
     def add_sample(self, number: int, start: float, end: float, values: Sequence[float], read: Sequence[str],
                    notes: Sequence[str]) -> None:
@@ -97,16 +114,18 @@ class SrtReading:
                 out[frame] = PoseTelemetry.from_values(values, f"{name} frame {frame}" if known else "", provenance)
         return out
 
-    def frames(self, fps: float | None) -> dict[int, PoseTelemetry]:
+    def frames(self) -> dict[int, PoseTelemetry]:
         """``{frame: PoseTelemetry}`` of the whole file; warns once about what was left unknown, and why.
+
+        Frames no subtitle covers are not in it.
 
         Raises:
             ValueError: per-second subtitles with values but no ``fps`` to place them with.
         """
         out: dict[int, PoseTelemetry] = {}
         if self.samples:
-            if fps is not None and fps > 0:
-                out = self._place(fps)
+            if self.fps is not None:
+                out = self._place(self.fps)
             elif any(not math.isnan(v) for s in self.samples for v in s.values):
                 raise ValueError(f"{self.path}: its subtitles last about 1 s each (one per second): give the video's "
                                  "frame rate (read_srt(..., fps=...)) to place them on the frames")
