@@ -34,8 +34,9 @@ class PredictDataModule(DAPMDataModule):
         keep_rgb: ship the original pixels with each batch (point-cloud colours, the contact sheet).
         pin_memory: DataLoader setting (GPUs).
         telemetry: the flight's pose per image: a CSV with columns name,height_m,pitch_deg,roll_deg,fov_deg (name:
-            the image's file name, with or without extension; an empty cell or a missing column: unknown), or
-            for a video a DJI SRT file (default: the video's own .SRT beside it).
+            the image's file name, with or without extension, or a video frame's output name, DJI_0005_f000012;
+            an empty cell or a missing column: unknown), or a DJI .SRT for the one video predicted (default: each
+            video's own .SRT beside it).
         read_metadata: also read each JPEG's DJI XMP (relative altitude, gimbal pitch and roll) and EXIF focal
             length, for what the CSV does not give.
         sensor_width_mm: sensor width, to turn an EXIF FocalLength into a FoV when no 35 mm equivalent is given.

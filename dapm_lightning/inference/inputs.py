@@ -38,6 +38,7 @@ from dapm_lightning.inference.pixels import upscale_note as upscale_note
 from dapm_lightning.inference.sources import VIDEO_SUFFIXES as VIDEO_SUFFIXES
 from dapm_lightning.inference.sources import SourceFile, Sources, resolve_sources
 from dapm_lightning.inference.sources import resolve_source as resolve_source
+from dapm_lightning.inference.telemetry.gather import first_few
 from dapm_lightning.models.prior import PriorSettings
 from dapm_lightning.options import DEFAULT_BATCH_SIZE as DEFAULT_BATCH_SIZE
 
@@ -232,9 +233,10 @@ class PredictSource:
             case), an image, a video file, a ``.txt`` list of paths, or a list of any of those
             (:func:`~dapm_lightning.inference.sources.resolve_sources`).
         frame_step: videos: keep every ``frame_step``-th frame. max_frames: videos: stop after this many.
-        telemetry: images: a CSV (``name,height_m,pitch_deg,roll_deg,fov_deg``; see
-            :func:`~dapm_lightning.inference.telemetry.read_telemetry_csv`); videos: a DJI SRT file, or a CSV
-            naming frames as their outputs are named (``DJI_0005_f000012``).
+        telemetry: a CSV (``name,height_m,pitch_deg,roll_deg,fov_deg``; see
+            :func:`~dapm_lightning.inference.telemetry.read_telemetry_csv`) naming images, and video frames as
+            their outputs are named (``DJI_0005_f000012``); or a DJI ``.SRT``, the telemetry of the one video
+            predicted (images beside it keep their own metadata).
         read_metadata: images: each component the CSV lacks from the image's own DJI XMP / EXIF; videos: the
             video's own ``.SRT`` beside it, for what no ``telemetry`` CSV gives.
         sensor_width_mm: sensor width, for an EXIF FocalLength without a 35 mm equivalent.
@@ -258,11 +260,12 @@ class PredictSource:
                                     f"current directory, {Path.cwd()}), or leave --telemetry out.")
 
 
-def _video_telemetry(video: VideoFramesDataset, source: PredictSource) -> flight.TelemetryReport | None:
-    """The video's priors (and their provenance) from its SRT and / or a CSV naming its frames; the report."""
-    given = Path(source.telemetry) if source.telemetry is not None else None
-    csv_path = given if given is not None and given.suffix.lower() == ".csv" else None
-    srt = given if given is not None and csv_path is None else None
+def _video_telemetry(video: VideoFramesDataset, source: PredictSource, srt: Path | None,
+                     csv_path: Path | None) -> flight.TelemetryReport | None:
+    """The video's priors (and their provenance) from its SRT and / or a CSV naming its frames; the report.
+
+    ``srt``: the one given as ``--telemetry``; None: the video's own beside it, unless metadata is not read.
+    """
     if srt is None and source.read_metadata:
         srt = next((p for p in (video.path.with_suffix(".SRT"), video.path.with_suffix(".srt")) if p.is_file()), None)
     if srt is None and csv_path is None:
@@ -277,12 +280,12 @@ def _video_telemetry(video: VideoFramesDataset, source: PredictSource) -> flight
     return report
 
 
-def _images_dataset(files: list[SourceFile], source: PredictSource, target: NetworkSize,
-                    keep_rgb: bool) -> ImageFilesDataset:
+def _images_dataset(files: list[SourceFile], source: PredictSource, target: NetworkSize, keep_rgb: bool,
+                    csv_path: Path | None) -> ImageFilesDataset:
     paths, names = [f.path for f in files], [f.name for f in files]
     report = None
-    if source.telemetry is not None or source.read_metadata:
-        found, report = flight.images_telemetry(paths, source.telemetry, read_metadata=source.read_metadata,
+    if csv_path is not None or source.read_metadata:
+        found, report = flight.images_telemetry(paths, csv_path, read_metadata=source.read_metadata,
                                                 sensor_width_mm=source.sensor_width_mm,
                                                 strict=source.strict_telemetry)
         rows = np.stack([t.values() for t in found])
@@ -302,7 +305,12 @@ def source_datasets(source: PredictSource, target: NetworkSize, keep_rgb: bool =
     All images in one data set (batched by size), then one per video, in the order given. ``chunk``: video
     frames a loader worker takes in a row (the batch size keeps frames in order). When telemetry is read, its
     summary (how many images or frames use it, from which sources) is logged once per data set; what the sources
-    hold but are not predicted (videos in a folder) is logged too.
+    hold but are not predicted (videos in a folder) is logged too. A ``telemetry`` CSV serves all the data sets, a
+    ``.SRT`` the one video.
+
+    Raises:
+        ValueError: a ``.SRT`` as ``telemetry`` for several videos.
+        TelemetryError: the CSV's errors (a ``.SRT`` with no video predicted among them).
     """
     files, notes = resolve_sources(source.path)
     for note in notes:
@@ -310,16 +318,20 @@ def source_datasets(source: PredictSource, target: NetworkSize, keep_rgb: bool =
     images = [f for f in files if f.kind == "image"]
     videos = [f for f in files if f.kind == "video"]
     given = Path(source.telemetry) if source.telemetry is not None else None
-    if len(videos) > 1 and given is not None and given.suffix.lower() != ".csv":
-        raise ValueError(f"--telemetry {given}: one SRT for {len(videos)} videos; leave each video's .SRT beside "
-                         "it (read by default) or give a CSV naming the frames")
+    srt = given if given is not None and given.suffix.lower() == ".srt" and videos else None
+    if srt is not None and len(videos) > 1:
+        raise ValueError(f"--telemetry {srt}: one SRT for {len(videos)} videos "
+                         f"({first_few([v.path.name for v in videos])}); predict its video alone with it, "
+                         "leave each video's .SRT beside it (read by default), or give a CSV naming the frames as "
+                         "their outputs are named (DJI_0005_f000012)")
+    csv_path = given if srt is None else None
     datasets: list[ImageFilesDataset | VideoFramesDataset] = []
     if images:
-        datasets.append(_images_dataset(images, source, target, keep_rgb))
+        datasets.append(_images_dataset(images, source, target, keep_rgb, csv_path))
     for file in videos:
         video = VideoFramesDataset(file.path, target, source.frame_step, source.max_frames, chunk, keep_rgb,
                                    name=file.name)
-        video.telemetry_report = _video_telemetry(video, source)
+        video.telemetry_report = _video_telemetry(video, source, srt, csv_path)
         datasets.append(video)
     for dataset in datasets:
         if dataset.telemetry_report is not None:

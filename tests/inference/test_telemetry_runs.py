@@ -13,7 +13,7 @@ import torch
 from PIL import Image
 
 from dapm_lightning.cli import main
-from dapm_lightning.inference.inputs import PredictSource, source_dataset
+from dapm_lightning.inference.inputs import PredictSource, source_dataset, source_datasets
 from dapm_lightning.inference.predictor import DAPMPredictor
 from dapm_lightning.inference.prior import as_prior, prior_rows
 from dapm_lightning.inference.telemetry import (
@@ -195,3 +195,24 @@ def test_the_srt_coverage_warning_counts_the_frames_its_timing_covers(tmp_path):
     assert len(caught) == 1 and "cover frames up to 3 of v.avi; 5 of the 9 frame(s) predicted (the first: 4)" in \
         caught[0]
 
+
+def test_an_srt_given_with_images_serves_its_video_and_the_images_keep_their_metadata(checkpoint, tmp_path):
+    image = dji_jpeg(tmp_path / "c.jpg", RelativeAltitude="+40.0")
+    (tmp_path / "clips").mkdir()
+    video, other = write_video(tmp_path / "clips" / "v.avi"), write_video(tmp_path / "clips" / "w.avi")
+    srt = per_frame_srt(tmp_path / "flight.SRT", 9)
+    (images, clip), caught = record(source_datasets, PredictSource([str(image), str(video)], telemetry=srt), 32)
+    assert images.provenance[0][0] == "c.jpg XMP drone-dji:RelativeAltitude" and not caught
+    assert clip.provenance[8][0] == "flight.SRT subtitle 9 rel_alt"
+    out = tmp_path / "out"
+    main(["predict", str(image), str(video), "--ckpt_path", str(checkpoint), "--out", str(out), "--device", "cpu",
+          "--telemetry", str(srt), "--frame_step", "4", "--outputs", "camera"])
+    assert json.loads((out / "c_camera.json").read_text())["pose_provenance"]["height_m"] == \
+        "c.jpg XMP drone-dji:RelativeAltitude"
+    assert json.loads((out / "v_f000004_camera.json").read_text())["pose_provenance"]["height_m"] == \
+        "flight.SRT subtitle 5 rel_alt"
+    with pytest.raises(ValueError, match=r"--telemetry .*flight.SRT: one SRT for 2 videos \(v.avi, w.avi\); predict "
+                                         r"its video alone with it, leave each video's .SRT beside it"):
+        source_datasets(PredictSource([str(image), str(video), str(other)], telemetry=srt), 32)
+    with pytest.raises(TelemetryError, match="flight.SRT: a DJI SRT gives the telemetry of the video"):
+        source_datasets(PredictSource([str(image)], telemetry=srt), 32)

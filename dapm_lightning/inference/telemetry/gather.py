@@ -58,10 +58,14 @@ class TelemetryReport:
             parts = ", ".join(f"{k} {self.components[k]}" for k in POSE_KEYS if self.components[k])
             line += f" ({parts}) from " + ", ".join(f"{s} {n}" for s, n in sorted(self.sources.items()))
         if self.fell_back:
-            names = ", ".join(self.fell_back[:SHOW_NAMES]) + (f" (and {len(self.fell_back) - SHOW_NAMES} more)"
-                                                             if len(self.fell_back) > SHOW_NAMES else "")
-            line += f"; telemetry unreadable, network pose used: {names}"
+            line += f"; telemetry unreadable, network pose used: {first_few(self.fell_back)}"
         return line
+
+
+def first_few(names: Sequence[str], sep: str = ", ") -> str:
+    """The first :data:`SHOW_NAMES` names, and how many more there are."""
+    more = f" (and {len(names) - SHOW_NAMES} more)" if len(names) > SHOW_NAMES else ""
+    return sep.join(names[:SHOW_NAMES]) + more
 
 
 def source_kind(provenance: str) -> str:
