@@ -235,8 +235,8 @@ class PredictSource:
         frame_step: videos: keep every ``frame_step``-th frame. max_frames: videos: stop after this many.
         telemetry: a CSV (``name,height_m,pitch_deg,roll_deg,fov_deg``; see
             :func:`~dapm_lightning.inference.telemetry.read_telemetry_csv`) naming images, and video frames as
-            their outputs are named (``DJI_0005_f000012``); or a DJI ``.SRT``, the telemetry of the one video
-            predicted (images beside it keep their own metadata).
+            their outputs are named (``DJI_0005_f000012``), read once for all of them; or a DJI ``.SRT``, the
+            telemetry of the one video predicted (images beside it keep their own metadata).
         read_metadata: images: each component the CSV lacks from the image's own DJI XMP / EXIF; videos: the
             video's own ``.SRT`` beside it, for what no ``telemetry`` CSV gives.
         sensor_width_mm: sensor width, for an EXIF FocalLength without a 35 mm equivalent.
@@ -261,18 +261,18 @@ class PredictSource:
 
 
 def _video_telemetry(video: VideoFramesDataset, source: PredictSource, srt: Path | None,
-                     csv_path: Path | None) -> flight.TelemetryReport | None:
+                     table: flight.TelemetryCsv | None) -> flight.TelemetryReport | None:
     """The video's priors (and their provenance) from its SRT and / or a CSV naming its frames; the report.
 
     ``srt``: the one given as ``--telemetry``; None: the video's own beside it, unless metadata is not read.
     """
     if srt is None and source.read_metadata:
         srt = next((p for p in (video.path.with_suffix(".SRT"), video.path.with_suffix(".srt")) if p.is_file()), None)
-    if srt is None and csv_path is None:
+    if srt is None and table is None:
         return None
     frames = range(0, video.frame_count, video.frame_step)[:video.max_frames] if video.frame_count > 0 else None
     height, width = video.frame_size
-    found, report = flight.video_telemetry(video.path, frames, srt, csv_path, fps=video.fps,
+    found, report = flight.video_telemetry(video.path, frames, srt, table, fps=video.fps,
                                            size=(width, height) if width > 0 and height > 0 else None,
                                            strict=source.strict_telemetry)
     video.priors = {frame: t.values() for frame, t in found.items()}
@@ -281,11 +281,11 @@ def _video_telemetry(video: VideoFramesDataset, source: PredictSource, srt: Path
 
 
 def _images_dataset(files: list[SourceFile], source: PredictSource, target: NetworkSize, keep_rgb: bool,
-                    csv_path: Path | None) -> ImageFilesDataset:
+                    table: flight.TelemetryCsv | None) -> ImageFilesDataset:
     paths, names = [f.path for f in files], [f.name for f in files]
     report = None
-    if csv_path is not None or source.read_metadata:
-        found, report = flight.images_telemetry(paths, csv_path, read_metadata=source.read_metadata,
+    if table is not None or source.read_metadata:
+        found, report = flight.images_telemetry(paths, table, read_metadata=source.read_metadata,
                                                 sensor_width_mm=source.sensor_width_mm,
                                                 strict=source.strict_telemetry)
         rows = np.stack([t.values() for t in found])
@@ -305,8 +305,8 @@ def source_datasets(source: PredictSource, target: NetworkSize, keep_rgb: bool =
     All images in one data set (batched by size), then one per video, in the order given. ``chunk``: video
     frames a loader worker takes in a row (the batch size keeps frames in order). When telemetry is read, its
     summary (how many images or frames use it, from which sources) is logged once per data set; what the sources
-    hold but are not predicted (videos in a folder) is logged too. A ``telemetry`` CSV serves all the data sets, a
-    ``.SRT`` the one video.
+    hold but are not predicted (videos in a folder) is logged too. A ``telemetry`` CSV is read once for all the
+    data sets, with one warning for its names that match none of them; a ``.SRT`` serves the one video.
 
     Raises:
         ValueError: a ``.SRT`` as ``telemetry`` for several videos.
@@ -324,15 +324,17 @@ def source_datasets(source: PredictSource, target: NetworkSize, keep_rgb: bool =
                          f"({first_few([v.path.name for v in videos])}); predict its video alone with it, "
                          "leave each video's .SRT beside it (read by default), or give a CSV naming the frames as "
                          "their outputs are named (DJI_0005_f000012)")
-    csv_path = given if srt is None else None
+    table = flight.TelemetryCsv.read(given) if given is not None and srt is None else None
     datasets: list[ImageFilesDataset | VideoFramesDataset] = []
     if images:
-        datasets.append(_images_dataset(images, source, target, keep_rgb, csv_path))
+        datasets.append(_images_dataset(images, source, target, keep_rgb, table))
     for file in videos:
         video = VideoFramesDataset(file.path, target, source.frame_step, source.max_frames, chunk, keep_rgb,
                                    name=file.name)
-        video.telemetry_report = _video_telemetry(video, source, srt, csv_path)
+        video.telemetry_report = _video_telemetry(video, source, srt, table)
         datasets.append(video)
+    if table is not None:
+        table.warn_unmatched()
     for dataset in datasets:
         if dataset.telemetry_report is not None:
             rank_zero_info(dataset.telemetry_report.summary())

@@ -196,6 +196,27 @@ def test_the_srt_coverage_warning_counts_the_frames_its_timing_covers(tmp_path):
         caught[0]
 
 
+def test_a_csv_shared_by_several_inputs_is_read_once_and_warns_once_about_rows_none_uses(tmp_path):
+    a, b = write_video(tmp_path / "a.avi"), write_video(tmp_path / "b.avi")
+    image = dji_jpeg(tmp_path / "c.jpg", RelativeAltitude="+40.0")
+    table = tmp_path / "flight.csv"
+    table.write_text("name,height_m,pitch_deg,roll_deg,fov_deg,note\na_f000000,70,,,,\nb_f000000,90,,,,\n"
+                     "c.jpg,30,,,,\nstray,5,,,,\n")
+    (first, second), caught = record(source_datasets, PredictSource([str(a), str(b)], telemetry=table), 32)
+    assert first.priors[0][0] == 70.0 and second.priors[0][0] == 90.0
+    assert caught == [f"{table}: column(s) note ignored (the telemetry columns are name,height_m,pitch_deg,roll_deg,"
+                      "fov_deg)",
+                      f"{table}: 2 of 4 name(s) match no frame of a.avi or b.avi (frames are named as their outputs: "
+                      "a_f000012): c, stray; names are matched by file name with or without extension "
+                      "(case-sensitive), those rows are unused"]
+    (images, video), caught = record(source_datasets, PredictSource([str(image), str(b)], telemetry=table), 32)
+    assert images.priors[0][0] == 30.0 and video.priors[0][0] == 90.0
+    assert [m for m in caught if "match no" in m] == [
+        f"{table}: 2 of 4 name(s) match no image or frame of b.avi (frames are named as their outputs: b_f000012): "
+        "a_f000000, stray; names are matched by file name with or without extension (case-sensitive), those rows "
+        "are unused"]
+
+
 def test_an_srt_given_with_images_serves_its_video_and_the_images_keep_their_metadata(checkpoint, tmp_path):
     image = dji_jpeg(tmp_path / "c.jpg", RelativeAltitude="+40.0")
     (tmp_path / "clips").mkdir()

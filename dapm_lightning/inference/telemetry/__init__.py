@@ -15,7 +15,8 @@ What each DJI field means comes first (``fields.py``, :data:`FIELD_MEANINGS`): a
 never a height, the aircraft's attitude never the gimbal's, a field whose meaning depends on the model is read
 only where the model is known. :func:`telemetry_for_images` / :func:`images_telemetry` and
 :func:`video_telemetry` (``gather.py``) read a run's files, a CSV first and each unknown component from the
-drone's own files, with a :class:`TelemetryReport` of what was used from where.
+drone's own files, with a :class:`TelemetryReport` of what was used from where; a CSV shared by a run's inputs is
+read once (:class:`TelemetryCsv`).
 
 Policy: a missing value is unknown (NaN). In the CSV the user writes, a value that is there but is not a number,
 or is physically impossible, is an error (:class:`TelemetryError`, naming the file, the row and the fix); in a
@@ -27,6 +28,7 @@ the drone on the ground) is left unknown with a warning.
 from dapm_lightning.inference.telemetry.csv_file import CSV_COLUMNS, read_telemetry_csv
 from dapm_lightning.inference.telemetry.fields import FIELD_MEANINGS, FieldMeaning
 from dapm_lightning.inference.telemetry.gather import (
+    TelemetryCsv,
     TelemetryReport,
     images_telemetry,
     telemetry_for_images,
@@ -53,6 +55,7 @@ __all__ = [
     "FieldMeaning",
     "PoseTelemetry",
     "Provenance",
+    "TelemetryCsv",
     "TelemetryError",
     "TelemetryReport",
     "TelemetryWarning",

@@ -1,9 +1,11 @@
 """Telemetry for a whole run, per image or video frame: one file's problem costs only that file; a summary at the end.
 
-A CSV is the user's own instruction: its errors stop the run. A drone-written file (an image's XMP/EXIF, a video's
-SRT) that cannot be read makes that image or video fall back to the network, with one warning naming the file, the
-reason and the fix in the command line's terms; ``strict=True`` (``--strict_telemetry``) makes it an error.
-:class:`TelemetryReport` counts what was used from where (the run's summary line).
+A CSV is the user's own instruction: its errors stop the run. One CSV may serve all of a run's inputs
+(:class:`TelemetryCsv`): it is read once, and its names that match no image or frame of any input give one warning.
+A drone-written file (an image's XMP/EXIF, a video's SRT) that cannot be read makes that image or video fall back to
+the network, with one warning naming the file, the reason and the fix in the command line's terms; ``strict=True``
+(``--strict_telemetry``) makes it an error. :class:`TelemetryReport` counts what was used from where (the run's
+summary line).
 """
 
 from __future__ import annotations
@@ -68,6 +70,54 @@ def first_few(names: Sequence[str], sep: str = ", ") -> str:
     return sep.join(names[:SHOW_NAMES]) + more
 
 
+@dataclass
+class TelemetryCsv:
+    """A telemetry CSV read once for all of a run's inputs: its rows, and the names the inputs matched.
+
+    Each input marks what it matched (:meth:`match_images`, :meth:`match_video`); :meth:`warn_unmatched` then warns
+    once about the rows no input used.
+    """
+
+    path: Path
+    rows: dict[str, PoseTelemetry]
+    matched: set[str] = field(default_factory=set)
+    images: bool = False
+    videos: list[Path] = field(default_factory=list)
+
+    @classmethod
+    def read(cls, path: StrPath) -> TelemetryCsv:
+        """The CSV's rows (:func:`read_telemetry_csv`, whose errors it raises)."""
+        return cls(Path(path), read_telemetry_csv(path))
+
+    def match_images(self, stems: Iterable[str]) -> None:
+        """Images with these stems are predicted: their rows are used."""
+        self.images = True
+        self.matched.update(stem for stem in stems if stem in self.rows)
+
+    def match_video(self, video: Path, frame_name: re.Pattern[str]) -> None:
+        """A video is predicted: the rows naming any of its frames (``frame_name``) are its."""
+        self.videos.append(video)
+        self.matched.update(name for name in self.rows if frame_name.fullmatch(name))
+
+    def warn_unmatched(self) -> None:
+        """One warning for the names that match no input (a flight log often covers more than one run predicts)."""
+        unmatched = [name for name in self.rows if name not in self.matched]
+        if not unmatched:
+            return
+        what = ["image"] if self.images else []
+        if self.videos:
+            what.append(f"frame of {first_few([v.name for v in self.videos], ' or ')} (frames are named as their "
+                        f"outputs: {self.videos[0].stem}_f000012)")
+        warnings.warn(f"{self.path}: {len(unmatched)} of {len(self.rows)} name(s) match no {' or '.join(what)}: "
+                      f"{first_few(unmatched)}; names are matched by file name with or without extension "
+                      "(case-sensitive), those rows are unused", TelemetryWarning, stacklevel=3)
+
+
+def _table(csv: StrPath | TelemetryCsv | None) -> TelemetryCsv | None:
+    """The CSV's rows: a run's shared :class:`TelemetryCsv` as it is, a path read here."""
+    return csv if isinstance(csv, TelemetryCsv) or csv is None else TelemetryCsv.read(csv)
+
+
 def source_kind(provenance: str) -> str:
     """The kind of source a provenance names: ``XMP``, ``EXIF``, or the CSV's or SRT's file name."""
     for marker in (" XMP ", " EXIF "):
@@ -87,27 +137,19 @@ def fall_back(error: Exception, what: str, strict: bool) -> None:
                   f"({STRICT_HINT})", TelemetryWarning, stacklevel=3)
 
 
-def _unmatched(csv_path: StrPath, rows: Sequence[str], matched: set[str], total: int, how: str) -> None:
-    """One warning for CSV names that match nothing predicted."""
-    unmatched = [k for k in rows if k not in matched]
-    if unmatched:
-        shown = ", ".join(unmatched[:SHOW_NAMES]) + (f" (and {len(unmatched) - SHOW_NAMES} more)"
-                                                     if len(unmatched) > SHOW_NAMES else "")
-        warnings.warn(f"{csv_path}: {len(unmatched)} of {total} name(s) match no {how}: {shown}; names are matched "
-                      "by file name with or without extension (case-sensitive), those rows are unused",
-                      TelemetryWarning, stacklevel=3)
-
-
-def images_telemetry(paths: Iterable[StrPath], csv_path: StrPath | None = None, *, read_metadata: bool = True,
-                     sensor_width_mm: float | None = None,
+def images_telemetry(paths: Iterable[StrPath], csv_path: StrPath | TelemetryCsv | None = None, *,
+                     read_metadata: bool = True, sensor_width_mm: float | None = None,
                      strict: bool = False) -> tuple[list[PoseTelemetry], TelemetryReport]:
     """Per image its CSV row, each unknown component from the image's own metadata; and the run's report.
 
     An image whose metadata cannot be read (a damaged XMP or EXIF block, an impossible DJI value) falls back to
-    the network with one warning, or stops the run with ``strict``. CSV errors always stop it.
+    the network with one warning, or stops the run with ``strict``. CSV errors always stop it. CSV names that
+    match no image are warned about here when ``csv_path`` is a path; a :class:`TelemetryCsv` the run's inputs
+    share is only marked (its owner warns once, after the last input).
     """
     image_paths = [Path(p) for p in paths]
-    rows = read_telemetry_csv(csv_path) if csv_path is not None else {}
+    table, shared = _table(csv_path), isinstance(csv_path, TelemetryCsv)
+    rows = table.rows if table is not None else {}
     report = TelemetryReport("image")
     out: list[PoseTelemetry] = []
     notes: dict[str, dict[str, str]] = {}
@@ -126,8 +168,10 @@ def images_telemetry(paths: Iterable[StrPath], csv_path: StrPath | None = None, 
                     notes[p.name] = used
         out.append(row.merged(meta))
         report.add(out[-1])
-    if csv_path is not None:
-        _unmatched(csv_path, list(rows), {p.stem for p in image_paths}, len(rows), "image")
+    if table is not None:
+        table.match_images(p.stem for p in image_paths)
+        if not shared:
+            table.warn_unmatched()
     warn_notes(notes, stacklevel=2)
     return out, report
 
@@ -149,13 +193,15 @@ def telemetry_for_images(paths: Iterable[StrPath], csv_path: StrPath | None = No
 
 
 def video_telemetry(video: Path, frames: Sequence[int] | None, srt_path: StrPath | None = None,
-                    csv_path: StrPath | None = None, *, size: tuple[int, int] | None = None, fps: float | None = None,
-                    strict: bool = False) -> tuple[dict[int, PoseTelemetry], TelemetryReport]:
+                    csv_path: StrPath | TelemetryCsv | None = None, *, size: tuple[int, int] | None = None,
+                    fps: float | None = None, strict: bool = False) -> tuple[dict[int, PoseTelemetry], TelemetryReport]:
     """Per frame to be predicted (``frames``), its telemetry: a CSV row, each unknown component from the SRT.
 
-    The CSV names frames as their outputs are named (``DJI_0005_f000012``). An SRT that cannot be read falls back
-    to the network with one warning (an error with ``strict``); one that covers fewer frames than are predicted
-    gives one warning naming the frames left to the network. ``size``: the video's ``(width, height)``;
+    The CSV names frames as their outputs are named (``DJI_0005_f000012``); its names that match no frame of the
+    video are warned about as :func:`images_telemetry` says. ``fps``: the video's frame rate, to place the SRT's
+    subtitles on frames by their timing (:func:`read_srt`). An SRT that cannot be read falls back to the network
+    with one warning (an error with ``strict``); one that covers fewer frames than are predicted gives one warning
+    naming the frames left to the network. ``size``: the video's ``(width, height)``;
     ``frames`` None: the video's frame count is not known, every frame the SRT or the CSV names.
     """
     report = TelemetryReport("frame")
@@ -167,7 +213,8 @@ def video_telemetry(video: Path, frames: Sequence[int] | None, srt_path: StrPath
         except (ValueError, OSError) as exc:  # TelemetryError is a ValueError; so is "no frame rate"
             fall_back(exc, "video", strict)
             report.fell_back.append(Path(srt_path).name)
-    rows = read_telemetry_csv(csv_path) if csv_path is not None else {}
+    table, shared = _table(csv_path), isinstance(csv_path, TelemetryCsv)
+    rows = table.rows if table is not None else {}
     frame_name = re.compile(re.escape(video.stem) + r"_f(\d{6,})")
     if frames is None:
         named = (frame_name.fullmatch(k) for k in rows)
@@ -184,7 +231,8 @@ def video_telemetry(video: Path, frames: Sequence[int] | None, srt_path: StrPath
             warnings.warn(f"{srt_path}: its subtitles cover frames up to {max(srt)} of {video.name}; {len(missing)} "
                           f"of the {len(frames)} frame(s) predicted (the first: {missing[0]}) have none, the network "
                           "estimates their pose (is it this video's SRT?)", TelemetryWarning, stacklevel=2)
-    if csv_path is not None:
-        _unmatched(csv_path, list(rows), {k for k in rows if frame_name.fullmatch(k)}, len(rows),
-                   f"frame of {video.name} (frames are named as their outputs: {video.stem}_f000012)")
+    if table is not None:
+        table.match_video(video, frame_name)
+        if not shared:
+            table.warn_unmatched()
     return out, report
