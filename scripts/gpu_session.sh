@@ -37,7 +37,7 @@ else
   RUN=$WORK/run
   rm -rf "$RUN"  # a run left by an earlier call must not be shipped
   FIT=(fit --config dapm_lightning/configs/quickstart.yaml --model.init_weights "$INIT" --trainer.accelerator "$ACCEL"
-       --trainer.precision "$PRECISION" --trainer.max_epochs 1000 --trainer.max_time "$MAX_TIME"
+       --trainer.precision "$PRECISION" --trainer.max_epochs -1 --trainer.max_time "$MAX_TIME"
        --trainer.default_root_dir "$RUN" --data.init_args.root "$WORK/data" --data.init_args.image_size "$SIZE"
        --data.init_args.train_size "$TRAIN" --data.init_args.val_size "$VAL" --data.init_args.render_seed "$SEED"
        --data.init_args.render_workers "$CORES" --data.init_args.num_workers $((CORES - 2))

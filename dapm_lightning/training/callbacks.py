@@ -21,8 +21,9 @@ class IGDTeacherForcing(L.Callback):
     The schedule is :func:`~dapm_lightning.models.teacher_forcing.predicted_share_at`.
 
     The predicted share ``w`` of the IGD input ``w * predicted + (1 - w) * true`` pose rises linearly from
-    ``start_share`` at ``start_fraction`` of the training steps to ``end_share`` at ``end_fraction``
-    (paper: from true poses to predictions only by the end of training). Logged as
+    ``start_share`` at ``start_fraction`` of training to ``end_share`` at ``end_fraction`` (paper: from true
+    poses to predictions only by the end of training): of its steps, or with ``model.optimizer.schedule_seconds``
+    of that time, as the learning rate (:meth:`DAPMModule.schedule_progress`). Logged as
     ``train_igd_predicted_share``.
     """
 
@@ -52,7 +53,7 @@ class IGDTeacherForcing(L.Callback):
     def on_train_batch_start(self, trainer: L.Trainer, pl_module: L.LightningModule, batch: Any,
                              batch_idx: int) -> None:
         module = _dapm_module(pl_module)
-        module.igd_predicted_share = self.share(trainer.global_step, module.planned_steps)
+        module.igd_predicted_share = predicted_share_at(module.schedule_progress(trainer.global_step), **self.schedule)
         module.log("train_igd_predicted_share", module.igd_predicted_share, on_step=True, on_epoch=False,
                    batch_size=1)
 

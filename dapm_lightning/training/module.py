@@ -5,16 +5,17 @@ from __future__ import annotations
 import math
 import time
 import zlib
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass, replace
 from typing import Any, Literal, cast
 
 import lightning as L
 import numpy as np
 import torch
+import torch.distributed as dist
 from lightning.pytorch.trainer.states import TrainerFn
 from lightning.pytorch.utilities import rank_zero_info, rank_zero_warn
-from lightning.pytorch.utilities.types import OptimizerLRSchedulerConfig
+from lightning.pytorch.utilities.types import LRSchedulerTypeUnion, OptimizerLRSchedulerConfig
 from torch import Tensor
 from torchmetrics import Metric
 
@@ -48,6 +49,46 @@ def warmup_cosine(step: int, total_steps: int, warmup_fraction: float, min_lr_ra
     return min_lr_ratio + (1.0 - min_lr_ratio) * 0.5 * (1.0 + math.cos(math.pi * progress))
 
 
+class TimeBudgetLR(torch.optim.lr_scheduler.LambdaLR):
+    """Warm-up then cosine (:func:`warmup_cosine`) over ``budget`` seconds of training instead of steps.
+
+    The factor follows :attr:`seconds`, the training time spent, in thousandths of the budget (:attr:`ticks`; the
+    final rate once it is spent), which :meth:`read_clock` sets before each step. :attr:`seconds` is part of the
+    state dict, so a resumed run goes on from it; the budget and the shape are the current settings'.
+    """
+
+    TICKS = 1000
+    _NOT_SAVED = ("budget", "_started")
+
+    def __init__(self, optimizer: torch.optim.Optimizer, budget: float, warmup_fraction: float,
+                 min_lr_ratio: float) -> None:
+        self.budget = budget
+        self.seconds = 0.0
+        """Training time spent, counted from the end of the first optimiser step."""
+        self._started: tuple[float, float] | None = None
+        """``(this process's clock, seconds)`` at this run's first :meth:`read_clock`."""
+        super().__init__(optimizer, lambda _: warmup_cosine(self.ticks, self.TICKS, warmup_fraction, min_lr_ratio))
+
+    @property
+    def ticks(self) -> int:
+        """Thousandths of the budget spent, 0 to 1000 (rounded down)."""
+        return min(self.TICKS, int(self.TICKS * self.seconds / self.budget))
+
+    def read_clock(self, agree: Callable[[float], float] = float) -> None:
+        """Set :attr:`seconds` to the time since this run's first call plus the time spent before it.
+
+        ``agree`` turns this process's figure into the one used (under DDP: the same on every process).
+        """
+        now = time.perf_counter()
+        if self._started is None:
+            self._started = (now, self.seconds)
+        started, spent_before = self._started
+        self.seconds = agree(spent_before + now - started)
+
+    def state_dict(self) -> dict[str, Any]:
+        return {k: v for k, v in super().state_dict().items() if k not in self._NOT_SAVED}
+
+
 @dataclass(frozen=True)
 class OptimizerConfig:
     """AdamW with linear warm-up then cosine annealing; in configs under ``model.optimizer``.
@@ -62,10 +103,11 @@ class OptimizerConfig:
             the IGD teacher forcing; None: the trainer's (``max_steps``, or epochs x batches). Fix it when a
             job may be stopped by ``max_steps`` and continued, so no step depends on where the job stopped.
         schedule_seconds: planned training length in seconds of wall time, for a run bounded by
-            ``trainer.max_time``: the warm-up/cosine schedule then follows the time elapsed since the end of
-            the first optimiser step (in thousandths of the budget; the final rate once it is spent) instead
-            of the steps. The clock is this process's: a resumed job starts it again. The IGD teacher forcing
-            still follows steps. None: the schedule follows steps.
+            ``trainer.max_time`` (also with ``max_epochs: -1`` and no ``max_steps``): the
+            warm-up/cosine schedule and the IGD teacher forcing follow the training time spent
+            (:class:`TimeBudgetLR`: in thousandths of the budget, the final rate once it is spent) instead of
+            the steps. Under DDP every process takes the same time; a resumed run goes on from the time
+            spent when its checkpoint was saved. None: the schedules follow steps.
     """
 
     lr: float = 1e-4
@@ -487,33 +529,59 @@ class DAPMModule(L.LightningModule):
 
     @property
     def planned_steps(self) -> int:
-        """Training length the schedules follow: ``optimizer.schedule_steps``, else the trainer's estimate."""
+        """Training length the step schedules follow: ``optimizer.schedule_steps``, else the trainer's estimate.
+
+        Raises:
+            ValueError: neither gives a finite number of steps (``max_epochs: -1`` and no ``max_steps``).
+        """
         planned = self.optimizer_config.schedule_steps or self.trainer.estimated_stepping_batches
-        return max(1, int(planned))
+        if not (math.isfinite(planned) and planned > 0):
+            raise ValueError(
+                "the learning-rate schedule and the IGD teacher forcing follow the planned training length, but "
+                f"this run has no number of steps (trainer.max_epochs: {self.trainer.max_epochs}, trainer.max_steps: "
+                f"{self.trainer.max_steps}, or a data set without a length).\nFix: set "
+                "model.optimizer.schedule_seconds for a run bounded by trainer.max_time (the schedules then follow "
+                "the time), or trainer.max_steps, model.optimizer.schedule_steps or a finite trainer.max_epochs.")
+        return int(planned)
+
+    def schedule_progress(self, step: int) -> float:
+        """Share of the planned training done at optimiser step ``step``, which the IGD teacher forcing follows.
+
+        With ``optimizer.schedule_seconds``: the share of that time spent, as the learning rate counts it; else
+        ``step`` of :attr:`planned_steps`.
+        """
+        if self.optimizer_config.schedule_seconds is not None:
+            scheduler = self.lr_schedulers()
+            if isinstance(scheduler, TimeBudgetLR):
+                return scheduler.ticks / scheduler.TICKS
+        return step / self.planned_steps
 
     def configure_optimizers(self) -> OptimizerLRSchedulerConfig:
         config = self.optimizer_config
         optimizer = torch.optim.AdamW(self.parameters(), lr=config.lr, betas=config.betas,
                                       weight_decay=config.weight_decay)
+        scheduler: torch.optim.lr_scheduler.LambdaLR
         if config.schedule_seconds is not None:
-            budget, ticks = float(config.schedule_seconds), 1000
-            started: list[float] = []
-
-            def factor(step: int) -> float:  # by time: the share of the budget gone, in thousandths
-                if step == 0:  # the scheduler's set-up, before the first step: the clock starts after it
-                    return warmup_cosine(0, ticks, config.warmup_fraction, config.min_lr_ratio)
-                if not started:
-                    started.append(time.perf_counter())
-                elapsed = min(ticks, int(ticks * (time.perf_counter() - started[0]) / budget))
-                return warmup_cosine(elapsed, ticks, config.warmup_fraction, config.min_lr_ratio)
+            scheduler = TimeBudgetLR(optimizer, config.schedule_seconds, config.warmup_fraction, config.min_lr_ratio)
         else:
             total = self.planned_steps
-
-            def factor(step: int) -> float:
-                return warmup_cosine(step, total, config.warmup_fraction, config.min_lr_ratio)
-
-        scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, factor)
+            scheduler = torch.optim.lr_scheduler.LambdaLR(
+                optimizer, lambda step: warmup_cosine(step, total, config.warmup_fraction, config.min_lr_ratio))
         return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": "step"}}
 
+    def lr_scheduler_step(self, scheduler: LRSchedulerTypeUnion, metric: Any | None) -> None:
+        """Step ``scheduler``; a :class:`TimeBudgetLR` first reads the time, the latest among the processes."""
+        if isinstance(scheduler, TimeBudgetLR):
+            scheduler.read_clock(self._latest_among_processes)
+        super().lr_scheduler_step(scheduler, metric)
 
-__all__ = ["DAPMModule", "OptimizerConfig", "warmup_cosine"]
+    def _latest_among_processes(self, seconds: float) -> float:
+        """The largest of the processes' ``seconds`` (under DDP one all-reduce of a scalar), the same on each."""
+        if not (dist.is_available() and dist.is_initialized()) or self.trainer.world_size == 1:
+            return seconds
+        latest = torch.tensor(seconds, dtype=torch.float64, device=self.trainer.strategy.root_device)
+        dist.all_reduce(latest, op=dist.ReduceOp.MAX)
+        return float(latest.item())
+
+
+__all__ = ["DAPMModule", "OptimizerConfig", "TimeBudgetLR", "warmup_cosine"]

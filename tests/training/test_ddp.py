@@ -6,6 +6,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import yaml
 
 from dapm_lightning.data.synthetic import generate_uapd
 
@@ -164,3 +165,36 @@ def test_fine_tuning_under_two_process_ddp_starts_from_the_weights_and_resumes_w
     after = read_checkpoint(saved)["state_dict"]
     resumed_digest = parameters_digest((name.removeprefix("net."), after[name]) for name in names)
     assert [(tmp_path / "resumed_digests" / f"rank{rank}.txt").read_text() for rank in (0, 1)] == [resumed_digest] * 2
+
+
+def test_two_process_ddp_steps_by_one_clock_and_resumes_it(tmp_path):
+    """``model.optimizer.schedule_seconds`` under DDP: rank 1's clock starts 0.5 s after rank 0's (a sleep in its
+    first step), yet both processes step with the same learning rates and IGD shares (the time of the latest process)
+    and end with the same weights, also after a resume, which goes on from the time saved."""
+    root = generate_uapd(tmp_path / "data", train=8, val=2, size=(24, 40), seed=14, workers=1)
+    callbacks = tmp_path / "callbacks.yaml"
+    callbacks.write_text(yaml.safe_dump({"trainer": {"logger": False, "callbacks": [
+        {"class_path": "dapm_lightning.training.callbacks.IGDTeacherForcing", "init_args": {"end_share": 1.0}},
+        {"class_path": "dapm_lightning.training.checkpointing.LastCheckpoint",
+         "init_args": {"dirpath": str(tmp_path / "ckpt")}}]}}))
+    common = ["--config", str(QUICKSTART), "--config", str(callbacks), "--data.class_path",
+              "dapm_lightning.data.datamodules.UAPDDataModule", "--data.init_args.root", str(root),
+              "--data.init_args.batch_size", "2", "--data.init_args.num_workers", "0", "--trainer.accelerator", "cpu",
+              "--trainer.limit_val_batches", "0", "--trainer.devices", "2", "--trainer.strategy", "ddp",
+              # a warm-up over 30 s: the learning rate changes with every thousandth of the 60 s
+              "--model.optimizer.schedule_seconds", "60", "--model.optimizer.warmup_fraction", "0.5"]
+
+    def fit(name, *args):
+        try:
+            run(tmp_path, name, "fit", *common, "--trainer.callbacks+=schedule_record.ScheduleRecord",
+                "--trainer.callbacks.folder", str(tmp_path / name), "--trainer.callbacks.rank1_delay", "0.5", *args)
+        except subprocess.CalledProcessError as error:
+            pytest.fail(f"{name} failed:\n{error.stderr[-3000:]}")
+        return [json.loads((tmp_path / name / f"rank{rank}.json").read_text()) for rank in (0, 1)]
+
+    first = fit("first", "--trainer.max_steps", "3")
+    assert len(first[0]["steps"]) == 3 and first[0] == first[1]
+    assert first[0]["steps"][-1][1] >= 0.5  # the latest process's time: rank 0's, whose clock started first
+    resumed = fit("resumed", "--trainer.max_steps", "6", "--ckpt_path", str(tmp_path / "ckpt" / "last.ckpt"))
+    assert len(resumed[0]["steps"]) == 3 and resumed[0] == resumed[1]
+    assert resumed[0]["steps"][0][1] == first[0]["steps"][-1][1]  # goes on from the time saved
