@@ -43,6 +43,7 @@ from dapm_lightning.training.checkpoint_files import (  # the check of foreign f
     save_atomically,
 )
 from dapm_lightning.training.module import DAPMModule
+from dapm_lightning.training.signals import request_stop
 
 EXIT_SIGTERM = 128 + signal.SIGTERM
 """Exit status of a run stopped by SIGTERM after saving ``last.ckpt`` (143: a job script can tell it from 0)."""
@@ -343,14 +344,15 @@ def started_by_lightning(trainer: L.Trainer) -> bool:
 class CheckpointOnSigterm(L.Callback):
     """On SIGTERM (SLURM pre-emption) or SIGINT (Ctrl-C), save ``last.ckpt`` and exit with status 143 or 130.
 
-    Lightning stops at the end of the current batch with a ``SIGTERMException``; during training this
-    writes the checkpoint the run resumes from with ``--ckpt_path last`` (validate, test and predict save
-    nothing: they have no training state). Lightning's exception exits with status 0, as a finished run
-    would; this sets it to :data:`EXIT_SIGTERM` (128 + 15 = 143, the shell's status for a process ended by
-    SIGTERM), so that a job script can tell pre-emption from completion and requeue.
+    Lightning stops at the end of the current batch with a ``SIGTERMException`` (with a ``DAPMModule``, at the end of
+    the accumulation window: :mod:`.signals`); during training this writes the checkpoint the run resumes from with
+    ``--ckpt_path last`` (validate, test and predict save nothing: they have no training state). Lightning's
+    exception exits with status 0, as a finished run would; this sets it to :data:`EXIT_SIGTERM` (128 + 15 = 143, the
+    shell's status for a process ended by SIGTERM), so that a job script can tell pre-emption from completion and
+    requeue.
 
     SIGINT during training is handled the same way (Lightning alone would stop in the middle of a step and exit
-    1 without saving): the run stops at the end of the batch, saves ``last.ckpt`` and exits with
+    1 without saving): the run stops where it would for SIGTERM, saves ``last.ckpt`` and exits with
     :data:`EXIT_SIGINT` (130). A second SIGINT stops at once without saving (the previous ``last.ckpt`` stays
     complete); SIGINT before training starts (set-up, sanity check) also stops at once. Under DDP the first
     SIGINT to the main process is passed on to the others, as Lightning does with SIGTERM. DataLoader workers
@@ -400,12 +402,12 @@ class CheckpointOnSigterm(L.Callback):
         if self._stopped_by is None:
             self._stopped_by = signal.SIGINT
             if trainer.is_global_zero:  # os.write: safe inside a signal handler (print may not be)
-                os.write(2, b"\nReceived SIGINT (Ctrl-C): saving last.ckpt at the end of this batch, then exiting "
-                            b"(Ctrl-C again stops at once, without saving)\n")
+                os.write(2, b"\nReceived SIGINT (Ctrl-C): saving last.ckpt at the end of this training step, then "
+                            b"exiting (Ctrl-C again stops at once, without saving)\n")
             launcher = trainer.strategy.launcher
             if launcher is not None:
                 launcher.kill(signal.SIGINT)  # DDP processes started by this one, as Lightning does for SIGTERM
-        trainer._signal_connector.received_sigterm = True  # Lightning's graceful stop at the end of the batch
+        request_stop(trainer, signum)  # as SIGTERM: after the optimizer step (end of the batch without accumulation)
 
     def _restore_sigint(self) -> None:
         if self._pid == os.getpid() and signal.getsignal(signal.SIGINT) == self._on_sigint:

@@ -287,7 +287,7 @@ class DAPMModule(L.LightningModule):
         self._training_rng_states: dict[str, Any] | None = None
         """RNG states of the training stream while a validation inside a fit runs (:meth:`on_validation_start`)."""
         self.sigterm = SigtermAgreement()
-        """Under DDP, SIGTERM acted on by every process after the same training batch (:mod:`.signals`)."""
+        """SIGTERM and Ctrl-C acted on by every process after the same optimizer step (:mod:`.signals`)."""
         self.train_image_size: tuple[int, int] | None = None
         """``(H, W)`` of the training images (saved in checkpoints; inference runs at the same pixel count)."""
 
@@ -432,7 +432,7 @@ class DAPMModule(L.LightningModule):
         return None  # Lightning skips backward and the optimiser step
 
     def on_sanity_check_start(self) -> None:
-        """Under DDP, SIGTERM handled without collectives from here on (:class:`~.signals.SigtermAgreement`)."""
+        """SIGTERM and Ctrl-C acted on between optimizer steps from here on (:class:`~.signals.SigtermAgreement`)."""
         self.sigterm.install(self.trainer)
 
     def on_train_start(self) -> None:
@@ -445,8 +445,12 @@ class DAPMModule(L.LightningModule):
         start_next_epoch_as_any_other(self.trainer.fit_loop)
 
     def on_train_batch_end(self, outputs: Any, batch: Any, batch_idx: int) -> None:
-        """Under DDP, every process stops here, after the same batch, when any of them got SIGTERM."""
+        """Every process stops after this batch when any of them got SIGTERM or Ctrl-C and the optimizer stepped."""
         self.sigterm.agree(self.trainer)
+
+    def on_validation_batch_end(self, outputs: Any, batch: Any, batch_idx: int, dataloader_idx: int = 0) -> None:
+        """With one process, a validation between two optimizer steps stops after this batch on SIGTERM or Ctrl-C."""
+        self.sigterm.during_validation(self.trainer)
 
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         """Add the training image size, the training RNG states and loop counters that resume exactly.

@@ -1,13 +1,15 @@
 """Fit through the DAPM CLI in a subprocess, optionally pausing at a step (for a test to signal it),
 and save the final weights. Usage: python resume_run.py WEIGHTS.pt [CLI fit args without 'fit'].
 Environment: PAUSE_AT="STEP,MARKER_FILE[,WHERE[,RANK]]" pauses until this process is told to stop (SIGTERM,
-SIGINT) or 120 s, after writing MARKER_FILE: WHERE "train" (the default) after training step STEP, "val" in the
+SIGINT) or 120 s, after writing MARKER_FILE: WHERE "train" (the default) after training step STEP, "batch" after
+training batch STEP (counted over the run, from 1: a micro-batch under gradient accumulation), "val" in the
 validation after STEP after its first batch, "valend" at the end of that validation before its metrics are gathered
 across processes; with RANK, only that process pauses (the others run on, into the gathering).
 RECORD_IMAGES=PREFIX writes PREFIX<rank>.json: per epoch, a digest of every training image as the model received
-it (after augmentation). SLOW_EXIT=SECONDS: the main process waits that long at exit (as one with more to
-write than the others would). SIGUSR1 prints every thread's stack (every process of the run registers it: a test that
-waits too long sends it to the whole process group before killing it)."""
+it (after augmentation).
+SLOW_EXIT=SECONDS: the main process waits that long at exit (as one with more to write than the others would).
+SIGUSR1 prints every thread's stack (every process of the run registers it: a test that waits too long sends it to
+the whole process group before killing it)."""
 
 import atexit
 import faulthandler
@@ -31,7 +33,8 @@ class PauseAt(L.Callback):
         self.step, self.marker, self.where, self.rank = step, Path(marker), where, rank
 
     def pause(self, trainer, where):
-        if where != self.where or trainer.global_step != self.step or trainer.sanity_checking:
+        count = trainer.fit_loop.epoch_loop.batch_progress.total.processed if where == "batch" else trainer.global_step
+        if where != self.where or count != self.step or trainer.sanity_checking:
             return
         if self.rank is not None and trainer.global_rank != self.rank:
             return
@@ -42,6 +45,7 @@ class PauseAt(L.Callback):
 
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
         self.pause(trainer, "train")
+        self.pause(trainer, "batch")
 
     def on_validation_batch_end(self, trainer, pl_module, outputs, batch, batch_idx, dataloader_idx=0):
         if batch_idx == 0:

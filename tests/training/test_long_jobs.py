@@ -203,15 +203,16 @@ def test_two_seeded_runs_are_bit_identical(data8, tmp_path, monkeypatch):
     assert all(torch.equal(states[0][k], states[1][k]) for k in states[0])
 
 
-def fit_in_process(tmp_path, name, data, max_steps, extra=(), ckpt=None, schedule=SCHEDULE, epoch_starts=None):
+def fit_in_process(tmp_path, name, data, max_steps, extra=(), ckpt=None, schedule=SCHEDULE, epoch_starts=None,
+                   callbacks=()):
     """Fit in this process as a resumable job validating every 2 steps (last.ckpt as the configs write it: at every
-    validation and when training ends); returns the weights and the (step, epoch, first image) of every batch.
+    validation and when training ends); returns the weights and the (step, epoch, images) of every batch.
     ``epoch_starts``: a list the epochs whose ``on_train_epoch_start`` ran are appended to."""
     seen = []
 
     class Record(L.Callback):
         def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
-            seen.append((trainer.global_step, trainer.current_epoch, batch["name"][0]))
+            seen.append((trainer.global_step, trainer.current_epoch, tuple(batch["name"])))
 
         def on_train_epoch_start(self, trainer, pl_module):
             if epoch_starts is not None:
@@ -221,7 +222,7 @@ def fit_in_process(tmp_path, name, data, max_steps, extra=(), ckpt=None, schedul
                              "dapm_lightning.data.datamodules.UAPDDataModule", "--data.init_args.root", str(data),
                              *TINY, *VALIDATE, *schedule, "--trainer.enable_model_summary", "false",
                              "--trainer.max_steps", str(max_steps), *extra], run=False)
-    cli.trainer.callbacks.append(Record())
+    cli.trainer.callbacks.extend([Record(), *callbacks])
     cli.trainer.fit(cli.model, datamodule=cli.datamodule, ckpt_path=ckpt)
     return {k: v.clone() for k, v in cli.model.state_dict().items()}, seen
 
@@ -309,6 +310,39 @@ def test_stopped_by_max_steps_anywhere_resumes_exactly_with_persistent_workers(d
     assert_resumes_exactly(tmp_path, data8, stops=range(1, 8), extra=[
         "--trainer.val_check_interval", str(every), "--data.init_args.num_workers", "1",
         "--data.init_args.persistent_workers", "true"])
+
+
+class SignalAfterBatch(L.Callback):
+    """Sends ``signum`` to this process after training batch ``batch`` (counted over the run, from 1)."""
+
+    def __init__(self, signum, batch):
+        self.signum, self.batch = signum, batch
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
+        if trainer.fit_loop.epoch_loop.batch_progress.total.processed == self.batch:
+            os.kill(os.getpid(), self.signum)
+
+
+def test_a_stop_inside_an_accumulation_window_waits_for_its_optimizer_step(data8, tmp_path, monkeypatch):
+    """One process accumulating 2 batches a step (4 batches an epoch, validating every 2): SIGTERM after batch 1
+    stops after batch 2 (step 1, in the validation that follows), Ctrl-C after batch 5 stops after batch 6 (step 3);
+    each saves the position after its step, and resumed to step 4 equals the uninterrupted run bit for bit. (It
+    stopped after the micro-batch: the position counted it as trained, but its gradients were not saved.)"""
+    monkeypatch.chdir(tmp_path)
+    accumulate = ["--trainer.accumulate_grad_batches", "2"]
+    reference, _ = fit_in_process(tmp_path, "straight", data8, 4, accumulate)
+    for signum, after, status, step, position in ((signal.SIGTERM, 1, EXIT_SIGTERM, 1, {"epoch": 0, "samples_seen": 4}),
+                                                  (signal.SIGINT, 5, EXIT_SIGINT, 3, {"epoch": 1, "samples_seen": 4})):
+        name = signal.Signals(signum).name
+        with pytest.raises(SystemExit) as info:
+            fit_in_process(tmp_path, name, data8, 4, accumulate, callbacks=[SignalAfterBatch(signum, after)])
+        assert info.value.code == status, name
+        saved = torch.load(tmp_path / name / "last.ckpt", weights_only=True)
+        assert (saved["global_step"], saved["UAPDDataModule"]) == (step, position), name
+        resumed, seen = fit_in_process(tmp_path, name, data8, 4, accumulate, ckpt=str(tmp_path / name / "last.ckpt"))
+        assert len(seen) == 8 - 2 * step, name
+        differ = [k for k in reference if not torch.equal(reference[k], resumed[k])]
+        assert not differ, f"{name}: {len(differ)} of {len(reference)} tensors differ"
 
 
 def test_validation_leaves_training_alone_even_when_it_draws_random_numbers(data8, tmp_path, monkeypatch):
@@ -521,3 +555,36 @@ def test_two_process_ddp_job_resumed_at_each_epoch_end_trains_every_epoch(data16
     resumed = weights(tmp_path / "chain.pt")
     for key, value in reference["state_dict"].items():
         assert torch.equal(value, resumed["state_dict"][key]), f"{key} differs"
+
+
+@pytest.mark.slow
+def test_two_process_ddp_stop_inside_an_accumulation_window_resumes_exactly(data16, tmp_path):
+    """2 processes accumulating 2 batches a step (4 batches an epoch, validating every 2): SIGTERM to the whole job
+    after batch 1 stops both after batch 2 (step 1), saving the position after it, and the run resumed to step 4
+    equals the uninterrupted one bit for bit; Ctrl-C to the main process after batch 5 stops both after batch 6."""
+    accumulate = [*DDP, "--trainer.accumulate_grad_batches", "2", "--trainer.max_steps", "4",
+                  "--model.optimizer.schedule_steps", "4"]
+    code, out = finish(start(tmp_path, "straight", data16, extra=accumulate), timeout=400)
+    assert code == 0, out[-3000:]
+    reference = weights(tmp_path / "straight.pt")
+
+    for name, pause, stop, status, step, position in (
+            ("termed", "1,batch", terminate_job, EXIT_SIGTERM, 1, {"epoch": 0, "samples_seen": 2 * 2 * 2}),
+            ("ctrl_c", "5,batch", lambda run: run.send_signal(signal.SIGINT), EXIT_SIGINT, 3,
+             {"epoch": 1, "samples_seen": 2 * 2 * 2})):
+        run = start(tmp_path, name, data16, extra=accumulate, pause=pause)
+        wait_for(tmp_path / f"{name}.marker", run)
+        stop(run)
+        code, out = finish(run, timeout=400)
+        assert code == status, out[-3000:]
+        saved = torch.load(tmp_path / name / "last.ckpt", weights_only=True)
+        assert (saved["global_step"], saved["UAPDDataModule"]) == (step, position), out[-3000:]
+
+    code, out = finish(start(tmp_path, "termed", data16, extra=[*accumulate, "--ckpt_path",
+                                                               str(tmp_path / "termed" / "last.ckpt")]), timeout=400)
+    assert code == 0, out[-3000:]
+    resumed = weights(tmp_path / "termed.pt")
+    assert resumed["global_step"] == 4
+    for key, value in reference["state_dict"].items():
+        assert torch.equal(value, resumed["state_dict"][key]), f"{key} differs"
+
