@@ -76,6 +76,9 @@ class DAPMDataModule(L.LightningDataModule):
         self.eval_batch_size = eval_batch_size or batch_size
         self.seed = seed
         self._resume_position: dict[str, int] | None = None
+        self.resumed_at: tuple[int, int] | None = None
+        """``(epoch, batches)``: the training loader resumes ``epoch`` after its first ``batches`` batches (of this
+        run's processes), when restored from a checkpoint; else None (:meth:`_loader`; read when training starts)."""
         self.datasets: dict[str, Dataset[Sample]] = {}
         self._read_early: dict[tuple[str, bool], Dataset[Sample]] = {}
         self.skipped_while_loading: list[str] = []
@@ -128,19 +131,31 @@ class DAPMDataModule(L.LightningDataModule):
         return (trainer.world_size, trainer.global_rank) if trainer is not None else (1, 0)
 
     def _loader(self, split: str, train: bool = False) -> DataLoader[dict[str, Any]]:
+        """A split's loader; the training one resumes the restored position, in whole batches of all processes.
+
+        The position is rounded down to a multiple of the global batch (batch size x processes), so that it is a
+        whole number of this run's batches (:attr:`resumed_at`) also when the checkpoint was saved by another number
+        of processes (or batch size): fewer than one global batch of samples is then trained twice. An epoch keeps
+        at least its last batch.
+        """
         dataset = self.datasets[split]
         world_size, rank = self._processes()
         sampler = EpochShuffleSampler(len(dataset), self.seed, num_replicas=world_size, rank=rank,  # type: ignore[arg-type]
                                       shuffle=train, drop_last=train)
-        if train and self._resume_position is not None:  # restored from a checkpoint taken mid-epoch
-            sampler.resume(self._resume_position["epoch"], self._resume_position["samples_seen"])
-            self._resume_position = None
         batch_size = self.batch_size if train else self.eval_batch_size
-        return DataLoader(dataset, batch_size=batch_size, sampler=sampler, num_workers=self.num_workers,
-                          pin_memory=self.pin_memory, persistent_workers=self.persistent_workers,
-                          collate_fn=collate_samples, drop_last=train and len(sampler) > batch_size,
-                          worker_init_fn=worker_init_fn(rank) if self.num_workers > 0 else None,  # SIGTERM
-                          generator=torch.Generator().manual_seed(self.seed))  # worker seeds: not the global RNG
+        loader = DataLoader(dataset, batch_size=batch_size, sampler=sampler, num_workers=self.num_workers,
+                            pin_memory=self.pin_memory, persistent_workers=self.persistent_workers,
+                            collate_fn=collate_samples, drop_last=train and len(sampler) > batch_size,
+                            worker_init_fn=worker_init_fn(rank) if self.num_workers > 0 else None,  # SIGTERM
+                            generator=torch.Generator().manual_seed(self.seed))  # worker seeds: not the global RNG
+        if train:
+            self.resumed_at = None
+            if self._resume_position is not None:  # restored from a checkpoint
+                epoch, samples = self._resume_position["epoch"], self._resume_position["samples_seen"]
+                batches = min(samples // (batch_size * world_size), max(len(loader) - 1, 0))
+                sampler.resume(epoch, batches * batch_size * world_size)
+                self.resumed_at, self._resume_position = (epoch, batches), None
+        return loader
 
     def train_dataloader(self) -> DataLoader[dict[str, Any]]:
         return self._loader("train", train=True)

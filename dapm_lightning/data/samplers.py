@@ -63,7 +63,7 @@ class EpochShuffleSampler(DistributedSampler[SampleKey]):
 
     def __iter__(self) -> Iterator[SampleKey]:
         order = self._global_order()
-        if self.epoch == self.skip_epoch:  # a multiple of num_replicas unless the process count changed
+        if self.epoch == self.skip_epoch:  # the data module resumes at whole global batches: multiples already
             order = order[self.skip_samples - self.skip_samples % self.num_replicas:]
         return iter([(self.epoch, index) for index in order[self.rank::self.num_replicas]])
 

@@ -30,6 +30,7 @@ from dapm_lightning.models.teacher_forcing import TeacherForcing
 from dapm_lightning.training.checkpoint_files import check_dapm_checkpoint, read_checkpoint
 from dapm_lightning.training.loss import DAPMLoss, LossConfig
 from dapm_lightning.training.resume import (
+    count_batches_as_resumed,
     keep_checkpoint_rankings,
     resume_after_last_batch,
     start_next_epoch_as_any_other,
@@ -439,10 +440,16 @@ class DAPMModule(L.LightningModule):
         """As :meth:`on_sanity_check_start`, for runs without a sanity check.
 
         A resumed run's next epoch then starts as any other
-        (:func:`~dapm_lightning.training.resume.start_next_epoch_as_any_other`).
+        (:func:`~dapm_lightning.training.resume.start_next_epoch_as_any_other`), and the restored epoch counts the
+        batches the data module's loader resumes after, also on another number of processes
+        (:func:`~dapm_lightning.training.resume.count_batches_as_resumed`).
         """
         self.sigterm.install(self.trainer)
-        start_next_epoch_as_any_other(self.trainer.fit_loop)
+        fit_loop = self.trainer.fit_loop
+        start_next_epoch_as_any_other(fit_loop)
+        resumed_at = getattr(getattr(self.trainer, "datamodule", None), "resumed_at", None)  # a DAPMDataModule's
+        if resumed_at is not None:
+            count_batches_as_resumed(fit_loop, *resumed_at)
 
     def on_train_batch_end(self, outputs: Any, batch: Any, batch_idx: int) -> None:
         """Every process stops after this batch when any of them got SIGTERM or Ctrl-C and the optimizer stepped."""

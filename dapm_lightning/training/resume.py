@@ -8,7 +8,8 @@ epoch it makes the resumed run skip the next epoch entirely (its batch counters 
 run"). :func:`resume_after_last_batch` rewrites such counters to those of a checkpoint taken right after
 the last training batch, which Lightning resumes exactly: the same epoch, the next batch (or the next
 epoch from its first batch when the last batch ended it), without repeating the validation that ran there.
-:func:`start_next_epoch_as_any_other` mends how Lightning then starts that next epoch.
+:func:`start_next_epoch_as_any_other` mends how Lightning then starts that next epoch, and
+:func:`count_batches_as_resumed` how it counts an epoch resumed on another number of processes.
 """
 
 from __future__ import annotations
@@ -80,6 +81,41 @@ def start_next_epoch_as_any_other(fit_loop: Any) -> bool:
     return False
 
 
+def count_batches_as_resumed(fit_loop: Any, epoch: int, batches: int) -> bool:
+    """Make the restored batch counters count the batches the training loader resumes after, in this run's batches.
+
+    Lightning restores the number of batches the saved run had trained in its epoch. On another number of
+    processes (or another batch size) those batches held another number of samples: Lightning then ends the
+    resumed epoch when the restored count plus the batches of this run reach ``num_training_batches`` (too early,
+    dropping samples, or too late, when the loader ends first), and the data module's next saved position (batches
+    x batch size x processes) is wrong. With the counters set to the batches the loader skipped, the epoch ends
+    with its last sample and each position saved is right. Nothing changes on the same number of processes.
+    Call it between the loop's reset and its first epoch (``on_train_start``).
+
+    Args:
+        fit_loop: the trainer's ``fit_loop``.
+        epoch, batches: the epoch the training loader resumes and the batches of it it skips (the data module's
+            ``resumed_at``).
+
+    Returns:
+        Whether the counters changed.
+    """
+    progress = fit_loop.epoch_loop.batch_progress
+    if fit_loop.epoch_progress.current.processed == epoch and not progress.is_last_batch:
+        done = batches  # the loop holds the resumed epoch, open
+    else:  # the loop holds the epoch before, over: all of its batches, so that Lightning starts the next afresh
+        done = fit_loop.trainer.num_training_batches
+    shift = done - progress.current.processed
+    if shift == 0:
+        return False
+    for counts in (progress.current, progress.total):
+        counts.ready += shift
+        counts.started += shift
+        counts.processed += shift
+        counts.completed += shift
+    return True
+
+
 def keep_checkpoint_rankings(checkpoint: MutableMapping[str, Any], callbacks: Any, roots: Any = ()) -> list[str]:
     """Let each ``ModelCheckpoint`` resume its ranking of the saved models when the resumed run writes elsewhere.
 
@@ -116,4 +152,5 @@ def keep_checkpoint_rankings(checkpoint: MutableMapping[str, Any], callbacks: An
     return kept
 
 
-__all__ = ["epoch_closed", "keep_checkpoint_rankings", "resume_after_last_batch", "start_next_epoch_as_any_other"]
+__all__ = ["count_batches_as_resumed", "epoch_closed", "keep_checkpoint_rankings", "resume_after_last_batch",
+           "start_next_epoch_as_any_other"]

@@ -6,7 +6,7 @@ training batch STEP (counted over the run, from 1: a micro-batch under gradient 
 validation after STEP after its first batch, "valend" at the end of that validation before its metrics are gathered
 across processes; with RANK, only that process pauses (the others run on, into the gathering).
 RECORD_IMAGES=PREFIX writes PREFIX<rank>.json: per epoch, a digest of every training image as the model received
-it (after augmentation).
+it (after augmentation), and PREFIX<rank>_names.json: per epoch, the names of the images trained, in order.
 SLOW_EXIT=SECONDS: the main process waits that long at exit (as one with more to write than the others would).
 SIGUSR1 prints every thread's stack (every process of the run registers it: a test that waits too long sends it to
 the whole process group before killing it)."""
@@ -57,15 +57,17 @@ class PauseAt(L.Callback):
 
 class RecordImages(L.Callback):
     def __init__(self, prefix: str) -> None:
-        self.prefix, self.seen = prefix, {}
+        self.prefix, self.seen, self.names = prefix, {}, {}
 
     def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
         epoch = self.seen.setdefault(str(trainer.current_epoch), {})
         for name, image in zip(batch["name"], batch["image"]):
             epoch[name] = hashlib.sha1(image.cpu().numpy().tobytes()).hexdigest()
+        self.names.setdefault(str(trainer.current_epoch), []).extend(batch["name"])
 
     def on_train_end(self, trainer, pl_module):
         Path(f"{self.prefix}{trainer.global_rank}.json").write_text(json.dumps(self.seen))
+        Path(f"{self.prefix}{trainer.global_rank}_names.json").write_text(json.dumps(self.names))
 
 
 if __name__ == "__main__":

@@ -8,6 +8,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import cv2
 import lightning as L
@@ -15,12 +16,13 @@ import numpy as np
 import pytest
 import torch
 import yaml
+from lightning.pytorch.loops.progress import _BatchProgress
 
 from dapm_lightning.data import DatasetError, UAPDDataset
 from dapm_lightning.data.synthetic import generate_uapd
 from dapm_lightning.training.checkpointing import EXIT_SIGINT, EXIT_SIGTERM, SafeCheckpointIO
 from dapm_lightning.training.lightning_cli import run_lightning_cli
-from dapm_lightning.training.resume import resume_after_last_batch
+from dapm_lightning.training.resume import count_batches_as_resumed, resume_after_last_batch
 
 HERE = Path(__file__).resolve().parent
 QUICKSTART = HERE.parents[1] / "dapm_lightning" / "configs" / "quickstart.yaml"
@@ -345,6 +347,40 @@ def test_a_stop_inside_an_accumulation_window_waits_for_its_optimizer_step(data8
         assert not differ, f"{name}: {len(differ)} of {len(reference)} tensors differ"
 
 
+def names_per_epoch(*runs):
+    """Every image trained in each epoch, over runs of :func:`fit_in_process` (their batches)."""
+    epochs = {}
+    for seen in runs:
+        for _, epoch, names in seen:
+            epochs.setdefault(epoch, []).extend(names)
+    return epochs
+
+
+def test_a_resume_with_another_global_batch_trains_each_sample_once(data8, tmp_path, monkeypatch):
+    """Resumed with another global batch (batch size x processes; here the batch size, the process count in the slow
+    tier): 2 a batch stopped by max_steps after 3 of 4 batches, resumed 4 a batch (epoch 0 ends with its last sample,
+    the 2 samples of batch 3 trained twice: the position rounds down to whole batches; epoch 1 whole) to its end,
+    resumed 2 a batch again (epoch 2 whole: 4 batches). The first resume ended its epoch after 0 batches, the second
+    ran 2 of epoch 2's 4."""
+    monkeypatch.chdir(tmp_path)
+
+    def batch(size):
+        return ["--data.init_args.batch_size", str(size), "--model.optimizer.schedule_steps", "10"]
+
+    _, first = fit_in_process(tmp_path, "b2", data8, 3, batch(2))
+    _, second = fit_in_process(tmp_path, "b4", data8, 6, batch(4), ckpt=str(tmp_path / "b2" / "last.ckpt"))
+    assert torch.load(tmp_path / "b4" / "last.ckpt", weights_only=True)["UAPDDataModule"] == {"epoch": 2,
+                                                                                           "samples_seen": 0}
+    _, third = fit_in_process(tmp_path, "b2again", data8, 10, batch(2), ckpt=str(tmp_path / "b4" / "last.ckpt"))
+    assert [len(names) for _, _, names in second] == [4, 4, 4] and len(third) == 4
+    epochs = names_per_epoch(first, second, third)
+    everything = sorted(set(epochs[0]))
+    assert len(everything) == 8
+    twice = sorted(name for name in everything if epochs[0].count(name) == 2)
+    assert twice == sorted(first[-1][2]) and len(epochs[0]) == 10  # batch 3's, the rest once
+    assert sorted(epochs[1]) == sorted(epochs[2]) == everything
+
+
 def test_validation_leaves_training_alone_even_when_it_draws_random_numbers(data8, tmp_path, monkeypatch):
     """Training draws (dropout) the same numbers whether validations ran in between or not, whatever they draw: the
     RNG states of training are put back after each validation, and a checkpoint written during one saves those."""
@@ -392,6 +428,33 @@ def test_closed_epoch_counters_become_those_after_the_last_batch():
     assert resume_after_last_batch(epoch_end)
     assert epoch_end["epoch_progress"]["current"] == {"ready": 1, "started": 1, "processed": 0, "completed": 0}
     assert epoch_end["epoch_loop.batch_progress"]["current"]["completed"] == 3
+
+
+def test_restored_batch_counters_count_the_batches_the_loader_resumes_after():
+    """Saved by 1 process after 3 batches (of 8 an epoch) and resumed on 2 (4 an epoch), whose loader skips 1 (the
+    position rounded down to whole batches): the counters say 1 (Lightning would end the epoch after 1 more batch,
+    or save 5 x 2 x 2 samples seen after 2). Saved by 2 after their epoch's 4 batches and resumed on 1: 8, all of the
+    epoch (Lightning would run 4 of the next epoch's 8). On the same process count nothing changes."""
+    def fit_loop(epoch, batches, last, per_epoch):
+        progress = _BatchProgress()
+        progress.increment_by(batches, is_last_batch=last)
+        return SimpleNamespace(epoch_loop=SimpleNamespace(batch_progress=progress),
+                               epoch_progress=SimpleNamespace(current=SimpleNamespace(processed=epoch)),
+                               trainer=SimpleNamespace(num_training_batches=per_epoch))
+
+    def counts(loop):
+        return [(c.ready, c.started, c.processed, c.completed) for c in (loop.epoch_loop.batch_progress.current,
+                                                                          loop.epoch_loop.batch_progress.total)]
+
+    mid_epoch = fit_loop(epoch=0, batches=3, last=False, per_epoch=4)
+    assert count_batches_as_resumed(mid_epoch, epoch=0, batches=1)
+    assert counts(mid_epoch) == [(1, 1, 1, 1)] * 2
+    for closed_by_lightning in (True, False):  # Lightning closes the epoch after a save on its last batch, or runs
+        epoch_end = fit_loop(epoch=int(closed_by_lightning), batches=4, last=True, per_epoch=8)  # its end again
+        assert count_batches_as_resumed(epoch_end, epoch=1, batches=0)
+        assert counts(epoch_end) == [(8, 8, 8, 8)] * 2
+    same = fit_loop(epoch=0, batches=3, last=False, per_epoch=8)
+    assert not count_batches_as_resumed(same, epoch=0, batches=3) and counts(same) == [(3, 3, 3, 3)] * 2
 
 
 def test_truncated_and_foreign_checkpoints_are_clear(checkpoint, tmp_path, tiny_uapd, monkeypatch):
@@ -588,3 +651,35 @@ def test_two_process_ddp_stop_inside_an_accumulation_window_resumes_exactly(data
     for key, value in reference["state_dict"].items():
         assert torch.equal(value, resumed["state_dict"][key]), f"{key} differs"
 
+
+@pytest.mark.slow
+def test_resumed_on_another_number_of_processes_each_sample_is_trained_once(data16, tmp_path):
+    """A job requeued on 1, 2, 1 and 2 processes (16 images, 2 a batch: 8 batches an epoch on 1, 4 on 2), each run
+    stopped by max_steps: 1 process after 3 batches (6 images), 2 to the end of epoch 0, 1 to the middle of epoch 1,
+    2 to the end of epoch 2. Every epoch trains every image once, but for the 2 of the first run's last batch (the
+    position rounds down to whole batches of both processes); every epoch runs its whole count of batches. Epoch 0
+    skipped 4 images and ended early; 2 to 1 trained 4 images twice."""
+    def processes(count, max_steps, resume=None):
+        return [*DDP, "--trainer.devices", str(count), "--trainer.strategy", "ddp" if count > 1 else "auto",
+                "--trainer.max_steps", str(max_steps), "--model.optimizer.schedule_steps", "16",
+                *(["--ckpt_path", str(tmp_path / resume / "last.ckpt")] if resume else [])]
+
+    runs = (("one", processes(1, 3), {"epoch": 0, "samples_seen": 6}),
+            ("two", processes(2, 6, "one"), {"epoch": 1, "samples_seen": 0}),
+            ("one_again", processes(1, 10, "two"), {"epoch": 1, "samples_seen": 8}),
+            ("two_again", processes(2, 16, "one_again"), {"epoch": 3, "samples_seen": 0}))
+    epochs = {}
+    for name, args, position in runs:
+        code, out = finish(start(tmp_path, name, data16, extra=args, every_step=False), timeout=400)
+        assert code == 0, out[-3000:]
+        saved = torch.load(tmp_path / name / "last.ckpt", weights_only=True)
+        assert saved["UAPDDataModule"] == position, f"{name}: {saved['UAPDDataModule']}"
+        for path in sorted(tmp_path.glob(f"{name}_images_rank*_names.json")):
+            for epoch, names in json.loads(path.read_text()).items():
+                epochs.setdefault(int(epoch), {}).setdefault(name, []).extend(names)
+    everything = sorted(Path(name).stem for name in UAPDDataset(data16, "train").names)
+    first_last_batch = json.loads((tmp_path / "one_images_rank0_names.json").read_text())["0"][4:6]
+    epoch0 = epochs[0]["one"] + epochs[0]["two"]
+    assert sorted(epoch0) == sorted(everything + first_last_batch), epochs[0]
+    assert sorted(epochs[1]["one_again"] + epochs[1]["two_again"]) == everything, epochs[1]
+    assert sorted(epochs[2]["two_again"]) == everything, epochs[2]
