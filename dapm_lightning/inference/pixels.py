@@ -102,7 +102,9 @@ def read_image(path: Path) -> np.ndarray:
     """``[H, W, 3]`` uint8 RGB from any 8/16-bit grey, colour or RGBA image file (named in errors)."""
     raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if raw is None:
-        raise ValueError(f"{path}: cannot be decoded as an image (damaged, or not an image)")
+        raise ValueError(f"{path}: cannot be decoded as an image (damaged, cut short, or not an image)\n"
+                         "Fix: replace it with an intact copy, or move it out of the source (predict has no option "
+                         "to skip damaged images)")
     if jpeg_cut_short(path):
         warnings.warn(f"{path}: the JPEG stops before its end marker (cut short while copying?): the picture below "
                       "the cut is grey and its depth means nothing. Fix: copy the file again.", stacklevel=2)

@@ -20,7 +20,7 @@ import fnmatch
 import json
 import re
 import warnings
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from types import TracebackType
 from typing import Any
@@ -194,7 +194,9 @@ class PredictionFiles:
     :meth:`add` writes a prediction's files, :meth:`finish` the run's. Used by :class:`PredictionWriter` and
     the one-line ``predict`` command. The output folder is checked when this is made (before a model is loaded)
     and created with the first file, so a run that writes nothing leaves no folder; as a context manager (or
-    through :meth:`close`) a folder it created goes again when the run fails before writing into it. Every
+    through :meth:`close`) a folder it created goes again when the run fails before writing into it. A run that
+    stops after writing (a damaged image, Ctrl-C, a failed write) still writes its tables and sheet for the images
+    written so far when it is closed (:meth:`keep_written`), so that they describe the folder's files. Every
     file is written whole and checked: a failed write raises
     :class:`~dapm_lightning.data.files.WriteError` naming the file and the fix.
 
@@ -245,6 +247,10 @@ class PredictionFiles:
         self.images = 0
         self.kinds: set[str] = set()
         """The per-image kinds written for at least one image."""
+        self.finished = False
+        """Whether the run's files were written (:meth:`finish`, or :meth:`keep_written` after a failure)."""
+        self.kept: str | None = None
+        """After a run that stopped early: the summary of what it kept (:meth:`keep_written`)."""
 
     def _folder(self) -> Path:
         if not self.output_dir.is_dir():
@@ -283,21 +289,59 @@ class PredictionFiles:
 
         The summary names only the files written: the per-image kinds the model gave, the tables and sheet.
         """
-        extra = []
+        extra: list[str] = []
         try:
-            extra += [p.name for p in self.previews.finish()]
-            if self.rows:
-                extra.append(write_poses(self._folder(), self.rows).name)
-            if self.contact_rows:
-                path = write_image(self._folder() / "contact_sheet.png",
-                                   cv2.cvtColor(contact_sheet(self.contact_rows), cv2.COLOR_RGB2BGR))
-                extra.append(path.name)
+            for _, step in self._run_files():
+                extra += step()
         except BaseException as error:
             raised = self._failed(error)
             if raised is error:
                 raise
             raise raised from error
+        self.finished = True
         return summary_line(self.images, [k for k in self.outputs if k in self.kinds], self.output_dir, extra)
+
+    def _run_files(self) -> list[tuple[str, Callable[[], list[str]]]]:
+        """The steps that write the run's files (previews, poses table, sheet): each named, each giving its names."""
+
+        def previews() -> list[str]:
+            return [p.name for p in self.previews.finish()]
+
+        def poses() -> list[str]:
+            return [write_poses(self._folder(), self.rows).name] if self.rows else []
+
+        def sheet() -> list[str]:
+            if not self.contact_rows:
+                return []
+            return [write_image(self._folder() / "contact_sheet.png",
+                                cv2.cvtColor(contact_sheet(self.contact_rows), cv2.COLOR_RGB2BGR)).name]
+
+        return [("the video preview", previews), ("poses.csv", poses), ("contact_sheet.png", sheet)]
+
+    def keep_written(self) -> str | None:
+        """After a run that stopped early: the run's files for the images written so far; their summary line.
+
+        A damaged image, Ctrl-C or a failed write stops a run after some images' files were written (with
+        ``exist_ok`` over an earlier run's): the poses table takes their rows and the contact sheet shows them, so
+        the tables describe the folder's files as after a whole run. Best effort, each file on its own: one that
+        cannot be written either (a full disk) stays as it was, whole. None when nothing was written (or the run
+        finished); :meth:`close` calls this.
+        """
+        if self.finished or not self.images or not self.output_dir.is_dir():
+            return None
+        self.finished = True
+        extra: list[str] = []
+        failed: list[str] = []
+        for what, step in self._run_files():
+            try:
+                extra += step()
+            except Exception as error:  # noqa: BLE001 - the error that stopped the run is the one reported
+                self.previews.abandon()
+                failed.append(f"{what} ({getattr(error, 'reason', None) or error})")
+        self.kept = summary_line(self.images, [k for k in self.outputs if k in self.kinds], self.output_dir, extra)
+        if failed:
+            self.kept += f"; could not be updated: {', '.join(failed)}"
+        return self.kept
 
     def gather_to_first_process(self, is_first: bool) -> None:
         """Under ``torch.distributed``, gather every process's rows, sheet rows, image count and kinds into the first.
@@ -317,7 +361,12 @@ class PredictionFiles:
             self.rows, self.contact_rows = [], []
 
     def close(self) -> None:
-        """The end of a run, done or failed: the folders this run created go again if nothing was written there."""
+        """The end of a run, done or failed: the folders this run created go again if nothing was written there.
+
+        A run closed before :meth:`finish` (it failed) first writes its tables for what it wrote
+        (:meth:`keep_written`).
+        """
+        self.keep_written()
         self.previews.abandon()
         remove_empty_folders(self.created)
         self.created = [folder for folder in self.created if folder.is_dir()]
@@ -404,7 +453,16 @@ class PredictionWriter(BasePredictionWriter):
         rank_zero_info(message)
 
     def on_exception(self, trainer: L.Trainer, pl_module: L.LightningModule, exception: BaseException) -> None:
-        self.files.close()  # a run that failed before writing anything leaves no folder
+        """A failed run: the tables take the rows of the images written; one that wrote nothing leaves no folder.
+
+        Each process merges its own rows into the one table (under its lock); the first process's images make the
+        contact sheet.
+        """
+        if not trainer.is_global_zero:
+            self.files.contact_rows = []
+        self.files.close()
+        if self.files.kept:
+            rank_zero_info(f"stopped early by the error below: {self.files.kept}")
 
 
 def summary_line(images: int, outputs: Sequence[str], out: Path, extra: Sequence[str] = ()) -> str:

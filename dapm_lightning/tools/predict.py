@@ -180,10 +180,15 @@ def predict_main(argv: Sequence[str]) -> None:
                            args.sensor_width_mm, args.strict_telemetry)
     # the pixels ride along (the points' colours, the contact sheet, a video's preview): one batch at a time
     loader = predictor.loader(source, keep_rgb=True, num_workers=args.num_workers)
-    with files, progress_bar(loader.expected_images(), args.quiet) as bar:  # no folder if nothing was written
-        for batch in loader:
-            for prediction in predictor.predict_batch(batch):
-                files.add(prediction)
-                bar.update(1)
-        bar.close()
-        print(files.finish(), file=sys.stdout, flush=True)
+    try:
+        with files, progress_bar(loader.expected_images(), args.quiet) as bar:  # no folder if nothing was written
+            for batch in loader:
+                for prediction in predictor.predict_batch(batch):
+                    files.add(prediction)
+                    bar.update(1)
+            bar.close()
+            print(files.finish(), file=sys.stdout, flush=True)
+    except BaseException:  # a damaged image, Ctrl-C, a failed write: the tables were brought up to date on closing
+        if files.kept:
+            print(f"stopped early by the error below: {files.kept}", file=sys.stderr, flush=True)
+        raise

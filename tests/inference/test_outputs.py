@@ -186,14 +186,15 @@ def test_runs_writing_one_poses_table_at_once_keep_every_row(tmp_path):
 # --------------------------------------------------------------------------------------------------- a full disk
 def test_a_full_disk_fails_the_run_naming_the_file_and_keeps_the_table(checkpoint, flight, small_disk, capsys,
                                                                         monkeypatch):
-    """48 images into a disk with room for a few: exit 1 naming the file, no empty file, the table as it was."""
+    """48 images into a disk with room for a few: exit 1 naming the file, no empty file, the earlier rows kept and
+    the images written before the failure added where the disk still takes the table."""
     if small_disk is None:  # no tmpfs here: the encoder's False return stands for the full disk
         out = flight.parent / "out"
-        calls = [0]
+        calls, encode = [0], cv2.imencode  # the encoder itself, not this stand-in once it is patched in
 
         def refuse_after_ten(ext, image, *args):
             calls[0] += 1
-            return (False, None) if calls[0] > 10 else cv2.imencode(ext, image, *args)
+            return (False, None) if calls[0] > 10 else encode(ext, image, *args)
 
         monkeypatch.setattr(files_module.cv2, "imencode", refuse_after_ten)
     else:
@@ -203,14 +204,22 @@ def test_a_full_disk_fails_the_run_naming_the_file_and_keeps_the_table(checkpoin
     (out / "poses.csv").write_text(earlier)
     code, err = run_main(["predict", str(flight), "--ckpt_path", str(checkpoint), "--out", str(out),
                           "--device", "cpu", "--batch_size", "8", "--exist_ok"], capsys)
-    message = err.splitlines()
+    lines = err.splitlines()
+    message = lines[next(k for k, line in enumerate(lines) if line.startswith("error: ")):]
     assert code == 1 and message[0].startswith(f"error: {out}/im") and ": cannot be written (" in message[0]
     assert message[1].startswith("Fix: ") and "--out" in message[1]
     if small_disk is not None:
         assert "No space left on device" in message[0] and "free space" in message[1]
-    names = assert_whole(out, earlier)
+    kept = lines[lines.index(message[0]) - 1]  # what the run kept, and what the disk refused
+    assert kept.startswith("stopped early by the error below: predicted ") and f"in {out}/" in kept
+    names = assert_whole(out)
     assert 1 < len(names) < 48 * 7  # some images were written, whole; the run stopped at the first failure
     assert "predicted" not in capsys.readouterr().out
+    table = (out / "poses.csv").read_text()
+    assert table.startswith(earlier)  # every earlier row kept, in order
+    if small_disk is None or table != earlier:  # the disk took the table: it names the images written, no others
+        assert table != earlier and table_describes_the_files(out)[0].keys() - {f"old{k}" for k in range(100)} == {
+            p.name[:-len("_camera.json")] for p in out.glob("*_camera.json")}
 
 
 def test_a_depth_only_model_into_a_full_disk_raises_and_lists_nothing(flight, small_disk, monkeypatch):
@@ -262,6 +271,69 @@ def test_a_failed_run_leaves_no_output_folder(checkpoint, flight, tmp_path, caps
     code, err = run_main(["predict", str(damaged), *base], capsys)
     assert code == 1 and "a.png: cannot be decoded" in err
     assert not out.exists()
+
+
+def table_describes_the_files(out):
+    """``poses.csv`` and ``poses.json`` hold one row per ``NAME_camera.json`` in ``out``, with its pose."""
+    with (out / "poses.csv").open(newline="") as handle:
+        table = {row["name"]: row for row in csv.DictReader(handle)}
+    assert [row["name"] for row in json.loads((out / "poses.json").read_text())] == list(table)
+    cameras = {p.name[:-len("_camera.json")]: json.loads(p.read_text()) for p in out.glob("*_camera.json")}
+    assert set(cameras) <= set(table)
+    for name, camera in cameras.items():
+        assert float(table[name]["height_m"]) == pytest.approx(camera["pose"]["height_m"]["value"], abs=1e-3), name
+    return table, cameras
+
+
+def test_a_damaged_image_mid_run_keeps_the_tables_true_to_the_files(checkpoint, tmp_path, capsys):
+    """A PNG cut short (its header whole, so found only when its batch is decoded) stops an --exist_ok run after
+    four images were rewritten: the tables and the contact sheet are brought up to date for those four."""
+    images, out = tmp_path / "imgs", tmp_path / "out"
+    images.mkdir()
+    rng = np.random.default_rng(5)
+    for k in range(4):
+        cv2.imwrite(str(images / f"im{k}.png"), rng.integers(0, 255, (40, 60, 3), np.uint8))
+    base = ["predict", str(images), "--ckpt_path", str(checkpoint), "--out", str(out), "--device", "cpu",
+            "--batch_size", "2"]
+    from dapm_lightning.cli import main
+
+    main(base)
+    capsys.readouterr()
+    sheet = (out / "contact_sheet.png").read_bytes()
+    whole = cv2.imencode(".png", rng.integers(0, 255, (40, 60, 3), np.uint8))[1].tobytes()
+    (images / "zz.png").write_bytes(whole[:len(whole) // 2])
+    telemetry = tmp_path / "flight.csv"  # the second run's heights differ from the first's, and are known
+    telemetry.write_text("name,height_m\n" + "".join(f"im{k}.png,{123.5 + k}\n" for k in range(4)))
+    code, err = run_main([*base, "--exist_ok", "--telemetry", str(telemetry)], capsys)
+    lines = err.splitlines()
+    error = next(k for k, line in enumerate(lines) if line.startswith("error: "))
+    assert code == 1 and lines[error] == (f"error: {images / 'zz.png'}: cannot be decoded as an image (damaged, cut "
+                                          "short, or not an image)")
+    assert lines[error + 1].startswith("Fix: replace it with an intact copy, or move it out of the source")
+    assert lines[error - 1] == (f"stopped early by the error below: predicted 4 images: depth_color, sky, camera per "
+                                f"image; poses.csv, contact_sheet.png in {out}/")
+    table, cameras = table_describes_the_files(out)
+    assert sorted(table) == sorted(cameras) == [f"im{k}" for k in range(4)]
+    assert [float(table[f"im{k}"]["height_m"]) for k in range(4)] == [123.5, 124.5, 125.5, 126.5]
+    assert (out / "contact_sheet.png").read_bytes() != sheet  # the sheet shows this run's predictions
+    assert_whole(out)
+
+
+def test_a_writer_closed_without_finishing_writes_the_tables_of_what_it_wrote(tmp_path):
+    """The Lightning form's writer after a failed batch: the rows of the images written, the sheet of them."""
+    from types import SimpleNamespace
+
+    out = tmp_path / "out"
+    writer = PredictionWriter(str(out), outputs=["camera"], exist_ok=True)
+    for k, height in enumerate((30.0, 40.0)):
+        writer.files.add(make_prediction(f"im{k}", (20, 30), torch.full((1, 8, 8), 30.0), torch.zeros(1, 8, 8),
+                                         torch.tensor([height, -40.0, 2.0, 70.0]), IGDSpec()))
+    writer.on_exception(SimpleNamespace(is_global_zero=True), None, ValueError("a damaged image"))
+    table, cameras = table_describes_the_files(out)
+    assert sorted(table) == ["im0", "im1"] and (out / "contact_sheet.png").is_file()
+    files = PredictionFiles(tmp_path / "none")
+    files.close()  # nothing written: no table, no folder
+    assert not (tmp_path / "none").exists()
 
 
 # ------------------------------------------------------------------------------------- where the output folder is
