@@ -42,6 +42,10 @@ from dapm_lightning.inference.telemetry.gather import first_few
 from dapm_lightning.models.prior import PriorSettings
 from dapm_lightning.options import DEFAULT_BATCH_SIZE as DEFAULT_BATCH_SIZE
 
+FRAME_COUNT_SLACK = (2, 0.02)
+"""A video may end this many frames, or this share of its frames (the larger), before the count its container
+announces without a warning: OpenCV's frame count is an estimate from the duration for some containers."""
+
 
 def predict_input(rgb: np.ndarray, name: str, source: str, target: NetworkSize, keep_rgb: bool,
                   prior: np.ndarray | None = None, provenance: Sequence[str] | None = None) -> PredictInput:
@@ -145,7 +149,9 @@ class VideoFramesDataset(IterableDataset[PredictInput]):
         provenance: frame number -> per component where its prior came from.
         name: the frames' name before ``_f<frame>`` (default: the video's stem).
 
-    Under DDP each process takes its own share of the chunks.
+    Under DDP each process takes its own share of the chunks. A video that ends well before the frame count its
+    container announces (beyond :data:`FRAME_COUNT_SLACK`: a file cut short) is predicted as far as it goes, with
+    one warning naming it and the frames read of those announced.
     """
 
     def __init__(self, path: str | Path, target: NetworkSize = DEFAULT_NETWORK_SIZE, frame_step: int = 1,
@@ -190,9 +196,10 @@ class VideoFramesDataset(IterableDataset[PredictInput]):
         shards, shard = workers * self.world_size, self.rank * workers + worker
         capture = self._open()
         try:
-            frame, kept = -1, 0
+            frame, kept, ended = -1, 0, False
             while self.max_frames is None or kept < self.max_frames:
                 if not capture.grab():  # grab only: frames of other workers are never converted
+                    ended = True
                     break
                 frame += 1
                 if frame % self.frame_step:
@@ -203,6 +210,7 @@ class VideoFramesDataset(IterableDataset[PredictInput]):
                     continue
                 ok, bgr = capture.retrieve()
                 if not ok:
+                    ended, frame = True, frame - 1
                     break
                 item = predict_input(to_rgb8(bgr, f"{self.path} frame {frame}"), f"{self.name}_f{frame:06d}",
                                      f"{self.path}#{frame}", self.target, self.keep_rgb, self.priors.get(frame),
@@ -211,6 +219,17 @@ class VideoFramesDataset(IterableDataset[PredictInput]):
                 yield item
         finally:
             capture.release()
+        if ended and shard == 0:  # each worker reads the whole video: the first one says so
+            self._check_length(frame + 1)
+
+    def _check_length(self, read: int) -> None:
+        """Warn when the video ended well before the frame count its container announces (a file cut short)."""
+        slack = max(FRAME_COUNT_SLACK[0], round(FRAME_COUNT_SLACK[1] * self.frame_count))
+        if self.frame_count <= 0 or read >= self.frame_count - slack:
+            return
+        warnings.warn(f"{self.path}: the video ends after {read} of the {self.frame_count} frames its header "
+                      "announces (cut short while copying?): the frames after it are not predicted. Fix: copy the "
+                      "file again.", stacklevel=2)
 
 
 def checkpoint_network_size(module: torch.nn.Module | None) -> tuple[int, int]:

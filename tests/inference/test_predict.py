@@ -1,5 +1,6 @@
 import json
 import math
+import warnings
 
 import cv2
 import numpy as np
@@ -111,6 +112,42 @@ def test_video_frames_in_order_with_step_limit_and_workers(tmp_path):
     loader = torch.utils.data.DataLoader(VideoFramesDataset(video, 32, chunk=2), batch_size=2, num_workers=2,
                                          collate_fn=lambda items: [i.name for i in items])
     assert [n for batch in loader for n in batch] == [f"flight_f{k:06d}" for k in range(9)]
+
+
+def test_a_video_cut_short_is_predicted_as_far_as_it_goes_with_a_warning(tmp_path):
+    """An AVI cut in half: its header still announces every frame; the frames read are predicted, with one warning
+    naming the video and the frames read of those announced. A count off by a frame or two (containers whose count
+    OpenCV estimates) is no warning."""
+    whole = tmp_path / "whole.avi"
+    writer = cv2.VideoWriter(str(whole), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, (48, 36))
+    rng = np.random.default_rng(0)
+    for _ in range(30):  # noise: frames of some size, so that half the file is half the frames
+        writer.write(rng.integers(0, 255, (36, 48, 3), np.uint8))
+    writer.release()
+    data = whole.read_bytes()
+    cut = tmp_path / "cut.avi"
+    cut.write_bytes(data[:len(data) // 2])
+    dataset = VideoFramesDataset(cut, 32)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        frames = list(dataset)
+    if not 0 < len(frames) < dataset.frame_count - 2:
+        pytest.skip(f"this OpenCV reads {len(frames)} frames of the cut AVI and announces {dataset.frame_count}")
+    messages = [str(w.message) for w in caught]
+    assert messages == [f"{cut}: the video ends after {len(frames)} of the {dataset.frame_count} frames its header "
+                        "announces (cut short while copying?): the frames after it are not predicted. Fix: copy the "
+                        "file again."]
+    for announced, warned in ((30, False), (31, False), (32, False), (33, True)):  # a whole video, a count off by...
+        dataset = VideoFramesDataset(whole, 32, frame_step=3)
+        dataset.frame_count = announced
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            assert len(list(dataset)) == 10
+        assert bool(caught) == warned, (announced, [str(w.message) for w in caught])
+    dataset = VideoFramesDataset(cut, 32, max_frames=4)  # stopped by max_frames before the cut: nothing to say
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        assert len(list(dataset)) == 4 and not caught
 
 
 def test_cli_predict_writes_every_output(checkpoint, image_folder, tmp_path, monkeypatch):
