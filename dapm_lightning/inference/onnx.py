@@ -8,7 +8,8 @@ has). The file's metadata (:func:`export_metadata`) holds what prediction needs 
 settings (depth kind, depth limit, IGD model, pose ranges), the training size, the pose order and units, the sky
 threshold, the project version and the source checkpoint's hash. The ops that differ while exporting are defined
 where the network uses them (:func:`dapm_lightning.models.blocks.adaptive_avg_pool2d`). PyTorch's exporter writes the
-weights of a large model beside the graph, in ``NAME.onnx.data``: keep the two files together.
+weights of a large model beside the graph, in ``NAME.onnx.data``: keep the two files together, the weights under
+that name, which the graph records (:func:`external_data_files`).
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ from __future__ import annotations
 import hashlib
 import json
 import warnings
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -242,6 +243,52 @@ def export_mismatches(rows: Sequence[Mapping[str, Any]], fp16: bool = False) -> 
 def weights_file(path: str | Path) -> Path:
     """Where the exporter puts a large model's weights: ``NAME.onnx.data`` beside ``NAME.onnx``."""
     return Path(path).with_name(Path(path).name + ".data")
+
+
+def external_data_files(path: str | Path) -> list[str]:
+    """The weights files an ONNX file's graph names (relative to its folder), in order of first use.
+
+    The name is recorded inside the ``.onnx`` when it is written (``NAME.onnx.data`` of the exported ``NAME``):
+    renaming or copying the ``.onnx`` does not change it. Empty when the weights are inside the file, or the file
+    (or the ``onnx`` package) cannot be read.
+    """
+    try:
+        import onnx
+
+        model = onnx.load(str(path), load_external_data=False)
+    except Exception:  # noqa: BLE001 - no onnx package, or not an ONNX file: nothing to say
+        return []
+    names: list[str] = []
+
+    def tensors(graph: Any) -> Iterator[Any]:
+        yield from graph.initializer
+        for node in graph.node:
+            for attribute in node.attribute:
+                yield from [attribute.t] if attribute.HasField("t") else []
+                yield from attribute.tensors
+                for sub in ([attribute.g] if attribute.HasField("g") else []) + list(attribute.graphs):
+                    yield from tensors(sub)
+
+    for tensor in tensors(model.graph):
+        if tensor.data_location == onnx.TensorProto.EXTERNAL:
+            location = next((entry.value for entry in tensor.external_data if entry.key == "location"), None)
+            if location and location not in names:
+                names.append(location)
+    return names
+
+
+def missing_weights_message(path: Path) -> str | None:
+    """Why ``path`` cannot load when a weights file its graph names is not beside it, with the fix; else None."""
+    missing = [name for name in external_data_files(path) if not (path.parent / name).is_file()]
+    if not missing:
+        return None
+    wanted = path.parent / missing[0]
+    renamed = weights_file(path)
+    unused = f" ({renamed.name} beside it is not read)" if renamed.is_file() and renamed != wanted else ""
+    return (f"{path}: its weights file {wanted} is missing. An exported model records its weights file's name "
+            f"inside the .onnx ({missing[0]}): renaming the .onnx and its .data file does not change it{unused}.\n"
+            f"Fix: keep the weights file beside it under its original name, {wanted}, or export again under the new "
+            f"name: dapm-lightning export CKPT --out {path} (writes {path.name} and {renamed.name})")
 
 
 def remove_exported(path: str | Path) -> None:

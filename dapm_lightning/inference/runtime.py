@@ -17,7 +17,7 @@ import torch
 from torch import Tensor, nn
 
 from dapm_lightning.geometry.image import unit_image
-from dapm_lightning.inference.onnx import METADATA_NET, PRIOR_INPUTS, onnx_feed
+from dapm_lightning.inference.onnx import METADATA_NET, PRIOR_INPUTS, missing_weights_message, onnx_feed
 from dapm_lightning.models.config import DAPMConfig
 from dapm_lightning.models.dapm import InferenceOutput
 from dapm_lightning.models.prior import PosePrior
@@ -128,8 +128,11 @@ class OnnxRuntime:
         try:
             self.session = onnxruntime.InferenceSession(str(self.path), providers=["CPUExecutionProvider"])
         except Exception as error:  # onnxruntime raises its own exception types
-            raise ValueError(f"{self.path}: onnxruntime cannot load it ({str(error).splitlines()[0]}).\nFix: export "
-                             "it again (dapm-lightning export); keep NAME.onnx.data beside NAME.onnx") from error
+            raise ValueError(missing_weights_message(self.path) or (
+                f"{self.path}: onnxruntime cannot load it ({str(error).splitlines()[0]}).\nFix: export the "
+                f"checkpoint again (dapm-lightning export CKPT --out {self.path}); a large model's weights file "
+                "keeps the name it was exported with (NAME.onnx.data of the exported NAME.onnx): keep it beside "
+                "the .onnx under that name")) from error
         metadata = self.session.get_modelmeta().custom_metadata_map
         if METADATA_NET not in metadata:
             raise ValueError(f"{self.path}: not a dapm-lightning export: its metadata lacks {METADATA_NET} (the "

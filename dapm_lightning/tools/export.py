@@ -13,7 +13,8 @@ quantisation of the encoder, depth decoder and depth heads, per-channel weights;
 metric decoding stay float32), calibrated on synthetic renders at the training size (and some at the export
 size), then measured against the float32 model on held-out renders: when its depth d1 drops by more than
 0.01 or a pose median grows by more than 0.5 (m or deg), the export fails and keeps no int8 file unless
---force true. A large model's weights go beside the graph in NAME.onnx.data (keep both files together).
+--force true. A large model's weights go beside the graph in NAME.onnx.data (keep both files together; the .onnx
+records that name: to rename a model, export it again with --out NEW.onnx).
 Settings can come from a YAML file (--config FILE; --print_config shows one).
 """
 
@@ -111,7 +112,8 @@ def export(ckpt_path: Path, out: Path | None = None, height: int | None = None, 
     names = [k for k in rows[0] if k not in ("shape", CHECK_DRAW, DEPTH_SHARE_OFF)]
     shape = "[batch, 3, height, width]" if dynamic else f"[1, 3, {height}, {width}]"
     data = weights_file(float_out)
-    weights = f"; weights in {data.name}: keep it beside the .onnx file" if data.is_file() and kept else ""
+    weights = (f"; weights in {data.name}: keep it beside the .onnx file under this name, which the .onnx records"
+               if data.is_file() and kept else "")
     precision = "float16 inside, float32 input and outputs" if fp16 else "float32"
     print(f"{'wrote' if kept else 'exported, not written:'} {float_out} ({precision}{weights}) in "
           f"{time.perf_counter() - start:.0f} s: input 'image' {shape} float RGB in [0, 1]; outputs {', '.join(names)}")

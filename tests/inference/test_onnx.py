@@ -144,6 +144,54 @@ def test_export_replaces_an_earlier_one_only_once_checked(tmp_path, capsys, monk
     assert sorted(p.name for p in tmp_path.iterdir()) == ["shipped.onnx", "shipped.onnx.data"]  # no staging left
 
 
+def test_a_renamed_model_names_the_weights_file_its_graph_records(tmp_path, capsys):
+    """x.onnx and x.onnx.data copied to model.onnx and model.onnx.data: the graph still names x.onnx.data (recorded
+    inside the .onnx), so the message names that file and the real fixes, not NAME.onnx.data."""
+    import shutil
+
+    import cv2
+    import numpy as np
+    import onnx
+    from onnx import TensorProto, helper, numpy_helper
+
+    from dapm_lightning.inference.runtime import OnnxRuntime
+
+    graph = helper.make_graph([helper.make_node("MatMul", ["x", "w"], ["y"])], "g",
+                              [helper.make_tensor_value_info("x", TensorProto.FLOAT, [1, 64])],
+                              [helper.make_tensor_value_info("y", TensorProto.FLOAT, [1, 64])],
+                              [numpy_helper.from_array(np.ones((64, 64), np.float32), "w")])
+    (tmp_path / "export").mkdir()
+    onnx.save(helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)], ir_version=9),
+              str(tmp_path / "export" / "x.onnx"), save_as_external_data=True, location="x.onnx.data",
+              size_threshold=0)
+    folder = tmp_path / "models"
+    folder.mkdir()
+    model = folder / "model.onnx"
+    shutil.copy(tmp_path / "export" / "x.onnx", model)
+    shutil.copy(tmp_path / "export" / "x.onnx.data", folder / "model.onnx.data")
+    with pytest.raises(ValueError) as info:
+        OnnxRuntime(model)
+    assert str(info.value) == (
+        f"{model}: its weights file {folder / 'x.onnx.data'} is missing. An exported model records its weights "
+        "file's name inside the .onnx (x.onnx.data): renaming the .onnx and its .data file does not change it "
+        "(model.onnx.data beside it is not read).\n"
+        f"Fix: keep the weights file beside it under its original name, {folder / 'x.onnx.data'}, or export again "
+        f"under the new name: dapm-lightning export CKPT --out {model} (writes model.onnx and model.onnx.data)")
+    image = tmp_path / "a.png"
+    assert cv2.imwrite(str(image), np.zeros((40, 60, 3), np.uint8))
+    with pytest.raises(SystemExit) as stop:
+        main(["predict", str(image), "--ckpt_path", str(model), "--out", str(tmp_path / "out"), "--device", "cpu"])
+    err = capsys.readouterr().err
+    assert stop.value.code == 1 and "Traceback" not in err and f"its weights file {folder / 'x.onnx.data'}" in err
+    shutil.copy(folder / "model.onnx.data", folder / "x.onnx.data")  # the fix: it loads (then is not a DAPM export)
+    with pytest.raises(ValueError, match="not a dapm-lightning export"):
+        OnnxRuntime(model)
+    (folder / "broken.onnx").write_bytes(b"not a model")
+    with pytest.raises(ValueError, match=r"broken.onnx: onnxruntime cannot load it .*\nFix: export the checkpoint "
+                                         r"again \(dapm-lightning export CKPT --out .*broken.onnx\)"):
+        OnnxRuntime(folder / "broken.onnx")
+
+
 @pytest.mark.slow
 def test_cli_export(checkpoint, tmp_path, capsys):
     out = tmp_path / "model.onnx"
