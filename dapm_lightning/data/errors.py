@@ -21,6 +21,10 @@ class DatasetError(ValueError):
         super().__init__(f"{root}: {len(self.problems)} problem(s) found:\n  {listed}{more}")
 
 
+EVERY_FILE_SKIPPED_FIX = ("Fix: correct or replace the files listed: on_bad_file is skip already and it left out "
+                          "every one, so no file is left to load.")
+"""The fix when ``on_bad_file="skip"`` left out every file (skipping more cannot help)."""
+
 MISSING = "missing (deleted or moved after the data set was scanned)"
 """What a file that went away after the scan is reported as (not as "cannot be decoded")."""
 
@@ -109,4 +113,5 @@ class SkipsBadFiles:
             return [SkippedFile(f"{sample['name']}: stands in for a batch whose every file failed (on_bad_file: "
                                 "skip)"), sample]
         raise DatasetError(getattr(self, "root", "data set"), [*problems, "no file of the data set loads any more "
-                                                               "(on_bad_file: skip leaves out single files)"])
+                                                               "(on_bad_file: skip leaves out single files)"],
+                           fix=EVERY_FILE_SKIPPED_FIX)

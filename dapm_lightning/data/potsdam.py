@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 import torch
 
-from dapm_lightning.data.errors import BadFileError, DatasetError, SkipsBadFiles, unreadable
+from dapm_lightning.data.errors import EVERY_FILE_SKIPPED_FIX, BadFileError, DatasetError, SkipsBadFiles, unreadable
 from dapm_lightning.data.pngcheck import read_npy_header, read_png_info, scan_files
 from dapm_lightning.data.sample import Sample, SampleKey, Transform, make_sample, seed_augmentation, split_key
 from dapm_lightning.geometry.constants import MAX_DEPTH_M, MIN_DEPTH_M
@@ -193,8 +193,8 @@ class PotsdamDataset(SkipsBadFiles, torch.utils.data.Dataset[Sample]):
         if self.skipped:
             warnings.warn(f"{crops}: skipping {len(self.skipped)} bad crop(s):\n  " + "\n  ".join(self.skipped[:50]),
                           stacklevel=2)
-        if not self.names:
-            raise DatasetError(crops, self.skipped)
+        if not self.names:  # every crop bad: on_bad_file skip left out all of them
+            raise DatasetError(crops, self.skipped, fix=EVERY_FILE_SKIPPED_FIX)
 
     def _paths(self, name: str) -> tuple[Path, Path]:
         return self.crops / "rgb" / f"{name}.png", self.crops / "height" / f"{name}.npy"

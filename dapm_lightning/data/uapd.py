@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 import torch
 
-from dapm_lightning.data.errors import BadFileError, DatasetError, SkipsBadFiles, unreadable
+from dapm_lightning.data.errors import EVERY_FILE_SKIPPED_FIX, BadFileError, DatasetError, SkipsBadFiles, unreadable
 from dapm_lightning.data.pngcheck import read_png_info, scan_files
 from dapm_lightning.data.sample import Sample, SampleKey, Transform, make_sample, seed_augmentation, split_key
 from dapm_lightning.geometry.constants import MAX_DEPTH_M, POSE_KEYS
@@ -344,8 +344,10 @@ class UAPDDataset(SkipsBadFiles, torch.utils.data.Dataset[Sample]):
         if problems:
             warnings.warn(f"{split_dir}: skipping {len(problems)} bad file(s):\n  " + "\n  ".join(problems[:50]),
                           stacklevel=3)
-        if not names:
-            raise DatasetError(split_dir, problems or [f"{rgb_dir}: no PNG images"])
+        if not names:  # every pair bad (on_bad_file skip, or the scan raised above), or none at all
+            raise DatasetError(split_dir, problems or [f"{rgb_dir}: no PNG images"], fix=EVERY_FILE_SKIPPED_FIX
+                               if problems else f"Fix: put the {self.split} split's pairs in {layout}, or give "
+                               "data.init_args.root the folder that holds them (UAPD's layout: docs/data.md).")
         pose_array = np.stack(poses) if poses else np.zeros((0, 4), np.float32)
         return names, pose_array, meta, problems, containers
 

@@ -14,8 +14,9 @@ import torch
 
 from dapm_lightning.data import DatasetError, PotsdamDataset, UAPDDataset, parse_uapd_filename
 from dapm_lightning.data.datamodules import UAPDDataModule, collate_samples
-from dapm_lightning.data.errors import BadFileError, SkippedFile
+from dapm_lightning.data.errors import EVERY_FILE_SKIPPED_FIX, BadFileError, SkippedFile
 from dapm_lightning.data.pngcheck import read_npy_header, read_png_info
+from dapm_lightning.tools.errors import describe
 from dapm_lightning.training.lightning_cli import run_lightning_cli
 from tests.conftest import QUICKSTART
 
@@ -66,6 +67,30 @@ def test_skip_leaves_a_damaged_file_out_naming_it(uapd_copy, folder):
     assert len(dataset.skipped) == 1 and str(uapd_copy / "train" / folder / name) in dataset.skipped[0]
     for index in range(len(dataset)):  # the rest loads
         dataset[index]
+
+
+def test_every_file_bad_with_skip_given_is_not_told_to_skip(uapd_copy, tiny_potsdam, tmp_path):
+    """on_bad_file skip already given and every file bad: the fix is to mend the files, not to skip them."""
+    skip_hint = "--data.init_args.on_bad_file skip"
+    for path in (uapd_copy / "train" / "rgb").iterdir():
+        damage(path)
+    with pytest.warns(UserWarning, match="skipping"), pytest.raises(DatasetError) as info:
+        UAPDDataset(uapd_copy, "train", on_bad_file="skip")
+    message, expected = describe(info.value)
+    assert expected and skip_hint not in message and message.splitlines()[-1] == EVERY_FILE_SKIPPED_FIX
+    assert skip_hint in describe(DatasetError(uapd_copy, ["a: damaged"]))[0]  # not given: skipping is one way out
+    for path in [*(uapd_copy / "val" / "rgb").iterdir(), *(uapd_copy / "val" / "depth").iterdir()]:
+        path.unlink()  # no pair at all: where the pairs go
+    with pytest.raises(DatasetError) as info:
+        UAPDDataset(uapd_copy, "val", on_bad_file="skip")
+    assert describe(info.value)[0].splitlines()[-1].startswith("Fix: put the val split's pairs in ROOT/val/")
+    root = Path(shutil.copytree(tiny_potsdam, tmp_path / "p"))
+    crops = PotsdamDataset(root, "train", crop_size=32).crops
+    for path in (crops / "rgb").iterdir():
+        damage(path)
+    with pytest.warns(UserWarning, match="skipping"), pytest.raises(DatasetError) as info:
+        PotsdamDataset(root, "train", crop_size=32, on_bad_file="skip")
+    assert describe(info.value)[0].splitlines()[-1] == EVERY_FILE_SKIPPED_FIX
 
 
 def test_both_files_of_a_pair_damaged_are_both_named(uapd_copy):
@@ -205,8 +230,9 @@ def test_a_batch_whose_every_file_fails_gets_the_next_sample_that_loads(uapd_cop
     assert batch["skipped"][2] == (f"{Path(dataset.names[3]).stem}: stands in for a batch whose every file failed "
                                    "(on_bad_file: skip)")
     (uapd_copy / "train" / "rgb" / dataset.names[3]).unlink()
-    with pytest.raises(DatasetError, match="no file of the data set loads any more"):
+    with pytest.raises(DatasetError, match="no file of the data set loads any more") as info:
         dataset.__getitems__([(0, 0), (0, 1)])
+    assert describe(info.value)[0].splitlines()[-1] == EVERY_FILE_SKIPPED_FIX  # skip is on already
 
 
 TINY = ["--model.net.backbone", "mobilenetv3_small_050", "--model.net.decoder_channels", "16",
