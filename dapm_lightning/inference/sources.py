@@ -135,7 +135,12 @@ def _list_file(path: Path) -> tuple[list[tuple[Path, str]], list[str]]:
             raise ValueError(f"{path} line {number}: {entry}: a list inside a list is not read")
         target = Path(entry).expanduser()
         text = str(target if target.is_absolute() else path.parent / target)
-        files, more = _entry(text, f"{path} line {number}: ")
+        try:
+            files, more = _entry(text, f"{path} line {number}: ")
+        except FileNotFoundError as error:  # its own fix: the entry starts from the list's folder, not from here
+            raise FileNotFoundError(f"{error}\nFix: correct or remove line {number} of {path}; a relative path in a "
+                                    f"list starts from the list's folder ({path.parent.resolve()}), not the "
+                                    "current directory.") from None
         found += files
         notes += more
     if not found:

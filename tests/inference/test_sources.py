@@ -71,6 +71,20 @@ def test_several_sources_and_lists_keep_names_unique(sd_card, tmp_path):
         resolve_sources(empty)
 
 
+def test_a_missing_list_entry_is_fixed_from_the_lists_folder(sd_card, tmp_path, capsys, monkeypatch):
+    """A .txt list's relative entries start from the list's folder: the fix says so, not "the current directory"."""
+    monkeypatch.chdir(tmp_path)
+    listing = sd_card / "survey.txt"
+    for line in ("DCIM/100MEDIA/DJI_9999.JPG", "DCIM/9*MEDIA/*.JPG"):
+        listing.write_text(f"DCIM/100MEDIA/DJI_0002.JPG\n{line}\n")
+        with pytest.raises(SystemExit) as stop:
+            main(["predict", "card/survey.txt", "--ckpt_path", "missing.ckpt"])  # refused before the model loads
+        lines = capsys.readouterr().err.splitlines()
+        assert stop.value.code == 1 and lines[0].startswith(f"error: card/survey.txt line 2: card/{line}: "), lines
+        assert lines[1] == ("Fix: correct or remove line 2 of card/survey.txt; a relative path in a list starts from "
+                            f"the list's folder ({sd_card.resolve()}), not the current directory."), lines
+
+
 def test_one_line_predict_takes_an_unquoted_glob_a_list_and_a_video(checkpoint, sd_card, tmp_path, capsys,
                                                                     monkeypatch):
     media = sd_card / "DCIM" / "100MEDIA"
