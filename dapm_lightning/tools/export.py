@@ -27,7 +27,7 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from dapm_lightning.data.files import check_folder_writable
+from dapm_lightning.data.files import WRITE_ERRNOS, WriteError, check_folder_writable, write_error
 from dapm_lightning.inference.inputs import SIZE_MULTIPLE, checkpoint_network_size, network_size
 from dapm_lightning.inference.onnx import (
     CHECK_DRAW,
@@ -99,7 +99,10 @@ def export(ckpt_path: Path, out: Path | None = None, height: int | None = None, 
                 "dapm.precision": "float16" if fp16 else "float32"}
     float_out.parent.mkdir(parents=True, exist_ok=True)
     # written beside the target first, moved into place once checked: a failed export leaves an earlier one whole
-    staging = Path(tempfile.mkdtemp(prefix=f".{float_out.name}.", dir=float_out.parent))
+    try:
+        staging = Path(tempfile.mkdtemp(prefix=f".{float_out.name}.", dir=float_out.parent))
+    except OSError as error:  # a folder that looked writable but is not (/sys): named as --out, not the staging
+        raise _out_error(float_out, error) from error
     try:
         rows = export_onnx(module.net.eval(), staging / float_out.name, (height, width), checks=checks,
                            dynamic=dynamic, fp16=fp16, metadata=metadata)
@@ -107,6 +110,10 @@ def export(ckpt_path: Path, out: Path | None = None, height: int | None = None, 
         kept = not failures or force
         if kept:
             _move_exported(staging / float_out.name, float_out)
+    except OSError as error:
+        if isinstance(error, WriteError) or error.errno not in WRITE_ERRNOS:
+            raise
+        raise _out_error(float_out, error) from error  # a full disk while exporting: --out named, not the staging
     finally:
         shutil.rmtree(staging, ignore_errors=True)
     names = [k for k in rows[0] if k not in ("shape", CHECK_DRAW, DEPTH_SHARE_OFF)]
@@ -196,6 +203,12 @@ def check_export_path(out: Path, ckpt_path: Path) -> None:
         raise ValueError(f"--out {out}: an exported model is written to a file ending in .onnx (an existing one "
                          f"is replaced, and nothing else is).\nFix: --out {out.with_suffix('.onnx')}")
     check_folder_writable(out.parent, "--out")  # before the export's minutes, not after
+
+
+def _out_error(out: Path, error: OSError) -> WriteError:
+    """A failed write of the export (in its hidden staging folder beside ``out``, or the move) naming ``out``."""
+    failed = write_error(out, error)
+    return WriteError(out, failed.reason, f"{failed.fix} (--out)")
 
 
 def _move_exported(staged: Path, final: Path) -> None:

@@ -144,6 +144,38 @@ def test_export_replaces_an_earlier_one_only_once_checked(tmp_path, capsys, monk
     assert sorted(p.name for p in tmp_path.iterdir()) == ["shipped.onnx", "shipped.onnx.data"]  # no staging left
 
 
+def test_a_folder_that_refuses_the_export_is_named_as_out_not_the_hidden_staging(tmp_path, capsys, monkeypatch):
+    """/sys passes the writable check (root) yet refuses a folder: the message names --out, as does a disk that
+    fills while exporting; the hidden staging folder beside it is not named and not left."""
+    import errno
+
+    import dapm_lightning.tools.export as export_tool
+
+    out = tmp_path / "dapm.onnx"
+
+    def refuse(*args, **kwargs):
+        raise PermissionError(errno.EPERM, "Operation not permitted", str(tmp_path / ".dapm.onnx.x1y2z3"))
+
+    monkeypatch.setattr(export_tool.tempfile, "mkdtemp", refuse)
+    with pytest.raises(SystemExit) as info:
+        main(["export", str(SHIPPED), "--out", str(out)])
+    err = capsys.readouterr().err
+    assert info.value.code == 1 and err.splitlines()[:2] == [
+        f"error: {out}: cannot be written (Operation not permitted)",
+        "Fix: write to a folder you may write to (this one is read-only or not yours) (--out)"], err
+    monkeypatch.undo()
+
+    def fill(net, path, size, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    monkeypatch.setattr(export_tool, "export_onnx", fill)
+    with pytest.raises(SystemExit) as info:
+        main(["export", str(SHIPPED), "--out", str(out), "--height", "64", "--width", "64"])
+    err = capsys.readouterr().err
+    assert info.value.code == 1 and err.splitlines()[0] == f"error: {out}: cannot be written (No space left on device)"
+    assert list(tmp_path.iterdir()) == []  # no staging folder left
+
+
 def test_a_renamed_model_names_the_weights_file_its_graph_records(tmp_path, capsys):
     """x.onnx and x.onnx.data copied to model.onnx and model.onnx.data: the graph still names x.onnx.data (recorded
     inside the .onnx), so the message names that file and the real fixes, not NAME.onnx.data."""
