@@ -269,8 +269,10 @@ def memory(frames: int = 2000, every: int = 200, batch_size: int = 16, ckpt_path
 
     The Lightning form of the command (``--config configs/predict.yaml``: ``PredictionWriter``, nothing kept
     in memory) on the CPU, with :class:`~benchmarks.callbacks.MemoryProbe` added. ``ckpt_path``: the model
-    (default: an untrained :data:`TINY_NETWORK`); frames are ``image_width`` pixels square; ``out``: where the
-    predictions go (default: a temporary folder). Returns the probe's ``(frames, RSS MiB, peak RSS MiB)`` rows.
+    (default: an untrained :data:`TINY_NETWORK`, written as a checkpoint by :func:`tiny_checkpoint` and passed as
+    ``--ckpt_path``: ``predict`` refuses to run without one, and memory does not depend on the weights); frames
+    are ``image_width`` pixels square; ``out``: where the predictions go (default: a temporary folder). Returns the
+    probe's ``(frames, RSS MiB, peak RSS MiB)`` rows.
     """
     from dapm_lightning.inference.writers import PredictionWriter
     from dapm_lightning.training.lightning_cli import run_lightning_cli

@@ -291,8 +291,8 @@ def find_last_checkpoint(roots: Iterable[str | Path]) -> Path | None:
     return found[0] if found else None
 
 
-def resolve_last_checkpoint(roots: Iterable[str | Path], folders: Iterable[str | Path] = ()
-                            ) -> tuple[Path, dict[str, Any]] | None:
+def resolve_last_checkpoint(roots: Iterable[str | Path], folders: Iterable[str | Path] = (),
+                            start_from_scratch: bool = True) -> tuple[Path, dict[str, Any]] | None:
     """The checkpoint to resume from, loaded: what ``--ckpt_path last`` takes.
 
     The newest ``last.ckpt`` under ``roots`` (any log version). If it cannot be loaded (truncated, corrupt) it is
@@ -303,6 +303,8 @@ def resolve_last_checkpoint(roots: Iterable[str | Path], folders: Iterable[str |
     Args:
         roots: the run's folders (``default_root_dir``, the loggers' ``save_dir``...), searched recursively.
         folders: checkpoint folders (the callbacks' ``dirpath``), searched for other checkpoints.
+        start_from_scratch: warn that the run starts from scratch when no checkpoint can be loaded (``fit``);
+            False for a caller that refuses to run then (``validate``, ``test``, ``predict``).
 
     Returns:
         ``(path, checkpoint)``, or None when there is no ``last.ckpt`` or no complete checkpoint.
@@ -321,7 +323,7 @@ def resolve_last_checkpoint(roots: Iterable[str | Path], folders: Iterable[str |
             reason = str(error).split(": not a readable checkpoint ", 1)[-1]
             rank_zero_warn(f"--ckpt_path last: skipping {path}: it cannot be loaded {reason}; taking the newest "
                            "complete checkpoint instead")
-    if candidates:
+    if candidates and start_from_scratch:
         rank_zero_warn(f"--ckpt_path last: none of the {len(candidates)} checkpoint(s) found can be loaded; starting "
                        "from scratch")
     return None

@@ -48,6 +48,12 @@ class WeightsOnlyCheckpointError(ValueError):
     explained = True
 
 
+class NoWeightsError(ValueError):
+    """``validate``, ``test`` or ``predict`` with no trained weights to run: no checkpoint found, none given."""
+
+    explained = True
+
+
 TRAINER_DEFAULTS = {"plugins": [{"class_path": "dapm_lightning.training.checkpointing.SafeCheckpointIO"}]}
 """Checkpoints load with ``weights_only=True`` and save atomically. A ``--trainer.plugins`` value replaces this list:
 :meth:`DAPMCLI.instantiate_trainer` then puts the safe I/O back (``enforce_safe_checkpoint_io``)."""
@@ -61,6 +67,9 @@ EVALUATION_SUBCOMMANDS = ("validate", "test", "predict")
 
 CPU_FALLBACK = {"accelerator": "cpu", "devices": 1, "strategy": "auto", "sync_batchnorm": False, "num_nodes": 1}
 """The trainer settings validate/test/predict use instead of a GPU config's on a machine without a GPU."""
+
+UNTRAINED_OUTPUT = {"validate": "metrics", "test": "metrics", "predict": "depth and poses"}
+"""What ``validate``, ``test`` and ``predict`` would report from random weights (their refusal says so)."""
 
 EXIT_USAGE = 2
 """Exit status of a command line the parser refuses (argparse's)."""
@@ -259,7 +268,9 @@ class DAPMCLI(LightningCLI):
     that is not a dapm-lightning checkpoint is refused saying what it is). ``validate``, ``test`` and
     ``predict`` then build the checkpoint's own model (its saved settings override the configuration's).
     ``fit`` resumes only into the same architecture: what differs is listed with the fix, instead of a shape
-    error deep inside ``load_state_dict`` or a silent switch to the checkpoint's settings.
+    error deep inside ``load_state_dict`` or a silent switch to the checkpoint's settings. ``validate``, ``test``
+    and ``predict`` without trained weights (no ``--ckpt_path`` nor ``model.init_weights``, or ``--ckpt_path last``
+    finding no complete checkpoint) are refused (:class:`NoWeightsError`) instead of running an untrained network.
 
     Also: short errors for a command line the parser refuses (:class:`DAPMArgumentParser`); ``validate``,
     ``test`` and ``predict`` of a GPU config run on the CPU of a machine without a GPU (``fit`` refuses,
@@ -323,9 +334,9 @@ class DAPMCLI(LightningCLI):
         checkpoint: Any = None
         fetched_from: str | None = None
         if ckpt_path == "last":
-            found = self._resolve_last(config)
+            found = self._resolve_last(config, subcommand)
             if found is None:
-                return
+                return  # fit: a first run starts from scratch (the others are refused in _resolve_last)
             ckpt_path, checkpoint = found
         elif ckpt_path and is_remote(ckpt_path):
             trainer = config.get("trainer") or {}
@@ -336,6 +347,14 @@ class DAPMCLI(LightningCLI):
             ckpt_path = str(join_split_checkpoint_file(ckpt_path, root / FETCHED))
         elif ckpt_path and str(ckpt_path).startswith("file://"):
             ckpt_path = str(local_path(ckpt_path))
+        if not ckpt_path and subcommand in EVALUATION_SUBCOMMANDS and not config.get("model", {}).get("init_weights"):
+            last = ("" if subcommand == "predict" else ", or --ckpt_path last for the newest checkpoint under the "
+                    f"run's trainer.default_root_dir ({self._run_folders(config)[0][0]})")
+            raise NoWeightsError(
+                f"{subcommand}: no weights to {subcommand} with: neither --ckpt_path nor --model.init_weights is "
+                f"given, and an untrained network's {UNTRAINED_OUTPUT[subcommand]} would mean nothing.\nFix: "
+                "--ckpt_path CKPT (a checkpoint written by `dapm-lightning fit`, or a shipped model such as "
+                f"models/dapm-synthetic-r18-256){last}.")
         if not ckpt_path or not Path(ckpt_path).is_file():
             return  # Lightning's own values (best, hpc...) and its error for a missing file
         config["ckpt_path"] = str(ckpt_path)
@@ -391,10 +410,25 @@ class DAPMCLI(LightningCLI):
         self._read_data_early("fit")
 
     def before_validate(self) -> None:
+        self._read_initial_weights("validate")
         self._read_data_early("validate")
 
     def before_test(self) -> None:
+        self._read_initial_weights("test")
         self._read_data_early("test")
+
+    def before_predict(self) -> None:
+        self._read_initial_weights("predict")
+
+    def _read_initial_weights(self, subcommand: str) -> None:
+        """``validate``, ``test`` or ``predict`` without ``--ckpt_path``: the network's weights from ``init_weights``.
+
+        :meth:`_parse_ckpt_path` refused the run if neither is set: an untrained network is never evaluated.
+        """
+        model = self.model
+        if isinstance(model, DAPMModule) and model.init_weights is not None and not self.config[subcommand].get(
+                "ckpt_path"):
+            model.load_initial_weights()
 
     def _read_data_early(self, stage: str) -> None:
         """Scan the data sets before the trainer starts (:meth:`DAPMDataModule.read_early`).
@@ -471,19 +505,31 @@ class DAPMCLI(LightningCLI):
         return roots + folders, folders
 
     @classmethod
-    def _resolve_last(cls, config: Any) -> tuple[str, dict[str, Any]] | None:
+    def _resolve_last(cls, config: Any, subcommand: str = "fit") -> tuple[str, dict[str, Any]] | None:
         """``--ckpt_path last``: the newest complete checkpoint under the run's folders, across its log versions.
 
         The folders: ``trainer.default_root_dir``, every logger's ``save_dir`` and every callback's ``dirpath``
         (:func:`~dapm_lightning.training.checkpointing.resolve_last_checkpoint`: a damaged ``last.ckpt`` is
-        skipped with a warning). With none there, ``"last"`` stays as it is: Lightning warns and starts from
-        scratch (the first submission of a job that is always launched with ``--ckpt_path last``); with only damaged
-        ones, the run starts from scratch too.
+        skipped with a warning). For ``fit``, with none there, ``"last"`` stays as it is: Lightning warns and starts
+        from scratch (the first submission of a job that is always launched with ``--ckpt_path last``); with only
+        damaged ones, the run starts from scratch too. ``validate``, ``test`` and ``predict`` are refused instead
+        (:class:`NoWeightsError`, naming the folders searched): they would run an untrained network.
         """
         roots, folders = cls._run_folders(config)
-        found = resolve_last_checkpoint(roots, folders)
+        training = subcommand not in EVALUATION_SUBCOMMANDS
+        found = resolve_last_checkpoint(roots, folders, start_from_scratch=training)
         if found is None:
-            if find_last_checkpoint(roots) is not None:  # every checkpoint damaged (warned): from scratch, without
+            damaged = find_last_checkpoint(roots) is not None
+            if not training:
+                where = ", ".join(dict.fromkeys(roots))
+                what = ("none of the checkpoints there can be loaded (each named above)" if damaged
+                        else "no last.ckpt there")
+                raise NoWeightsError(
+                    f"{subcommand} --ckpt_path last: looked for the run's newest checkpoint under {where}: {what}, so "
+                    f"there are no trained weights to {subcommand} with.\nFix: --trainer.default_root_dir set to the "
+                    "folder `fit` wrote its run to (as in the fit's config), or --ckpt_path CKPT naming a checkpoint "
+                    "file (or a shipped model such as models/dapm-synthetic-r18-256).")
+            if damaged:  # every checkpoint damaged (warned): from scratch, without
                 config["ckpt_path"] = None  # Lightning's own lookup of "last" reading a damaged file
             return None
         path, checkpoint = found

@@ -341,6 +341,8 @@ class DAPMModule(L.LightningModule):
         self.net_config.check_loads(checkpoint["hyper_parameters"]["net"], f"{path} (model.init_weights)")
         weights = {k.removeprefix("net."): v for k, v in checkpoint["state_dict"].items() if k.startswith("net.")}
         self.net.load_state_dict(weights, strict=True)  # copied into this module's tensors, in their dtype
+        if self.train_image_size is None:  # predict's network size until a fit sets its own
+            self.train_image_size = training_image_size(checkpoint)
         self.weights_are_final = True
         rank_zero_info(f"model.init_weights: the network starts from {path} ({len(weights)} tensors)")
 

@@ -37,15 +37,17 @@ def test_missing_data_folder(tmp_path, capsys, monkeypatch):
     assert "Fix: put the train split in ROOT/train/{rgb,depth}/NAME.png" in err and "on_bad_file" not in err
 
 
-def test_data_problems_stop_a_run_before_its_log_folders_are_made(uapd_copy, tmp_path, capsys, monkeypatch):
+def test_data_problems_stop_a_run_before_its_log_folders_are_made(uapd_copy, checkpoint, tmp_path, capsys,
+                                                                  monkeypatch):
     """An empty tensorboard/version_0 left by a run that never started would send the next run to version_1."""
     run = tmp_path / "run"
     run.mkdir()
     monkeypatch.chdir(run)
     uapd = ["--data.class_path", "dapm_lightning.data.datamodules.UAPDDataModule"]
     for subcommand in ("fit", "validate", "test"):
+        weights = [] if subcommand == "fit" else ["--ckpt_path", str(checkpoint)]
         code, err = run_main([subcommand, "--config", str(QUICKSTART), *uapd, "--data.init_args.root",
-                              str(tmp_path / "nowhere")], capsys)
+                              str(tmp_path / "nowhere"), *weights], capsys)
         assert code == 1 and "no such folder" in err, err
     broken = uapd_copy
     damaged = sorted((broken / "train" / "depth").iterdir())[0]

@@ -43,7 +43,7 @@ from dapm_lightning.training.checkpointing import (
     resolve_last_checkpoint,
     safe_checkpoint_io,
 )
-from dapm_lightning.training.lightning_cli import run_lightning_cli
+from dapm_lightning.training.lightning_cli import NoWeightsError, run_lightning_cli
 from tests.conftest import QUICKSTART, run_main
 
 HERE = Path(__file__).resolve().parent
@@ -241,8 +241,8 @@ def test_every_checkpoint_plugin_is_made_safe_or_refused(tmp_path, capsys, monke
     assert isinstance(trainer.strategy.checkpoint_io, SafeCheckpointIO) and not (tmp_path / "PWNED").exists()
 
     monkeypatch.chdir(tmp_path)
-    code, err = run_main(["validate", "--config", str(QUICKSTART), "--trainer.plugins",
-                          f"{__name__}.LoadsItsOwnWay"], capsys)
+    code, err = run_main(["fit", "--config", str(QUICKSTART), "--trainer.plugins",  # refused as the trainer is built
+                          f"{__name__}.LoadsItsOwnWay", "--trainer.logger", "false"], capsys)
     assert code == 1 and "LoadsItsOwnWay reads checkpoints its own way" in err and "Fix:" in err, err
 
 
@@ -393,11 +393,15 @@ def test_ckpt_path_last_skips_a_damaged_last_checkpoint(checkpoint, tiny_uapd, t
     last_in = {"class_path": "dapm_lightning.training.checkpointing.LastCheckpoint",  # Lightning looks for last there
                "init_args": {"dirpath": str(cut.parent)}}
     (tmp_path / "job.yaml").write_text(yaml.safe_dump({"trainer": {"callbacks": [last_in]}}))
-    with pytest.warns(UserWarning, match="starting from scratch"):  # not Lightning's own reading of the damaged file
-        cli = run_lightning_cli(["validate", "--config", str(QUICKSTART), "--config", str(tmp_path / "job.yaml"),
-                                 *UAPD, "--data.init_args.root", str(tiny_uapd), "--trainer.default_root_dir", str(run),
-                                 "--trainer.logger", "false", "--ckpt_path", "last"])
-    assert cli.trainer.ckpt_path is None
+    # every checkpoint damaged: validate refuses (an untrained network's metrics), not Lightning's reading of the file
+    with pytest.warns(UserWarning, match=f"skipping {older}") as warned, \
+            pytest.raises(NoWeightsError, match=f"validate --ckpt_path last: looked for the run's newest checkpoint "
+                                                f"under {run}, {cut.parent}: none of the checkpoints there can be "
+                                                "loaded"):
+        run_lightning_cli(["validate", "--config", str(QUICKSTART), "--config", str(tmp_path / "job.yaml"),
+                           *UAPD, "--data.init_args.root", str(tiny_uapd), "--trainer.default_root_dir", str(run),
+                           "--trainer.logger", "false", "--ckpt_path", "last"])
+    assert not any("starting from scratch" in str(w.message) for w in warned)  # fit's wording, not validate's
 
 
 def test_a_refused_pickle_and_a_damaged_file_get_their_own_messages(tmp_path):

@@ -90,6 +90,41 @@ def test_ckpt_path_of_another_model_is_one_short_message(subcommand, foreign, tm
         assert len(err.splitlines()) <= 4 and "pytorch-lightning_version" not in err, err
 
 
+@pytest.mark.parametrize("subcommand", ["validate", "test", "predict"])
+def test_evaluating_without_trained_weights_is_refused(subcommand, tmp_path, capsys, monkeypatch):
+    """No --ckpt_path, or ``last`` finding nothing: refused before anything is read or written, not a random network."""
+    monkeypatch.chdir(tmp_path)
+    run = tmp_path / "empty_run"
+    if subcommand == "predict":
+        (tmp_path / "imgs").mkdir()
+        config = ["--config", str(CONFIGS / "predict.yaml"), "--data.init_args.source", str(tmp_path / "imgs"),
+                  "--trainer.default_root_dir", str(run)]
+    else:
+        config = ["--config", str(QUICKSTART), "--trainer.logger", "false", "--trainer.default_root_dir", str(run)]
+    code, err = run_main([subcommand, *config], capsys)
+    assert code == 1 and len(err.splitlines()) <= 4, err
+    assert f"error: {subcommand}: no weights to {subcommand} with: neither --ckpt_path nor --model.init_weights" in err
+    assert "Fix: --ckpt_path CKPT" in err and ("--ckpt_path last" in err) == (subcommand != "predict"), err
+    code, err = run_main([subcommand, *config, "--ckpt_path", "last"], capsys)
+    assert code == 1 and len(err.splitlines()) <= 4, err
+    assert f"error: {subcommand} --ckpt_path last: looked for the run's newest checkpoint under {run}: no last.ckpt" \
+           in err and "Fix: --trainer.default_root_dir" in err, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == (["imgs"] if subcommand == "predict" else [])
+
+
+def test_evaluating_with_init_weights_uses_them(checkpoint, tiny_uapd, tmp_path, monkeypatch):
+    """``--model.init_weights`` is weights too: the same figures as ``--ckpt_path`` with the same file."""
+    monkeypatch.chdir(tmp_path)
+    common = ["test", "--config", str(QUICKSTART), *UAPD, "--data.init_args.root", str(tiny_uapd), "--trainer.logger",
+              "false"]
+    given = run_lightning_cli([*common, "--ckpt_path", str(checkpoint)]).trainer.callback_metrics
+    initial = run_lightning_cli([*common, "--model.init_weights", str(checkpoint)])
+    assert initial.trainer.ckpt_path is None and initial.model.weights_are_final
+    assert initial.model.train_image_size == (24, 40)  # recorded in the checkpoint: predict's network size
+    for key in ("test_depth_abs_rel", "test_pose_pitch_median"):
+        assert torch.equal(initial.trainer.callback_metrics[key], given[key]), key
+
+
 def test_unknown_options_are_a_few_lines_with_the_closest(capsys, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     code, err = run_main(["fit", "--config", str(QUICKSTART), "--trainer.max_stpes", "3"], capsys)

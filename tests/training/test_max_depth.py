@@ -33,7 +33,8 @@ def test_a_500_m_data_set_trains_and_tests_with_its_own_limit(uapd_500, tmp_path
     depths = torch.stack([fit.datamodule.datasets["val"][i]["depth"] for i in range(2)])
     assert depths.max() == LIMIT and (depths == LIMIT).any()  # grey 255 decodes to the data set's limit
     assert float(grey_to_depth(torch.tensor([254]).numpy(), LIMIT)[0]) < LIMIT
-    test = run_lightning_cli(["test", *common(uapd_500, LIMIT)], run=True)
+    fit.trainer.save_checkpoint(tmp_path / "fit.ckpt")
+    test = run_lightning_cli(["test", *common(uapd_500, LIMIT), "--ckpt_path", str(tmp_path / "fit.ckpt")], run=True)
     metrics = test.trainer.callback_metrics
     assert torch.isfinite(metrics["test_depth_abs_rel"]) and torch.isfinite(metrics["test_pose_height_median"])
     assert test.model.metrics["test_depth"].max_depth == LIMIT
