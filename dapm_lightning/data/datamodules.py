@@ -23,6 +23,7 @@ from dapm_lightning.data.transforms import Augmentation, train_transform
 from dapm_lightning.data.uapd import UAPDDataset, read_depth_grey
 from dapm_lightning.data.workers import worker_init_fn
 from dapm_lightning.geometry.constants import MAX_DEPTH_M
+from dapm_lightning.geometry.depth_codec import check_depth_limit
 
 
 def collate_samples(items: list[Sample | SkippedFile]) -> dict[str, Any]:
@@ -216,8 +217,8 @@ class UAPDDataModule(DAPMDataModule):
             the file once.
         depth_kind: what the depth PNGs hold ("range" for synthetic data; check real data with the
             doctor); the model's ``depth_kind`` must match.
-        max_depth: metres that grey 255 means, the log encoding's limit (UAPD: 1000); the model's
-            ``igd.max_depth`` must match (checked when training or testing starts).
+        max_depth: metres that grey 255 means, the log encoding's limit (UAPD: 1000; above 1 m, refused
+            otherwise); the model's ``igd.max_depth`` must match (checked when training or testing starts).
     """
 
     def __init__(self, root: str = "data/uapd", test_split: str = "val",
@@ -225,7 +226,7 @@ class UAPDDataModule(DAPMDataModule):
                  max_depth: float = MAX_DEPTH_M, **kwargs: Any) -> None:
         super().__init__(**kwargs)
         self.root, self.test_split, self.on_bad_file, self.depth_kind = Path(root), test_split, on_bad_file, depth_kind
-        self.max_depth = float(max_depth)
+        self.max_depth = check_depth_limit(max_depth, "data.init_args.max_depth")
 
     def make_dataset(self, split: str, train: bool) -> Dataset[Sample]:
         return UAPDDataset(self.root, split, self.split_transform(train), max_depth=self.max_depth,

@@ -30,6 +30,12 @@ POSE_RANGES: Final[dict[str, tuple[float, float]]] = {
 MAX_DEPTH_M: Final[float] = 1000.0
 """Depth beyond which a pixel counts as sky ("beyond d_max"), paper Eq. 20."""
 
+MIN_DEPTH_LIMIT_M: Final[float] = 1.0
+"""A depth limit (``max_depth``: what grey 255 means, the sky, the clamp of every depth) must be finite and above
+this: the log encoding needs a limit above 0, the metrics' valid depths lie between ``MIN_DEPTH_M`` and the limit, and a
+camera metres above the ground sees nothing nearer than a metre as ground (synth, the data modules and
+``model.net.igd.max_depth`` refuse less, :func:`~dapm_lightning.geometry.depth_codec.check_depth_limit`)."""
+
 SKY_PROBABILITY_THRESHOLD: Final[float] = 0.5
 """A pixel is sky where the sky probability exceeds this (the network's own override: logit > 0, the same)."""
 

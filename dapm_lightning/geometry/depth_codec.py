@@ -8,8 +8,24 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from dapm_lightning.geometry.constants import MAX_DEPTH_M, SKY_GREY
+from dapm_lightning.geometry.constants import MAX_DEPTH_M, MIN_DEPTH_LIMIT_M, SKY_GREY
 from dapm_lightning.geometry.precision import float32
+
+
+def check_depth_limit(max_depth: float, setting: str) -> float:
+    """``max_depth`` as a float when it can be a depth limit (finite, above ``MIN_DEPTH_LIMIT_M``).
+
+    Raises:
+        ValueError: naming ``setting`` (``data.init_args.max_depth``, ``model.net.igd.max_depth``) and the fix.
+    """
+    value = float(max_depth)
+    if not (math.isfinite(value) and value > MIN_DEPTH_LIMIT_M):
+        raise ValueError(f"{setting}: {max_depth!r}, but a depth limit must be a number of metres above "
+                         f"{MIN_DEPTH_LIMIT_M:g}: the distance grey 255 of the depth files means, beyond which a pixel "
+                         f"is sky (UAPD: {MAX_DEPTH_M:g}).\nFix: --{setting} {MAX_DEPTH_M:g}, or the limit the data "
+                         "set was written with (`dapm-lightning synth --max_depth`), in the data's and the model's "
+                         "settings alike")
+    return value
 
 
 @float32

@@ -12,7 +12,7 @@ from torch import Tensor
 
 from dapm_lightning.geometry.camera import _plane_coords
 from dapm_lightning.geometry.constants import MAX_DEPTH_M, POSE_RANGES
-from dapm_lightning.geometry.depth_codec import encode_log_depth
+from dapm_lightning.geometry.depth_codec import check_depth_limit, encode_log_depth
 from dapm_lightning.geometry.pose import denormalize_pose, normalize_pose
 from dapm_lightning.geometry.precision import float32
 
@@ -105,7 +105,8 @@ class IGDSpec:
     Args:
         model: ``"pinhole"`` (exact) or ``"paper"`` (the paper's approximation), see :func:`ideal_ground_depth`.
         depth_kind: ``"range"`` or ``"planar"``; must be what the data set's depth maps hold.
-        max_depth: metres; sky and the clamp of every depth.
+        max_depth: metres; sky and the clamp of every depth (finite, above ``MIN_DEPTH_LIMIT_M``: refused otherwise,
+            naming ``model.net.igd.max_depth``).
         pose_ranges: normalisation ranges of the pose, ``{key: (lo, hi)}`` (UAPD's by default).
     """
 
@@ -120,6 +121,7 @@ class IGDSpec:
         if missing:
             raise ValueError(f"pose_ranges lacks {sorted(missing)}; it needs {list(POSE_RANGES)}")
         object.__setattr__(self, "pose_ranges", ranges)
+        object.__setattr__(self, "max_depth", check_depth_limit(self.max_depth, "model.net.igd.max_depth"))
 
     def normalize(self, pose: Tensor) -> Tensor:
         """``[..., 4]`` physical pose -> ``[..., 4]`` in [0, 1] with :attr:`pose_ranges`."""

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import re
 import time
 from collections.abc import Sequence
@@ -10,7 +11,7 @@ from pathlib import Path
 
 from dapm_lightning.data.files import check_folder_writable
 from dapm_lightning.data.synthetic import FAMILIES, SynthFolderError, generate_uapd, normalize_families, shard_range
-from dapm_lightning.geometry.constants import MAX_DEPTH_M
+from dapm_lightning.geometry.constants import MAX_DEPTH_M, MIN_DEPTH_LIMIT_M
 from dapm_lightning.tools.progress import progress_bar
 
 
@@ -72,8 +73,8 @@ def synth_main(argv: Sequence[str]) -> None:
     args = parser.parse_args(list(argv))
     if len(args.size) not in (1, 2) or min(args.size) < 1:
         parser.error(f"--size takes S or H W (positive), got {args.size}")
-    if not args.max_depth > 1.0:
-        parser.error(f"--max_depth must be > 1 m, got {args.max_depth}")
+    if not (math.isfinite(args.max_depth) and args.max_depth > MIN_DEPTH_LIMIT_M):
+        parser.error(f"--max_depth must be > {MIN_DEPTH_LIMIT_M:g} m, got {args.max_depth}")
     if args.train < 0 or args.val < 0:
         parser.error("--train and --val must be >= 0")
     size = args.size[0] if len(args.size) == 1 else (args.size[0], args.size[1])

@@ -3,10 +3,13 @@
 import pytest
 import torch
 
+from dapm_lightning.cli import main
+from dapm_lightning.data.datamodules import UAPDDataModule
 from dapm_lightning.data.synthetic import generate_uapd
 from dapm_lightning.geometry.depth_codec import grey_to_depth
+from dapm_lightning.geometry.igd import IGDSpec
 from dapm_lightning.training.lightning_cli import run_lightning_cli
-from tests.conftest import QUICKSTART
+from tests.conftest import QUICKSTART, run_main
 
 LIMIT = 500.0
 
@@ -58,3 +61,28 @@ def test_the_synthetic_module_renders_and_records_its_limit(tmp_path):
     dm.prepare_data()
     assert is_current(tmp_path / "s", train=1, val=1, size=16, seed=0, max_depth=LIMIT)
     assert not is_current(tmp_path / "s", train=1, val=1, size=16, seed=0)
+
+
+@pytest.mark.parametrize("setting", ["data.init_args.max_depth", "model.net.igd.max_depth"])
+@pytest.mark.parametrize("value", ["0", "-50", "1"])
+def test_a_depth_limit_of_a_metre_or_less_is_refused_naming_its_setting(setting, value, tmp_path, capsys,
+                                                                          monkeypatch):
+    """0 m used to pass the data module, then every training step was non-finite and skipped, and fit exited 0."""
+    monkeypatch.chdir(tmp_path)
+    code, err = run_main(["fit", "--config", str(QUICKSTART), f"--{setting}", value, "--data.init_args.root",
+                          str(tmp_path / "never_rendered"), "--trainer.logger", "false"], capsys)
+    assert code == 1 and len(err.splitlines()) <= 3, err
+    assert f"error: {setting}: {float(value)!r}, but a depth limit must be a number of metres above 1" in err, err
+    assert f"Fix: --{setting} 1000, or the limit the data set was written with" in err, err
+    assert list(tmp_path.iterdir()) == []  # nothing rendered, no run folder
+
+
+def test_the_depth_limit_is_checked_where_it_is_set(tmp_path):
+    with pytest.raises(ValueError, match=r"model.net.igd.max_depth: 0.5, but"):
+        IGDSpec(max_depth=0.5)
+    with pytest.raises(ValueError, match=r"data.init_args.max_depth: inf, but"):
+        UAPDDataModule(root=str(tmp_path), max_depth=float("inf"))
+    assert IGDSpec(max_depth=LIMIT).max_depth == UAPDDataModule(root=str(tmp_path), max_depth=LIMIT).max_depth == LIMIT
+    with pytest.raises(SystemExit) as refused:
+        main(["synth", "--out", str(tmp_path / "synth"), "--max_depth", "inf"])
+    assert refused.value.code == 2 and not (tmp_path / "synth").exists()
