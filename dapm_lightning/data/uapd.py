@@ -18,6 +18,7 @@ from dapm_lightning.data.pngcheck import read_png_info, scan_files
 from dapm_lightning.data.sample import Sample, SampleKey, Transform, make_sample, seed_augmentation, split_key
 from dapm_lightning.geometry.constants import MAX_DEPTH_M, POSE_KEYS
 from dapm_lightning.geometry.depth_codec import grey_to_depth
+from dapm_lightning.geometry.pose import impossible_pose_value
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp")
 """Image files the project reads (data sets and prediction inputs)."""
@@ -26,6 +27,8 @@ DATA_SUFFIXES = IMAGE_SUFFIXES + (".exr", ".npy", ".npz", ".pfm", ".hdr")
 _IMAGE_SIGNATURES = (b"\x89PNG", b"\xff\xd8\xff")  # PNG, JPEG: an image whatever its name
 KEY_ALIASES = {"z": "height", "height": "height", "pitch": "pitch", "roll": "roll", "fov": "fov"}
 """File-name keys that carry the pose, mapped to the pose component they name."""
+TOKEN_OF = {"height": "z", "pitch": "pitch", "roll": "roll", "fov": "fov"}
+"""The file-name key of each pose component, as UAPD writes it (``z_57.20``)."""
 _NUMBER = re.compile(r"^[+-]?(\d+(\.\d*)?|\.\d+)$")
 _KEY = re.compile(r"^[A-Za-z]+$")
 _FLOAT32_MAX = float(np.finfo(np.float32).max)
@@ -47,8 +50,10 @@ def parse_uapd_filename(name: str | PurePath) -> dict[str, Any]:
 
     Raises:
         ValueError: naming the file, for a missing pose key, a pose key without a number, a number that is not
-            finite (a pose value beyond float32's range included: it would train on an infinite pose), or a key
-            given twice with different values.
+            finite (a pose value beyond float32's range included: it would train on an infinite pose), a key
+            given twice with different values, or a pose no camera can have (height <= 0 m, |pitch| or |roll| above
+            180 degrees, FoV outside (0, 180) degrees: :func:`~dapm_lightning.geometry.pose.impossible_pose_value`).
+            Values outside the UAPD ranges but possible are accepted (the doctor counts them).
     """
     path = PurePath(name)
     stem = path.stem if path.suffix.lower() in IMAGE_SUFFIXES else path.name
@@ -80,6 +85,11 @@ def parse_uapd_filename(name: str | PurePath) -> dict[str, Any]:
     missing = [key for key in POSE_KEYS if key not in parsed]
     if missing:
         raise ValueError(f"{name}: missing pose key(s) {missing} (expected tokens z_, pitch_, roll_, fov_)")
+    impossible = [f"{TOKEN_OF[key]}_{parsed[key]:g}: {key} {why}" for key in POSE_KEYS
+                  if (why := impossible_pose_value(key, parsed[key])) is not None]
+    if impossible:
+        raise ValueError(f"{name}: a pose no camera can have ({'; '.join(impossible)}); the file name is wrong (a "
+                         "sign, a unit or a column swapped where it was written)")
     parsed["tokens"] = loose
     return parsed
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 
 import torch
@@ -11,6 +12,23 @@ from dapm_lightning.geometry.constants import POSE_KEYS, POSE_RANGES
 from dapm_lightning.geometry.precision import float32
 
 PoseRanges = Mapping[str, tuple[float, float]]
+
+
+def impossible_pose_value(key: str, value: float) -> str | None:
+    """Why ``value`` cannot be pose component ``key`` of any camera (``None`` when it can): ``"must be > 0 m ..."``.
+
+    Height at or below the ground (<= 0 m), |pitch| or |roll| above 180 degrees, a field of view outside (0, 180)
+    degrees, or a value that is not finite. Values outside the UAPD ranges (``POSE_RANGES``) are possible.
+    """
+    if not math.isfinite(value):
+        return "is not finite"
+    if key == "height" and value <= 0:
+        return "must be > 0 m (metres above the ground under the camera)"
+    if key in ("pitch", "roll") and abs(value) > 180:
+        return "must be within [-180, 180] degrees"
+    if key == "fov" and not 0 < value < 180:
+        return "must be within (0, 180) degrees (horizontal field of view)"
+    return None
 
 
 def _check_pose(pose: Tensor) -> None:

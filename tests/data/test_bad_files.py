@@ -177,6 +177,28 @@ def test_a_height_beyond_float32_in_a_name_is_refused_at_the_scan(uapd_copy):
     assert len(dataset) == 3 and np.isfinite(dataset.poses).all()
 
 
+def test_an_impossible_pose_in_a_name_is_refused_at_the_scan_or_skipped(uapd_copy):
+    names = sorted((uapd_copy / "train" / "rgb").iterdir())[:2]
+    renamed = []
+    for path, (token, wrong) in zip(names, (("fov_", "fov_0"), ("z_", "z_-50.43"))):
+        value = re.search(token + r"[-\d.]+(?=_|\.png$)", path.name)
+        assert value is not None
+        new = path.name.replace(value.group(0), wrong)
+        for folder in ("rgb", "depth"):
+            (uapd_copy / "train" / folder / path.name).rename(uapd_copy / "train" / folder / new)
+        renamed.append(uapd_copy / "train" / "rgb" / new)
+    with pytest.raises(DatasetError) as info:
+        UAPDDataset(uapd_copy, "train")
+    assert len(info.value.problems) == 2
+    for problem in info.value.problems:
+        assert any(problem.startswith(f"{path}: {path.name}: a pose no camera can have") for path in renamed), problem
+    assert any("fov_0: fov must be within (0, 180) degrees" in p for p in info.value.problems)
+    assert any("z_-50.43: height must be > 0 m" in p for p in info.value.problems)
+    with pytest.warns(UserWarning, match="skipping 2 bad file"):
+        dataset = UAPDDataset(uapd_copy, "train", on_bad_file="skip")
+    assert len(dataset) == 2 and (dataset.poses[:, 0] > 0).all() and (dataset.poses[:, 3] > 0).all()
+
+
 def test_a_value_at_float32s_limit_is_kept_and_a_number_beyond_float64_is_refused():
     limit = f"{np.finfo(np.float32).max:.0f}"
     assert parse_uapd_filename(f"a_z_{limit}_pitch_-50_roll_0_fov_80.png")["height"] == float(limit)

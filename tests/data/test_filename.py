@@ -41,6 +41,29 @@ def test_errors_name_the_file(name, message):
     assert name in str(info.value)
 
 
+@pytest.mark.parametrize("name, shown", [
+    ("a_z_67.33_pitch_-70_roll_-27_fov_0.png", "fov_0: fov must be within (0, 180) degrees"),
+    ("a_z_67.33_pitch_-70_roll_-27_fov_180.png", "fov_180: fov must be within (0, 180) degrees"),
+    ("a_z_67.33_pitch_-70_roll_-27_fov_-60.png", "fov_-60: fov must be within (0, 180) degrees"),
+    ("a_z_-50.43_pitch_-53_roll_12.57_fov_109.54.png", "z_-50.43: height must be > 0 m"),
+    ("a_z_0_pitch_-53_roll_12.57_fov_109.54.png", "z_0: height must be > 0 m"),
+    ("a_z_30_pitch_-270_roll_0_fov_60.png", "pitch_-270: pitch must be within [-180, 180] degrees"),
+    ("a_z_30_pitch_-60_roll_181_fov_60.png", "roll_181: roll must be within [-180, 180] degrees"),
+])
+def test_a_pose_no_camera_can_have_is_refused_naming_the_file(name, shown):
+    """Physically impossible values used to load and train (the IGD clamps a negative height to 0)."""
+    with pytest.raises(ValueError) as info:
+        parse_uapd_filename(name)
+    assert str(info.value).startswith(f"{name}: a pose no camera can have ({shown}"), info.value
+    assert "the file name is wrong" in str(info.value)
+
+
+def test_the_limits_of_a_possible_pose_are_kept():
+    p = parse_uapd_filename("z_0.01_pitch_-180_roll_180_fov_179.9.png")
+    assert (p["height"], p["pitch"], p["roll"], p["fov"]) == (0.01, -180.0, 180.0, 179.9)
+    assert parse_uapd_filename("z_5_pitch_180_roll_-180_fov_0.5.png")["fov"] == 0.5
+
+
 @pytest.mark.parametrize("tokens, pose, extra", [
     (["Town03", "000123"], (57.2, -63.4, 12.75, 88.1), None),
     (["synth", "000007", "forest"], (10.004, -99.996, -30.0, 120.0), {"lensk": -0.1234, "lenskcube": 0.05}),

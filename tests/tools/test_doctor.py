@@ -229,6 +229,30 @@ def test_every_unreadable_file_is_listed_rgb_and_depth_alike(synthetic, tmp_path
     assert "3 problem(s)" in out and "no problems found" not in out
 
 
+def test_an_impossible_pose_is_a_problem_not_only_outside_the_range(synthetic, tmp_path, capsys):
+    """fov_0, fov_180 and a negative height were counted "outside" the UAPD range, then "no problems found"."""
+    root = shutil.copytree(synthetic, tmp_path / "copy")
+    names = sorted(p.name for p in (root / "train" / "rgb").iterdir())[:3]
+    wrong = [re.sub(r"fov_\d+(\.\d+)?", "fov_0", names[0]), re.sub(r"fov_\d+(\.\d+)?", "fov_180", names[1]),
+             re.sub(r"_z_\d+(\.\d+)?", "_z_-50.43", names[2])]
+    for name, new in zip(names, wrong):
+        assert new != name
+        rename(root, "train", name, new)
+    assert doctor_main([str(root), "--json", str(tmp_path / "r.json")]) == 1
+    out = capsys.readouterr().out
+    train = json.loads((tmp_path / "r.json").read_text())[0]
+    assert train["count"] == 13 and len(train["errors"]) == 3
+    fov = "fov must be within (0, 180) degrees (horizontal field of view)"
+    height = "height must be > 0 m (metres above the ground under the camera)"
+    why = [f"fov_0: {fov}", f"fov_180: {fov}", f"z_-50.43: {height}"]
+    expected = [f"{root / 'train' / 'rgb' / new}: {new}: a pose no camera can have ({reason}); the file name is wrong "
+                "(a sign, a unit or a column swapped where it was written)" for new, reason in zip(wrong, why)]
+    assert sorted(train["errors"]) == sorted(expected)
+    for error in expected:
+        assert f"ERROR   {error}" in out
+    assert "3 problem(s)" in out and "no problems found" not in out
+
+
 def test_splits_as_users_type_them(synthetic, capsys):
     """`--splits val`, `--splits train val`, `--splits train,val`, `--splits=val` all work, as `[val]` does."""
     for argv, checked in ((["--splits", "val"], ["val"]), (["--splits", "train", "val"], ["train", "val"]),

@@ -12,6 +12,7 @@ import numpy as np
 import numpy.typing as npt
 
 from dapm_lightning.geometry.constants import POSE_FIELDS, POSE_KEYS
+from dapm_lightning.geometry.pose import impossible_pose_value
 
 StrPath = str | PathLike[str]
 Provenance = tuple[str, str, str, str]
@@ -39,16 +40,11 @@ class TelemetryWarning(UserWarning):
 
 
 def limit_error(key: str, value: float) -> str | None:
-    """Why ``value`` is impossible for pose component ``key`` (``None`` when it is possible)."""
-    if not math.isfinite(value):
-        return "is not finite"
-    if key == "height" and value <= 0:
-        return "must be > 0 m (metres above the ground under the camera)"
-    if key in ("pitch", "roll") and abs(value) > 180:
-        return "must be within [-180, 180] degrees"
-    if key == "fov" and not 0 < value < 180:
-        return "must be within (0, 180) degrees (horizontal field of view)"
-    return None
+    """Why ``value`` is impossible for pose component ``key`` (``None`` when it is possible).
+
+    :func:`~dapm_lightning.geometry.pose.impossible_pose_value`: the limits UAPD file names are held to too.
+    """
+    return impossible_pose_value(key, value)
 
 
 def is_equirectangular(width: float, height: float) -> bool:
