@@ -131,7 +131,47 @@ def unreadable_yaml(paths: Sequence[str]) -> str | None:
             return (f"{path}: not valid YAML{where}: {error.problem or error}\n"
                     f"  fix: correct the file there (indentation with spaces, a ':' after each key, brackets closed)")
         except (OSError, UnicodeDecodeError, yaml.YAMLError):
-            continue  # not there or not text: the parser's own message says so
+            continue  # not there (the parser's own message says so) or not text (config_file_problem says so)
+    return None
+
+
+CHECKPOINT_SUFFIXES = (".ckpt", ".pt", ".pth", ".bin", ".safetensors")
+"""Suffixes of model files: given as ``--config``, the fix names ``--ckpt_path``."""
+
+
+def config_file_problem(path: str) -> str | None:
+    """``FILE: what is wrong`` and the fix, for a ``--config`` file that cannot hold settings; None otherwise.
+
+    Not UTF-8 text (a checkpoint, an image), empty (or comments only), or YAML that is not a mapping of settings
+    (a list, a bare word). None for a file that is fine, missing or unreadable (the parser names those), or not
+    valid YAML (:func:`unreadable_yaml` names the line).
+    """
+    file = Path(path)
+    try:
+        if not file.is_file():
+            return None
+        data = file.read_bytes()
+    except OSError:
+        return None
+    fix = "  fix: give --config a YAML file of settings (trainer:, model:, data: ...), e.g. a run's config.yaml"
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as error:
+        model = file.suffix.lower() in CHECKPOINT_SUFFIXES or data[:2] == b"PK"  # torch.save writes a zip
+        return (f"{path}: not a YAML text file (byte {error.start} is not UTF-8 text: "
+                f"{'a checkpoint or other binary file' if model else 'a binary file'})\n"
+                + (f"  fix: a checkpoint goes to --ckpt_path {path} (or --model.init_weights {path} to fine-tune "
+                   "from its weights); --config takes a YAML file of settings" if model else fix))
+    try:
+        loaded = yaml.safe_load(text)
+    except yaml.YAMLError:
+        return None
+    if loaded is None:
+        what = "only comments" if text.strip() else "the file is empty"
+        return f"{path}: no settings in it ({what})\n{fix}, or leave out --config {path}"
+    if not isinstance(loaded, dict):
+        kind = "a list" if isinstance(loaded, list) else f"a single value ({str(loaded)[:40]!r})"
+        return f"{path}: not a mapping of settings (the file holds {kind})\n{fix}"
     return None
 
 
@@ -291,6 +331,9 @@ class DAPMCLI(LightningCLI):
             subcommands = getattr(parser, "_subcommands_action", None)
             for each in [parser, *getattr(subcommands, "_name_parser_map", {}).values()]:  # a subcommand reports
                 each.config_files = configs
+            for config in configs:  # a binary or empty file: named before the parser's decoding error or bare report
+                if (problem := config_file_problem(config)) is not None:
+                    parser.error(problem)
             folder = stacked_run_folder(configs, words, parser.requested_subcommand)
             if folder is not None:
                 args = [*words, "--trainer.default_root_dir", folder]

@@ -1,6 +1,7 @@
 """The command line's user errors and defaults: foreign checkpoints, unknown options, unknown backbones,
 no logger, GPU configs on a CPU machine, logs under default_root_dir."""
 
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -175,6 +176,33 @@ def test_a_config_that_is_not_yaml_is_named_with_its_line(subcommand, capsys, tm
     assert code == 2 and len(err.splitlines()) <= 4, err
     assert f"{broken}: not valid YAML (line 3, column 11)" in err and "fix: correct the file" in err, err
     assert "<unicode string>" not in err and f"dapm-lightning {subcommand} --help" in err
+
+
+@pytest.mark.parametrize(("name", "content", "said", "fix"), [
+    ("good.ckpt", None, "not a YAML text file (byte N is not UTF-8 text: a checkpoint or other binary file)",
+     "fix: a checkpoint goes to --ckpt_path"),
+    ("photo.png", b"\x89PNG\r\n\x1a\n\x00\x00", "not a YAML text file (byte N is not UTF-8 text: a binary file)",
+     "fix: give --config a YAML file of settings"),
+    ("empty.yaml", b"", "no settings in it (the file is empty)", "fix: give --config a YAML file of settings"),
+    ("notes.yaml", b"# to do\n", "no settings in it (only comments)", "or leave out --config"),
+    ("list.yaml", b"- fit\n- test\n", "not a mapping of settings (the file holds a list)",
+     "fix: give --config a YAML file of settings"),
+])
+@pytest.mark.parametrize("subcommand", ["fit", "test"])
+def test_a_config_that_holds_no_settings_is_named_with_the_fix(subcommand, name, content, said, fix, checkpoint,
+                                                              capsys, tmp_path, monkeypatch):
+    """A checkpoint given as --config was "error: 'utf-8' codec can't decode byte 0x80...", exit 1; an empty file
+    "error: Unexpected config:"."""
+    monkeypatch.chdir(tmp_path)
+    config = tmp_path / name
+    config.write_bytes(checkpoint.read_bytes() if content is None else content)
+    for words in ([f"--config={config}"], ["--config", str(QUICKSTART), "--config", str(config)]):
+        code, err = run_main([subcommand, *words], capsys)
+        assert code == 2 and len(err.splitlines()) <= 3, err
+        first = r"byte \d+".join(map(re.escape, f"error: {config}: {said}\n  fix: ".split("byte N")))  # byte N: any
+        assert re.match(first, err) and fix in err.splitlines()[1], err
+        assert "codec" not in err and "Unexpected config" not in err and f"dapm-lightning {subcommand} --help" in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == [name]  # nothing rendered, no run folder
 
 
 @pytest.mark.parametrize("option", [["--trainer.max_step", "3"], ["--model.net.backbon", "resnet18"]])
