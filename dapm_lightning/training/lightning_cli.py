@@ -48,6 +48,12 @@ class WeightsOnlyCheckpointError(ValueError):
     explained = True
 
 
+class RunFolderInUseError(ValueError):
+    """``fit`` without a logger or ``--ckpt_path`` into the folder of an earlier run: it would write over that run."""
+
+    explained = True
+
+
 class NoWeightsError(ValueError):
     """``validate``, ``test`` or ``predict`` with no trained weights to run: no checkpoint found, none given."""
 
@@ -448,9 +454,38 @@ class DAPMCLI(LightningCLI):
         """
         model = self.model
         resumes = self.config["fit"].get("ckpt_path")
+        if not resumes:
+            self._refuse_writing_over_a_run()
         if isinstance(model, DAPMModule) and model.init_weights is not None and not resumes:
             model.load_initial_weights()
         self._read_data_early("fit")
+
+    def _refuse_writing_over_a_run(self) -> None:
+        """A new ``fit`` without a logger into the folder of an earlier run that left checkpoints: refused.
+
+        With a logger each run writes into a new version folder (``tensorboard/version_N/checkpoints``); without
+        one (``--trainer.logger false``), every run writes ``DEFAULT_ROOT_DIR/checkpoints/last.ckpt`` (or a callback's
+        ``dirpath``) and ``DEFAULT_ROOT_DIR/config.yaml``, so a second run would replace the first one's. A run that
+        resumes (``--ckpt_path``) continues the one there and is not refused. Checked by the process of global rank 0.
+        """
+        trainer = self.trainer
+        if trainer.loggers or trainer.global_rank != 0:
+            return
+        root = Path(trainer.default_root_dir)
+        dirpaths = [getattr(callback, "dirpath", None) for callback in trainer.checkpoint_callbacks]
+        folders = dict.fromkeys(Path(dirpath) if dirpath else root / "checkpoints" for dirpath in dirpaths
+                                if not (dirpath and is_remote(str(dirpath))))
+        found = sorted(path for folder in folders if folder.is_dir() for path in folder.glob("*.ckpt"))
+        if not found:
+            return
+        config = root / self.save_config_kwargs.get("config_filename", "config.yaml")
+        shown = [*found[:3], *([config] if self.save_config_callback and config.is_file() else [])]
+        more = f" and {len(found) - 3} more checkpoint(s)" if len(found) > 3 else ""
+        raise RunFolderInUseError(
+            f"fit: {root} holds an earlier run without a logger ({', '.join(map(str, shown))}{more}); this run would "
+            "write over it, as it writes into the same folders.\nFix: resume that run with --ckpt_path last, or start "
+            "this one in a folder of its own: --trainer.default_root_dir NEW_DIR (or with a logger, which gives each "
+            "run a new version folder).")
 
     def before_validate(self) -> None:
         self._read_initial_weights("validate")

@@ -273,6 +273,30 @@ def test_quickstart_logs_and_checkpoints_follow_default_root_dir(tiny_uapd, tmp_
     assert Path(explicit.trainer.loggers[-1].save_dir) == tmp_path / "elsewhere"  # an explicit save_dir is kept
 
 
+def test_a_second_fit_without_a_logger_does_not_write_over_the_first(tiny_uapd, tmp_path, capsys, monkeypatch):
+    """Without a logger every run writes ROOT/checkpoints/last.ckpt and ROOT/config.yaml: a second run into the same
+    folder used to replace the first one's (only Lightning's "exists and is not empty" notice)."""
+    monkeypatch.chdir(tmp_path)
+    root = tmp_path / "run"
+    fit = ["fit", "--config", str(QUICKSTART), *UAPD, "--data.init_args.root", str(tiny_uapd), "--trainer.logger",
+           "false", "--trainer.limit_val_batches", "0", "--trainer.max_steps", "1", "--trainer.default_root_dir",
+           str(root), "--model.net.backbone", "mobilenetv3_small_050", "--model.net.decoder_channels", "16",
+           "--model.net.head_channels", "8", "--model.net.pose_hidden", "32"]
+    run_lightning_cli(fit)
+    kept = {path: path.read_bytes() for path in (root / "checkpoints" / "last.ckpt", root / "config.yaml")}
+    code, err = run_main([*fit, "--trainer.max_steps", "2"], capsys)
+    assert code == 1 and len(err.splitlines()) <= 3, err
+    assert (f"error: fit: {root} holds an earlier run without a logger ({root / 'checkpoints' / 'last.ckpt'}, "
+            f"{root / 'config.yaml'}); this run would write over it") in err, err
+    assert "Fix: resume that run with --ckpt_path last, or start this one in a folder of its own: " \
+           "--trainer.default_root_dir NEW_DIR" in err, err
+    assert {path: path.read_bytes() for path in kept} == kept  # nothing written over
+    resumed = run_lightning_cli([*fit, "--trainer.max_steps", "2", "--ckpt_path", "last"])  # the fix: resumes
+    assert resumed.trainer.global_step == 2
+    other = run_lightning_cli([*fit, "--trainer.default_root_dir", str(tmp_path / "other")])  # the other fix
+    assert other.trainer.global_step == 1 and (tmp_path / "other" / "checkpoints" / "last.ckpt").is_file()
+
+
 @pytest.mark.parametrize("argv,shown", [(["--help"], "subcommands:"), (["predict", "--help"], "--telemetry FILE")])
 def test_help_imports_no_torch(argv, shown):
     """`dapm-lightning --help` and `predict --help` answer at once: nothing heavy is imported for them (PyTorch
