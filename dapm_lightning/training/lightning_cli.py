@@ -380,6 +380,8 @@ class DAPMCLI(LightningCLI):
         if subcommand == "fit" and getattr(rank_zero_only, "rank", 0) == 0:
             remove_unfinished_saves(self._run_folders(config, current_directory=False)[0])
         ckpt_path = given = config.get("ckpt_path")
+        self.ckpt_path_given = given
+        """``--ckpt_path`` as the user gave it (``last`` stays ``last`` when it finds nothing or only damaged files)."""
         checkpoint: Any = None
         fetched_from: str | None = None
         if ckpt_path == "last":
@@ -454,7 +456,7 @@ class DAPMCLI(LightningCLI):
         """
         model = self.model
         resumes = self.config["fit"].get("ckpt_path")
-        if not resumes:
+        if not getattr(self, "ckpt_path_given", resumes):  # a run asked to resume continues the one there
             self._refuse_writing_over_a_run()
         if isinstance(model, DAPMModule) and model.init_weights is not None and not resumes:
             model.load_initial_weights()
@@ -466,7 +468,8 @@ class DAPMCLI(LightningCLI):
         With a logger each run writes into a new version folder (``tensorboard/version_N/checkpoints``); without
         one (``--trainer.logger false``), every run writes ``DEFAULT_ROOT_DIR/checkpoints/last.ckpt`` (or a callback's
         ``dirpath``) and ``DEFAULT_ROOT_DIR/config.yaml``, so a second run would replace the first one's. A run that
-        resumes (``--ckpt_path``) continues the one there and is not refused. Checked by the process of global rank 0.
+        resumes (``--ckpt_path``; also ``last`` finding only damaged checkpoints, which then starts afresh in the same
+        folder, as documented) continues the one there and is not refused. Checked by the process of global rank 0.
         """
         trainer = self.trainer
         if trainer.loggers or trainer.global_rank != 0:

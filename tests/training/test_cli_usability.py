@@ -295,6 +295,12 @@ def test_a_second_fit_without_a_logger_does_not_write_over_the_first(tiny_uapd, 
     assert resumed.trainer.global_step == 2
     other = run_lightning_cli([*fit, "--trainer.default_root_dir", str(tmp_path / "other")])  # the other fix
     assert other.trainer.global_step == 1 and (tmp_path / "other" / "checkpoints" / "last.ckpt").is_file()
+    # a requeued job (always --ckpt_path last) whose every checkpoint is damaged starts afresh there, not refused
+    for path in (root / "checkpoints").glob("*.ckpt"):
+        path.write_bytes(path.read_bytes()[:300])
+    with pytest.warns(UserWarning, match="starting from scratch"):
+        again = run_lightning_cli([*fit, "--ckpt_path", "last"])
+    assert again.trainer.global_step == 1
 
 
 @pytest.mark.parametrize("argv,shown", [(["--help"], "subcommands:"), (["predict", "--help"], "--telemetry FILE")])
