@@ -248,7 +248,7 @@ class PredictionFiles:
         self.kinds: set[str] = set()
         """The per-image kinds written for at least one image."""
         self.finished = False
-        """Whether the run's files were written (:meth:`finish`, or :meth:`keep_written` after a failure)."""
+        """Whether the run's files were attempted, once only (:meth:`finish`, or :meth:`keep_written` after a failure)."""
         self.kept: str | None = None
         """After a run that stopped early: the summary of what it kept (:meth:`keep_written`)."""
 
@@ -287,9 +287,11 @@ class PredictionFiles:
     def finish(self) -> str:
         """Write the poses table (merged with the folder's) and the contact sheet; returns the summary line.
 
-        The summary names only the files written: the per-image kinds the model gave, the tables and sheet.
+        The summary names only the files written: the per-image kinds the model gave, the tables and sheet. Tried
+        once: when it fails, :meth:`close` does not write them again (every image was written, nothing stopped early).
         """
         extra: list[str] = []
+        self.finished = True
         try:
             for _, step in self._run_files():
                 extra += step()
@@ -298,7 +300,6 @@ class PredictionFiles:
             if raised is error:
                 raise
             raise raised from error
-        self.finished = True
         return summary_line(self.images, [k for k in self.outputs if k in self.kinds], self.output_dir, extra)
 
     def _run_files(self) -> list[tuple[str, Callable[[], list[str]]]]:

@@ -455,3 +455,29 @@ def test_the_summary_names_only_what_was_written(tmp_path, capsys):
     with PredictionFiles(tmp_path / "none") as files:
         assert files.finish() == "predicted 0 images: nothing written"
     assert not (tmp_path / "none").exists()
+
+
+def test_a_failed_finish_writes_the_tables_once_and_keeps_no_early_stop_summary(tmp_path, monkeypatch):
+    """Every image written, then the contact sheet refused: the run's files are not attempted a second time when
+    the failure closes the files, and nothing claims the run stopped early."""
+    from dapm_lightning.inference import writers
+
+    torch.manual_seed(0)
+    pose_only = DAPMPredictor(DAPMModule(net=DAPMConfig(**TINY, use_depth=False, use_igd_feature=False)),
+                              image_width=32)
+    written = []
+
+    def counted_write_poses(folder, rows):
+        written.append(len(rows))
+        return write_poses(folder, rows)
+
+    def refused_image(path, image):
+        raise WriteError(path, "no space left on device", "free some space")
+
+    monkeypatch.setattr(writers, "write_poses", counted_write_poses)
+    monkeypatch.setattr(writers, "write_image", refused_image)
+    with PredictionFiles(tmp_path / "out") as files:
+        files.add(pose_only(np.zeros((36, 48, 3), np.uint8)))
+        with pytest.raises(WriteError, match="contact_sheet.png"):
+            files.finish()
+    assert written == [1] and files.kept is None
