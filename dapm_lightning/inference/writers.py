@@ -248,7 +248,7 @@ class PredictionFiles:
         self.kinds: set[str] = set()
         """The per-image kinds written for at least one image."""
         self.finished = False
-        """Whether the run's files were attempted, once only (:meth:`finish`, or :meth:`keep_written` after a failure)."""
+        """Whether the run's files were attempted, once only (:meth:`finish`; :meth:`keep_written` after a failure)."""
         self.kept: str | None = None
         """After a run that stopped early: the summary of what it kept (:meth:`keep_written`)."""
 
