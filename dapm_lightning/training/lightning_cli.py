@@ -49,7 +49,10 @@ class WeightsOnlyCheckpointError(ValueError):
 
 
 class RunFolderInUseError(ValueError):
-    """``fit`` without a logger or ``--ckpt_path`` into the folder of an earlier run: it would write over that run."""
+    """A new ``fit`` (no ``--ckpt_path``) whose checkpoint folders hold an earlier run's: it would write over them.
+
+    Without a logger: ``trainer.default_root_dir``; with one: a checkpoint callback's fixed ``dirpath``.
+    """
 
     explained = True
 
@@ -286,15 +289,24 @@ def loggers_follow_root_dir(config: Any) -> None:
 
 
 class SaveConfigOfRun(SaveConfigCallback):
-    """Saves the resolved ``config.yaml`` into the run's log folder for fit, validate and test.
+    """Saves the resolved config into the run's log folder, as ``config.yaml`` (fit) or ``config_SUBCOMMAND.yaml``.
 
-    Not for predict: its outputs go to the prediction writer's folder, and without a logger Lightning's
-    log folder would be the current directory.
+    ``config_validate.yaml`` and ``config_test.yaml`` for validate and test: so an evaluation never replaces the
+    ``config.yaml`` of a fit that logs into the same folder (without a logger, ``trainer.default_root_dir``), which
+    the fit resumes from. Not for predict: its outputs go to the prediction writer's folder, and without a logger
+    Lightning's log folder would be the current directory.
     """
 
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.fit_filename = self.config_filename
+
     def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
-        if stage != "predict":
-            super().setup(trainer, pl_module, stage)
+        if stage == "predict":
+            return
+        name, subcommand = Path(self.fit_filename), getattr(stage, "value", stage)  # a TrainerFn: its value
+        self.config_filename = name.name if subcommand == "fit" else f"{name.stem}_{subcommand}{name.suffix}"
+        super().setup(trainer, pl_module, stage)
 
 
 def needs_logger(callback: Any) -> bool:
@@ -463,27 +475,35 @@ class DAPMCLI(LightningCLI):
         self._read_data_early("fit")
 
     def _refuse_writing_over_a_run(self) -> None:
-        """A new ``fit`` without a logger into the folder of an earlier run that left checkpoints: refused.
+        """A new ``fit`` whose checkpoint folders hold an earlier run's checkpoints: refused.
 
-        With a logger each run writes into a new version folder (``tensorboard/version_N/checkpoints``); without
-        one (``--trainer.logger false``), every run writes ``DEFAULT_ROOT_DIR/checkpoints/last.ckpt`` (or a callback's
-        ``dirpath``) and ``DEFAULT_ROOT_DIR/config.yaml``, so a second run would replace the first one's. A run that
-        resumes (``--ckpt_path``; also ``last`` finding only damaged checkpoints, which then starts afresh in the same
-        folder, as documented) continues the one there and is not refused. Checked by the process of global rank 0.
+        Without a logger (``--trainer.logger false``), every run writes ``DEFAULT_ROOT_DIR/checkpoints/last.ckpt``
+        and ``DEFAULT_ROOT_DIR/config.yaml``; with a logger each run writes into a new version folder
+        (``tensorboard/version_N/checkpoints``), but a checkpoint callback with a fixed ``dirpath`` writes into that
+        folder whatever the version. So a second run would replace the first one's checkpoints. A run that resumes
+        (``--ckpt_path``; also ``last`` finding only damaged checkpoints, which then starts afresh in the same folder,
+        as documented) continues the one there and is not refused. A remote ``dirpath`` is not looked at. Checked by
+        every process before the processes of a DDP run meet, so all refuse alike and none waits for another.
         """
         trainer = self.trainer
-        if trainer.loggers or trainer.global_rank != 0:
-            return
         root = Path(trainer.default_root_dir)
         dirpaths = [getattr(callback, "dirpath", None) for callback in trainer.checkpoint_callbacks]
-        folders = dict.fromkeys(Path(dirpath) if dirpath else root / "checkpoints" for dirpath in dirpaths
-                                if not (dirpath and is_remote(str(dirpath))))
-        found = sorted(path for folder in folders if folder.is_dir() for path in folder.glob("*.ckpt"))
+        folders = [Path(dirpath) if dirpath else root / "checkpoints" for dirpath in dirpaths
+                   if not (dirpath and is_remote(str(dirpath))) and (dirpath or not trainer.loggers)]
+        held = {folder: sorted(folder.glob("*.ckpt")) for folder in dict.fromkeys(folders) if folder.is_dir()}
+        found = sorted(path for paths in held.values() for path in paths)
         if not found:
             return
+        more = f" and {len(found) - 3} more checkpoint(s)" if len(found) > 3 else ""
+        if trainer.loggers:
+            where = ", ".join(str(folder) for folder, paths in held.items() if paths)
+            raise RunFolderInUseError(
+                f"fit: {where} holds the checkpoints of an earlier run ({', '.join(map(str, found[:3]))}{more}); this "
+                "run would write over them: a checkpoint callback with a fixed dirpath writes there whatever the log "
+                "version.\nFix: resume that run with --ckpt_path last, or give this run a folder of its own: a new "
+                "dirpath for the checkpoint callback (or none: each run then checkpoints into its log version folder).")
         config = root / self.save_config_kwargs.get("config_filename", "config.yaml")
         shown = [*found[:3], *([config] if self.save_config_callback and config.is_file() else [])]
-        more = f" and {len(found) - 3} more checkpoint(s)" if len(found) > 3 else ""
         raise RunFolderInUseError(
             f"fit: {root} holds an earlier run without a logger ({', '.join(map(str, shown))}{more}); this run would "
             "write over it, as it writes into the same folders.\nFix: resume that run with --ckpt_path last, or start "

@@ -9,6 +9,7 @@ from pathlib import Path
 import lightning as L
 import pytest
 import torch
+import yaml
 from lightning.pytorch.callbacks import LearningRateMonitor
 
 from dapm_lightning.training import lightning_cli
@@ -273,15 +274,20 @@ def test_quickstart_logs_and_checkpoints_follow_default_root_dir(tiny_uapd, tmp_
     assert Path(explicit.trainer.loggers[-1].save_dir) == tmp_path / "elsewhere"  # an explicit save_dir is kept
 
 
+def small_fit(tiny_uapd, root, *extra):
+    """``fit`` of a small network for one step into ``root``, without validation."""
+    return ["fit", "--config", str(QUICKSTART), *UAPD, "--data.init_args.root", str(tiny_uapd),
+            "--trainer.limit_val_batches", "0", "--trainer.max_steps", "1", "--trainer.default_root_dir", str(root),
+            "--model.net.backbone", "mobilenetv3_small_050", "--model.net.decoder_channels", "16",
+            "--model.net.head_channels", "8", "--model.net.pose_hidden", "32", *extra]
+
+
 def test_a_second_fit_without_a_logger_does_not_write_over_the_first(tiny_uapd, tmp_path, capsys, monkeypatch):
     """Without a logger every run writes ROOT/checkpoints/last.ckpt and ROOT/config.yaml: a second run into the same
     folder used to replace the first one's (only Lightning's "exists and is not empty" notice)."""
     monkeypatch.chdir(tmp_path)
     root = tmp_path / "run"
-    fit = ["fit", "--config", str(QUICKSTART), *UAPD, "--data.init_args.root", str(tiny_uapd), "--trainer.logger",
-           "false", "--trainer.limit_val_batches", "0", "--trainer.max_steps", "1", "--trainer.default_root_dir",
-           str(root), "--model.net.backbone", "mobilenetv3_small_050", "--model.net.decoder_channels", "16",
-           "--model.net.head_channels", "8", "--model.net.pose_hidden", "32"]
+    fit = small_fit(tiny_uapd, root, "--trainer.logger", "false")
     run_lightning_cli(fit)
     kept = {path: path.read_bytes() for path in (root / "checkpoints" / "last.ckpt", root / "config.yaml")}
     code, err = run_main([*fit, "--trainer.max_steps", "2"], capsys)
@@ -301,6 +307,62 @@ def test_a_second_fit_without_a_logger_does_not_write_over_the_first(tiny_uapd, 
     with pytest.warns(UserWarning, match="starting from scratch"):
         again = run_lightning_cli([*fit, "--ckpt_path", "last"])
     assert again.trainer.global_step == 1
+
+
+def test_a_second_fit_into_a_fixed_checkpoint_folder_is_refused_on_every_rank(tiny_uapd, tmp_path, capsys,
+                                                                              monkeypatch):
+    """With a logger each fit logs into a new version folder, but a checkpoint callback's fixed dirpath is the same
+    folder for every run: a second new fit used to replace the first one's checkpoints there (Lightning only warned).
+    The check runs in every process (here as rank 1), so that no DDP process waits for one that refused."""
+    monkeypatch.chdir(tmp_path)
+    ckpts = tmp_path / "ckpts"
+    (tmp_path / "job.yaml").write_text(yaml.safe_dump({"trainer": {"callbacks": [
+        {"class_path": "dapm_lightning.training.checkpointing.LastCheckpoint",
+         "init_args": {"dirpath": str(ckpts)}}]}}))
+    fit = small_fit(tiny_uapd, tmp_path / "run", "--config", str(tmp_path / "job.yaml"))
+    assert run_lightning_cli(fit).trainer.loggers  # the quickstart's loggers: this run logged into version_0
+    kept = {path: path.read_bytes() for path in ckpts.iterdir()}
+    assert list(kept) == [ckpts / "last.ckpt"]
+    for rank in (0, 1):
+        monkeypatch.setattr(L.Trainer, "global_rank", property(lambda trainer, rank=rank: rank))
+        code, err = run_main([*fit, "--trainer.max_steps", "2", "--trainer.default_root_dir", str(tmp_path / "b")],
+                             capsys)
+        assert code == 1 and len(err.splitlines()) <= 3, err
+        assert (f"error: fit: {ckpts} holds the checkpoints of an earlier run ({ckpts / 'last.ckpt'}); this run would "
+                "write over them") in err, err
+        assert "Fix: resume that run with --ckpt_path last, or give this run a folder of its own: a new dirpath" in err
+    monkeypatch.undo()
+    monkeypatch.chdir(tmp_path)
+    assert {path: path.read_bytes() for path in ckpts.iterdir()} == kept  # nothing written over
+    resumed = run_lightning_cli([*fit, "--trainer.max_steps", "2", "--ckpt_path", "last"])  # the fix: resumes
+    assert resumed.trainer.global_step == 2
+    (tmp_path / "job.yaml").write_text((tmp_path / "job.yaml").read_text().replace(str(ckpts), str(tmp_path / "other")))
+    other = run_lightning_cli(fit)  # the other fix: a folder of its own
+    assert other.trainer.global_step == 1 and (tmp_path / "other" / "last.ckpt").is_file()
+
+
+def test_evaluation_without_a_logger_keeps_the_config_of_the_fit(tiny_uapd, tmp_path, monkeypatch):
+    """validate and test without a logger save their config into the fit's folder as config_validate.yaml and
+    config_test.yaml: they used to replace the fit's config.yaml, which the fit resumes from. predict saves none."""
+    monkeypatch.chdir(tmp_path)
+    root = tmp_path / "run"
+    fit = small_fit(tiny_uapd, root, "--trainer.logger", "false")
+    run_lightning_cli(fit)
+    config = (root / "config.yaml").read_bytes()
+    for subcommand in ("validate", "test"):
+        run_lightning_cli([subcommand, *fit[1:], "--trainer.limit_val_batches", "1", "--ckpt_path", "last"])
+        saved = yaml.safe_load((root / f"config_{subcommand}.yaml").read_text())
+        assert saved["ckpt_path"] == str(root / "checkpoints" / "last.ckpt")
+    assert (root / "config.yaml").read_bytes() == config
+    before = sorted(root.rglob("*"))
+    run_lightning_cli(["predict", "--config", str(CONFIGS / "predict.yaml"), "--ckpt_path", "last",
+                       "--trainer.default_root_dir", str(root), "--data.init_args.num_workers", "0",
+                       "--data.init_args.source", str(tiny_uapd / "val" / "rgb"),
+                       "--trainer.callbacks.output_dir", str(tmp_path / "out")])
+    assert sorted(root.rglob("*")) == before and not list(tmp_path.glob("*.yaml"))
+    resumed = run_lightning_cli(["fit", "--config", str(root / "config.yaml"), "--trainer.max_steps", "2",
+                                 "--ckpt_path", "last"])  # the fit's own config, as a requeued job resumes
+    assert resumed.trainer.global_step == 2
 
 
 @pytest.mark.parametrize("argv,shown", [(["--help"], "subcommands:"), (["predict", "--help"], "--telemetry FILE")])
