@@ -17,16 +17,27 @@ from torchmetrics.utilities import dim_zero_cat
 from dapm_lightning.geometry.constants import POSE_KEYS
 
 
-def auc_of_recall(errors: Tensor, threshold: float) -> Tensor:
-    """Area under the recall-vs-error curve up to ``threshold``, divided by it (GeoCalib's ``compute_auc``)."""
-    errors = torch.sort(errors.double()).values
+def auc_of_recall(errors: Tensor, threshold: float, min_error: float | None = None) -> Tensor:
+    """Area under the recall-vs-error curve up to ``threshold``, divided by it (GeoCalib's ``compute_auc``).
+
+    The curve joins ``(0, 0)`` and ``(e_i, i / n)`` for the sorted errors; the recall at ``threshold`` counts the
+    errors equal to it. ``min_error``: as GeoCalib's option, the errors at or below it count as perfect: the curve
+    starts at their share ``m`` and runs ``(0, m)``, ``(min_error, m)``, then on through the larger errors.
+    """
+    errors = torch.sort(errors.detach().double().cpu()).values
     count = errors.numel()
     if count == 0:
         return torch.tensor(math.nan)
     recall = torch.arange(1, count + 1, dtype=torch.float64) / count
-    errors = torch.cat([torch.zeros(1, dtype=torch.float64), errors.cpu()])
-    recall = torch.cat([torch.zeros(1, dtype=torch.float64), recall])
-    last = int(torch.searchsorted(errors, torch.tensor(threshold, dtype=torch.float64)))
+    if min_error is None:
+        start_error, start_recall = torch.zeros(1, dtype=torch.float64), torch.zeros(1, dtype=torch.float64)
+    else:
+        below = int(torch.searchsorted(errors, torch.tensor(min_error, dtype=torch.float64), right=True))
+        errors, recall = errors[below:], recall[below:]
+        start_error = torch.tensor([0.0, min_error], dtype=torch.float64)
+        start_recall = torch.full((2,), below / count, dtype=torch.float64)
+    errors, recall = torch.cat([start_error, errors]), torch.cat([start_recall, recall])
+    last = int(torch.searchsorted(errors, torch.tensor(threshold, dtype=torch.float64), right=True))
     curve_recall = torch.cat([recall[:last], recall[last - 1:last]])
     curve_error = torch.cat([errors[:last], torch.tensor([threshold], dtype=torch.float64)])
     return torch.trapezoid(curve_recall, curve_error) / threshold
@@ -40,8 +51,8 @@ class PoseMetrics(Metric):
 
     Args:
         thresholds: AUC thresholds (degrees, metres for height).
-        min_error: errors at or below it count as perfect (0), as GeoCalib's evaluation passes
-            ``min_error=1``; off by default.
+        min_error: GeoCalib's ``compute_auc`` option (its evaluation passes 1): errors at or below it count as
+            perfect in the AUC (:func:`auc_of_recall`); the median is of the errors as they are. Off by default.
     """
 
     full_state_update = False
@@ -68,12 +79,10 @@ class PoseMetrics(Metric):
         result: dict[str, Tensor] = {}
         for k, key in enumerate(POSE_KEYS):
             component = errors[:, k]
-            if self.min_error is not None:
-                component = torch.where(component <= self.min_error, torch.zeros_like(component), component)
             result[f"{key}_median"] = (torch.quantile(component, 0.5) if component.numel()
                                        else torch.tensor(math.nan)).float()
             for t in self.thresholds:
-                result[f"{key}_auc{t:g}"] = auc_of_recall(component, t).float()
+                result[f"{key}_auc{t:g}"] = auc_of_recall(component, t, self.min_error).float()
         return result
 
 

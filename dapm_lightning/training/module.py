@@ -222,7 +222,8 @@ class DAPMModule(L.LightningModule):
         authors_depth_metrics: also log the authors' released evaluation (``<stage>_depthauthors_*``:
             grey levels, sky included, pixels pooled; RMS as ``rmse_grey`` and ``rmse_unit``), the only
             depth figures comparable with the paper's Table 4.
-        pose_auc_min_error: pose errors at or below it count as perfect in the AUC (GeoCalib passes 1).
+        pose_auc_min_error: pose errors at or below it count as perfect in the AUC, as GeoCalib's ``min_error``
+            (its evaluation passes 1; :func:`~dapm_lightning.metrics.auc_of_recall`); the medians are unchanged.
         authors_pose_metrics: also log the authors' pose protocol (``<stage>_poseauthors_*``: the 3-point AUC
             through (0, 0), (1, r1), (5, r5), (10, r10) and the MAE per component), the protocol of the
             paper's Table 8 AUC figures.

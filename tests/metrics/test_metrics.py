@@ -113,10 +113,47 @@ def test_pose_metrics_median_numpy_semantics_and_keys():
                         for s in ("median", "auc1", "auc5", "auc10")}
 
 
-def test_min_error_counts_small_errors_as_perfect():
+def reference_auc_min_error(errors, t, min_error):
+    """Loop version of GeoCalib's option: flat at the share of errors <= min_error up to min_error, then on."""
+    errors = np.sort(np.asarray(errors, np.float64))
+    share = np.mean(errors <= min_error)
+    points = [(0.0, share), (min_error, share)] + [(e, (i + 1) / len(errors)) for i, e in enumerate(errors)
+                                                   if e > min_error]
+    area, (prev_e, prev_r) = 0.0, points[0]
+    for e, r in points[1:]:
+        if e > t:
+            break
+        area += 0.5 * (e - prev_e) * (prev_r + r)
+        prev_e, prev_r = e, r
+    return (area + (t - prev_e) * prev_r) / t
+
+
+def test_auc_counts_errors_equal_to_the_threshold():
+    # recall(0.5) is 3/5 here: the curve (0, 0), (0, 1/5), (0.5, 2/5), (0.5, 3/5) gives 0.3; stopping before the
+    # errors equal to 0.5, flat at 1/5, gave 0.2
+    errors = np.array([0.0, 0.5, 0.5, 1.0, 2.0])
+    assert auc_of_recall(torch.from_numpy(errors), 0.5).item() == pytest.approx(0.3)
+    rng = np.random.default_rng(1)
+    for _ in range(200):
+        ties = rng.integers(0, 6, size=rng.integers(1, 12)) / 2.0  # many errors exactly on a threshold
+        for t in (0.5, 1.0, 2.0):
+            assert auc_of_recall(torch.from_numpy(ties), t).item() == pytest.approx(reference_auc(ties, t), abs=1e-12)
+
+
+def test_min_error_counts_small_errors_as_perfect_as_geocalib():
+    pred = torch.tensor([[0.8, 0.8, 0.8, 0.8], [3.0, 3.0, 3.0, 3.0]])
     plain, geocalib = PoseMetrics(), PoseMetrics(min_error=1.0)
-    pred = torch.tensor([[0.5, 0.5, 0.5, 0.5], [3.0, 3.0, 3.0, 3.0]])
     plain.update(pred, torch.zeros(2, 4))
     geocalib.update(pred, torch.zeros(2, 4))
-    assert geocalib.compute()["roll_auc5"] > plain.compute()["roll_auc5"]
-    assert geocalib.compute()["roll_auc5"].item() == pytest.approx(auc_of_recall(torch.tensor([0.0, 3.0]), 5).item())
+    # (0, 0.5), (1, 0.5), (3, 1), (5, 1): 4 / 5 (zeroing the small errors gave (0, 0.5), (3, 1), (5, 1): 0.85);
+    # without min_error (0, 0), (0.8, 0.5), (3, 1), (5, 1): 0.77
+    assert geocalib.compute()["roll_auc5"].item() == pytest.approx(0.8)
+    assert plain.compute()["roll_auc5"].item() == pytest.approx(0.77)
+    assert geocalib.compute()["roll_median"].item() == pytest.approx(1.9)  # the errors' median, not of zeroed ones
+    assert geocalib.compute()["roll_auc1"].item() == pytest.approx(0.5)
+    rng = np.random.default_rng(2)
+    errors = rng.exponential(3.0, size=41)
+    for min_error in (0.5, 1.0, 7.0):
+        for t in (1.0, 5.0, 10.0):
+            assert auc_of_recall(torch.from_numpy(errors), t, min_error).item() == pytest.approx(
+                reference_auc_min_error(errors, t, min_error), rel=1e-9), (min_error, t)
