@@ -71,20 +71,28 @@ class EvaluationOutputWriter(L.Callback):
       valid pixel). Sort it by ``depth_abs_rel`` to find the worst images.
 
     Under DDP each process writes its own ``per_image.rank<k>.csv`` (the maps do not collide: names differ).
-    ``dirpath`` None: ``<trainer.log_dir or default_root_dir>/test_outputs``.
+    ``dirpath`` None: ``<trainer.log_dir or default_root_dir>/test_outputs``. ``max_depth`` (metres of grey 255,
+    the limit of the per-image metrics' valid pixels) None: the model's ``model.net.igd.max_depth``, as the logged
+    ``test_depth_*`` use.
     """
 
     __test__ = False  # not a pytest test class, whatever its name
 
     def __init__(self, dirpath: str | None = None, write_maps: bool = True, write_csv: bool = True,
-                 max_depth: float = MAX_DEPTH_M) -> None:
-        self.dirpath, self.write_maps, self.write_csv, self.max_depth = dirpath, write_maps, write_csv, max_depth
+                 max_depth: float | None = None) -> None:
+        self.dirpath, self.write_maps, self.write_csv = dirpath, write_maps, write_csv
+        self.limit = max_depth
+        """``max_depth`` as given (None: the model's)."""
+        self.max_depth = MAX_DEPTH_M if max_depth is None else max_depth
+        """The limit in use: set from the model when a test starts."""
         self._rows: list[dict[str, Any]] = []
         self._root: Path | None = None
 
     def on_test_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         base = self.dirpath or str(Path(trainer.log_dir or trainer.default_root_dir) / "test_outputs")
         self._root, self._rows = Path(base), []
+        igd = getattr(getattr(pl_module, "net_config", None), "igd", None)
+        self.max_depth = self.limit if self.limit is not None else float(getattr(igd, "max_depth", MAX_DEPTH_M))
         self._root.mkdir(parents=True, exist_ok=True)
 
     def on_test_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any,

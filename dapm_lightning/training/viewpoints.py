@@ -10,7 +10,7 @@ import lightning as L
 import torch
 from torch import Tensor
 
-from dapm_lightning.geometry.constants import POSE_KEYS, POSE_RANGES, POSE_UNITS
+from dapm_lightning.geometry.constants import MAX_DEPTH_M, POSE_KEYS, POSE_RANGES, POSE_UNITS
 from dapm_lightning.metrics import per_image_depth_metrics
 from dapm_lightning.models.dapm import DAPMOutput
 
@@ -69,7 +69,8 @@ class ViewpointBreakdown(L.Callback):
     """At test time, depth d1 and pose error per bin of each true pose component (the paper's viewpoint figure).
 
     Logs ``test_view_<component>_bin<k>_{d1,error}`` to the loggers, keeps the rows in :attr:`table`
-    and writes ``viewpoints.png`` into ``output_dir`` (default: the trainer's log directory).
+    and writes ``viewpoints.png`` into ``output_dir`` (default: the trainer's log directory). The d1 of an image is
+    ``test_depth_d1``'s: valid pixels below the model's depth limit (``model.net.igd.max_depth``), sky excluded.
 
     Args:
         bins: uniform bins per component over the UAPD range.
@@ -92,7 +93,11 @@ class ViewpointBreakdown(L.Callback):
         has_pose, pose = batch["has_pose"], batch["pose"].float()
         nan = torch.full((pose.shape[0],), math.nan, device=pose.device)
         depth_m, pose_pred = outputs.depth_m, outputs.pose_physical
-        d1 = nan if depth_m is None else per_image_depth_metrics(depth_m, batch["depth"])["d1"].to(pose)
+        # the model's depth limit, as test_depth_d1 (its sky is excluded: a data set's grey 255 may mean 500 m)
+        max_depth = float(getattr(getattr(getattr(pl_module, "net_config", None), "igd", None), "max_depth",
+                                  MAX_DEPTH_M))
+        d1 = nan if depth_m is None else per_image_depth_metrics(depth_m, batch["depth"],
+                                                                 max_depth=max_depth)["d1"].to(pose)
         error = torch.full_like(pose, math.nan) if pose_pred is None else (pose_pred - pose).abs().float()
         self.records.append(torch.cat([pose, d1[:, None], error], 1)[has_pose])
 
