@@ -23,7 +23,8 @@ def viewpoint_table(records: Tensor, bins: int = 5) -> list[dict[str, Any]]:
         bins: bins per component.
 
     Returns:
-        Rows ``{component, bin, low, high, count, d1 (mean), error (median of that component's error)}``.
+        Rows ``{component, bin, low, high, count, d1 (mean), error (median of that component's error;
+        of an even count the mean of the two middle values)}``.
     """
     rows = []
     for k, key in enumerate(POSE_KEYS):
@@ -37,7 +38,8 @@ def viewpoint_table(records: Tensor, bins: int = 5) -> list[dict[str, Any]]:
             rows.append({"component": key, "bin": b, "low": float(edges[b]), "high": float(edges[b + 1]),
                          "count": int(chosen.shape[0]),
                          "d1": float(d1.mean()) if d1.numel() else math.nan,
-                         "error": float(err.median()) if err.numel() else math.nan})
+                         # numpy's median, as PoseMetrics (torch.median takes the lower middle value)
+                         "error": float(torch.quantile(err.double(), 0.5)) if err.numel() else math.nan})
     return rows
 
 

@@ -8,7 +8,7 @@ from dapm_lightning.geometry.igd import IGDSpec
 from dapm_lightning.metrics import DepthMetrics
 from dapm_lightning.models import DAPMConfig, DAPMNet
 from dapm_lightning.training.evaluation_outputs import EvaluationOutputWriter
-from dapm_lightning.training.viewpoints import ViewpointBreakdown
+from dapm_lightning.training.viewpoints import ViewpointBreakdown, viewpoint_table
 
 LIMIT = 500.0
 
@@ -48,3 +48,11 @@ def test_per_image_csv_uses_the_model_limit_unless_given_one(tmp_path):
         writer.on_test_start(None, module)
         writer.on_test_batch_end(None, module, out, batch, 0)
         assert [row["depth_d1"] for row in writer._rows] == [d1, d1], given
+
+
+def test_viewpoint_median_error_of_an_even_count_is_numpy_s():
+    # two images in the same bins, roll errors 1 and 3 degrees: median 2 (torch.median gave 1)
+    records = torch.tensor([[50.0, -60.0, 0.0, 80.0, 1.0, 0.5, 0.5, 1.0, 0.5],
+                            [51.0, -61.0, 1.0, 81.0, 1.0, 1.5, 1.5, 3.0, 1.5]])
+    rows = [r for r in viewpoint_table(records) if r["count"] == 2]
+    assert {r["component"]: r["error"] for r in rows} == {"height": 1.0, "pitch": 1.0, "roll": 2.0, "fov": 1.0}
