@@ -5,7 +5,8 @@ Two ways to use what the drone knows, and both together (:data:`PriorMode`):
 - ``condition``: the prior enters the network (:class:`~dapm_lightning.models.prior.PosePrior`): fused with its
   pose before the IGD feature, so the depth head sees the ground of the known pose;
 - ``scale``: the network runs without it; its depth is then rescaled so that the pixels it sees as ground match
-  the ideal ground depth of the known pose (:func:`ground_scale`): works with any checkpoint, no retraining;
+  the ideal ground depth of the known pose (:func:`ground_scale`, the exact ground of :func:`flat_ground`): works
+  with any checkpoint, no retraining;
 - ``both``: conditioning, then the scale fit.
 """
 
@@ -21,7 +22,7 @@ from torch import Tensor
 
 from dapm_lightning.geometry.constants import POSE_KEYS, SKY_PROBABILITY_THRESHOLD, pose_field
 from dapm_lightning.geometry.depth_codec import sky_at_limit
-from dapm_lightning.geometry.igd import IGDSpec
+from dapm_lightning.geometry.igd import IGDSpec, ideal_ground_depth
 from dapm_lightning.inference.telemetry import PoseTelemetry, TelemetryError
 from dapm_lightning.inference.telemetry.pose import limit_error
 from dapm_lightning.models.dapm import InferenceOutput
@@ -148,6 +149,17 @@ def ground_scale(depth_m: Tensor, sky: Tensor, igd_used: Tensor, igd_network: Te
     return torch.tensor(scales, dtype=depth_m.dtype, device=depth_m.device), methods
 
 
+def flat_ground(spec: IGDSpec, pose: Tensor, size: tuple[int, int]) -> Tensor:
+    """``[B, 1, h, w]`` metres: the true flat ground of ``pose``, the exact ray-plane intersection (pinhole IGD).
+
+    Of the model's depth kind and limit, whatever IGD formula the model's feature uses: a model with the paper's
+    approximation (``model.net.igd.model: paper``, the paper configs) still predicts real depth, and that
+    approximation is 0.56-1.25 times the true ground at oblique wide-FoV poses, so the scale fit and the IGD bound
+    measure against this one.
+    """
+    return ideal_ground_depth(pose, size, model="pinhole", depth_kind=spec.depth_kind, max_depth=spec.max_depth)
+
+
 class PriorApplied(NamedTuple):
     """What :func:`apply_pose_prior` returns: the outputs with the prior applied, and how, per image."""
 
@@ -208,8 +220,8 @@ def apply_pose_prior(output: InferenceOutput, prior: PosePrior | None, mode: Pri
         if made_with is not None:
             made_with = made_with.float()
             ratio = torch.where(prior.known[:, 0], used_pose[:, 0] / made_with[:, 0].clamp_min(1e-3), ratio)
-        scale, methods = ground_scale(depth, sky, spec.depth(used_pose, size),
-                                      None if made_with is None else spec.depth(made_with, size), ratio,
+        scale, methods = ground_scale(depth, sky, flat_ground(spec, used_pose, size),
+                                      None if made_with is None else flat_ground(spec, made_with, size), ratio,
                                       spec.max_depth)
         output = output.replace(depth_m=sky_at_limit(depth * scale.view(-1, 1, 1, 1), sky, spec.max_depth))
     return PriorApplied(output, pose_sources(prior, batch), methods)
@@ -217,6 +229,9 @@ def apply_pose_prior(output: InferenceOutput, prior: PosePrior | None, mode: Pri
 
 def bound_by_ground(output: InferenceOutput, prior: PosePrior | None, spec: IGDSpec, margin: float) -> InferenceOutput:
     """Each pixel's depth capped at ``1 + margin`` times the ideal ground depth of the pose used.
+
+    That ground is the exact one (:func:`flat_ground`), also for a model whose IGD feature uses the paper's
+    approximation, which lies up to 44 % short of the true ground and would cap a correct flat-ground depth there.
 
     The assumption: a flat ground at the known height, so nothing visible below the horizon lies farther than the
     ground along its ray; ``margin`` allows terrain below the take-off level and the height's own error. Applied to
@@ -231,7 +246,7 @@ def bound_by_ground(output: InferenceOutput, prior: PosePrior | None, spec: IGDS
     if not bool(applies.any()):
         return output
     depth = output.depth_m
-    igd = spec.depth(output.pose.float(), (depth.shape[-2], depth.shape[-1]))
+    igd = flat_ground(spec, output.pose.float(), (depth.shape[-2], depth.shape[-1]))
     cap = igd * (1.0 + margin)
     reached = applies.view(-1, 1, 1, 1) & (igd < spec.max_depth) & (cap < spec.max_depth)
     bounded = torch.where(reached, torch.minimum(depth, cap.to(depth.dtype)), depth)

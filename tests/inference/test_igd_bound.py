@@ -39,6 +39,34 @@ def test_bound_caps_below_the_horizon_only_where_the_height_is_known():
         PriorSettings(igd_bound=-0.5)
 
 
+@pytest.mark.parametrize("depth_kind", ["range", "planar"])
+def test_bound_and_scale_fit_measure_against_the_true_ground_with_the_paper_igd(depth_kind):
+    """A paper-IGD model (the paper configs) predicts real depth: a correct flat-ground depth is neither capped nor
+    rescaled, and its points lie at z = 0 (the paper's formula is 0.62-1.22 times the true ground at this pose)."""
+    from dapm_lightning.geometry import depth_to_points, valid_points
+    from dapm_lightning.inference.prior import apply_pose_prior, as_prior
+
+    spec = IGDSpec(model="paper", depth_kind=depth_kind)
+    pose = torch.tensor([[50.0, -30.0, 20.0, 110.0]], dtype=torch.float64)
+    size = (24, 32)
+    true = ideal_ground_depth(pose, size, depth_kind=depth_kind)
+    approx = ideal_ground_depth(pose, size, model="paper", depth_kind=depth_kind)
+    ground = (true < MAX_DEPTH_M) & (approx < MAX_DEPTH_M)
+    assert ((approx / true)[ground] < 0.8).any()  # where the paper's formula falls short of the true ground
+    output = InferenceOutput(depth_m=true.clone(), sky_prob=(true >= MAX_DEPTH_M).double(), pose=pose)
+    prior = as_prior([{"height_m": 50.0}])
+    bounded = bound_by_ground(output, prior, spec, IGD_BOUND_MARGIN)
+    torch.testing.assert_close(bounded.depth_m, true)  # was cut to 0.68 of it
+    points = depth_to_points(bounded.depth_m, pose, depth_kind=depth_kind)[valid_points(bounded.depth_m)]
+    assert points[:, 2].abs().max() < 1e-6  # was up to 19 m above the ground
+    network = pose * torch.tensor([0.8, 1.0, 1.0, 1.0], dtype=torch.float64)  # 20 % short of the known height
+    made = ideal_ground_depth(network, size, depth_kind=depth_kind)
+    fitted = apply_pose_prior(InferenceOutput(depth_m=made, sky_prob=(made >= MAX_DEPTH_M).double(), pose=network),
+                              prior, "scale", spec)
+    assert fitted.scale_from == ["ground"]
+    torch.testing.assert_close(fitted.output.depth_m[ground], true[ground])  # was 1 % short
+
+
 def _capped(depth: np.ndarray, camera: dict, margin: float) -> None:
     pose = torch.tensor([[camera["pose"][k]["value"] for k in ("height_m", "pitch_deg", "roll_deg", "fov_deg")]])
     igd = ideal_ground_depth(pose.double(), depth.shape)[0, 0].numpy()
