@@ -221,10 +221,13 @@ class PredictionFiles:
                  points_stride: int | None = None, points_max_depth: float | None = None, contact_sheet: int = 8,
                  option: str | None = None, exist_ok: bool = True, exist_ok_option: str = "--exist_ok",
                  depth_range: tuple[float, float] | None = None, video_preview: bool = True) -> None:
-        self.output_dir = run_folder(output_dir, exist_ok, option or "output_dir", exist_ok_option)
-        self.outputs = check_outputs(outputs)
         if points_stride is not None and points_stride < 1:
             raise ValueError(f"points_stride must be >= 1, got {points_stride}")
+        if points_max_depth is not None and not points_max_depth > 0:  # a point cloud with no point, written whole
+            raise ValueError(f"points_max_depth must be a distance above 0 m (or None: no limit), got "
+                             f"{points_max_depth}")
+        self.output_dir = run_folder(output_dir, exist_ok, option or "output_dir", exist_ok_option)
+        self.outputs = check_outputs(outputs)
         self.points_stride, self.points_max_depth = points_stride, points_max_depth
         if contact_sheet > CONTACT_MAX_IMAGES:
             warnings.warn(f"a contact sheet shows at most {CONTACT_MAX_IMAGES} images, not {contact_sheet}",

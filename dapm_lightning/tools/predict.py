@@ -61,6 +61,17 @@ def whole_number(least: int) -> Callable[[str], int]:
 positive, not_negative = whole_number(1), whole_number(0)
 
 
+def positive_metres(text: str) -> float:
+    """An argparse type: a distance in metres above 0 (``inf`` allowed), or an error saying so."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of metres") from None
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"must be a distance above 0 m, got {text}")
+    return value
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The one-line form's options."""
     parser = _Parser(prog="dapm-lightning predict", allow_abbrev=False, description=__doc__,
@@ -96,7 +107,7 @@ def build_parser() -> argparse.ArgumentParser:
                              "default: each map its own 2nd-98th percentile)")
     parser.add_argument("--points_stride", type=positive, default=None,
                         help="point clouds: every N-th row and column (default: about the network's resolution)")
-    parser.add_argument("--points_max_depth", type=float, default=None,
+    parser.add_argument("--points_max_depth", type=positive_metres, default=None,
                         help="point clouds: drop points farther than this (metres; sky is always dropped)")
     parser.add_argument("--channels_last", action="store_true", help="channels-last memory (NHWC convolutions)")
     parser.add_argument("--compile", action="store_true",

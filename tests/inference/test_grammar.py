@@ -31,6 +31,9 @@ def test_the_api_says_network_without_telemetry_and_takes_paths(checkpoint, tmp_
     ("--batch_size", "-2", "argument --batch_size: must be at least 1, got -2"),
     ("--batch_size", "two", "argument --batch_size: 'two' is not a whole number"),
     ("--contact_sheet", "-1", "argument --contact_sheet: must be 0 or more, got -1"),
+    ("--points_max_depth", "-5", "argument --points_max_depth: must be a distance above 0 m, got -5"),
+    ("--points_max_depth", "0", "argument --points_max_depth: must be a distance above 0 m, got 0"),
+    ("--points_max_depth", "far", "argument --points_max_depth: 'far' is not a number of metres"),
 ])
 def test_sizes_and_counts_are_checked_in_one_line(checkpoint, tmp_path, capsys, option, value, message):
     code, err = run_main(["predict", str(tmp_path), "--ckpt_path", str(checkpoint), option, value], capsys)

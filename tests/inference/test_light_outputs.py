@@ -58,6 +58,15 @@ def test_the_default_run_is_light_and_all_is_everything(checkpoint, photo, tmp_p
     assert code == 2 and "unknown output 'depth'" in err
 
 
+@pytest.mark.parametrize("limit", [0.0, -5.0, float("nan")])
+def test_a_point_limit_that_would_drop_every_point_is_refused(tmp_path, limit):
+    from dapm_lightning.inference.writers import PredictionFiles
+
+    with pytest.raises(ValueError, match="points_max_depth must be a distance above 0 m"):
+        PredictionFiles(tmp_path / "out", ["points"], points_max_depth=limit)
+    assert not (tmp_path / "out").exists()  # refused before the run folder is made
+
+
 def test_auto_stride_is_about_the_network_resolution():
     prediction = Prediction(None, None, None, size=(3000, 4000), network_size=(55, 74))
     assert prediction.auto_stride() == 54
