@@ -59,20 +59,34 @@ def split_key(key: SampleKey) -> tuple[int, int]:
     return 0, int(key)
 
 
+def _set_state(transform: Transform, state: int) -> None:
+    """One generator of ``state`` shared by the pipeline's transforms (see :func:`seed_augmentation`)."""
+    if hasattr(transform, "set_random_state"):
+        transform.set_random_state(np.random.default_rng(state), random.Random(state))
+    elif hasattr(transform, "set_random_seed"):
+        transform.set_random_seed(state)
+
+
 def seed_augmentation(transform: Transform, seed: int | None, epoch: int, index: int) -> None:
     """Seed an albumentations pipeline by (seed, epoch, index), so a sample's augmentation is reproducible.
 
     The pipeline's transforms share one generator and draw from it in turn. (``Compose.set_random_seed`` gives each
     transform a generator of the same seed: their first draws, which decide whether each applies, are then equal,
     so transforms of equal probability would apply together or not at all.)
+
+    ``seed`` None (a data set built without ``augment_seed``): not reproducible, but in a loader worker the pipeline
+    is seeded once from the worker's seed (``get_worker_info().seed``: another for each worker, and for each epoch's
+    new workers) and draws on from there. Else every worker would start from the generator it was forked with, the
+    same in each worker and again in every epoch: the same augmentations in every worker, repeated every epoch.
     """
     if seed is None:
+        worker = torch.utils.data.get_worker_info()
+        seedable = hasattr(transform, "set_random_state") or hasattr(transform, "set_random_seed")
+        if seedable and worker is not None and getattr(transform, "_dapm_worker_seed", None) != worker.seed:
+            _set_state(transform, worker.seed)
+            transform._dapm_worker_seed = worker.seed  # type: ignore[attr-defined]
         return
-    state = int(np.random.SeedSequence([seed, epoch, index]).generate_state(1)[0])
-    if hasattr(transform, "set_random_state"):
-        transform.set_random_state(np.random.default_rng(state), random.Random(state))
-    elif hasattr(transform, "set_random_seed"):
-        transform.set_random_seed(state)
+    _set_state(transform, int(np.random.SeedSequence([seed, epoch, index]).generate_state(1)[0]))
 
 
 def make_sample(rgb: np.ndarray, depth_m: np.ndarray, pose: np.ndarray | None, name: str, meta: dict[str, Any],

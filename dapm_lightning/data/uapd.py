@@ -262,7 +262,9 @@ class UAPDDataset(SkipsBadFiles, torch.utils.data.Dataset[Sample]):
         image_dtype: ``"float32"`` (RGB in [0, 1]) or ``"uint8"`` (4x fewer bytes per sample;
             the Lightning module normalises on the device).
         on_bad_file: ``"raise"`` (default) or ``"skip"``.
-        augment_seed: seeds each sample's augmentation by (seed, epoch, index).
+        augment_seed: seeds each sample's augmentation by (seed, epoch, index); None: not reproducible, each
+            loader worker seeding the transform from its own seed
+            (:func:`~dapm_lightning.data.sample.seed_augmentation`).
 
     :attr:`depth_containers` says per file (as :attr:`names`) which PNG container its depth uses
     (:data:`DEPTH_CONTAINERS`: ``grey``, ``RGB``, ``grey+alpha``, ``RGBA``).

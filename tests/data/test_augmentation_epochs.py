@@ -3,9 +3,12 @@
 import hashlib
 
 import pytest
+from torch.utils.data import DataLoader
 
+from dapm_lightning.data import UAPDDataset
 from dapm_lightning.data.datamodules import UAPDDataModule
-from dapm_lightning.data.transforms import Augmentation
+from dapm_lightning.data.transforms import Augmentation, train_transform
+from tests.conftest import write_pair
 
 GROUND = Augmentation(ground_pattern_p=1.0, ground_recolour_p=1.0)
 """Every transform of the pipeline on, the ground's too (they draw from the same per-sample generator)."""
@@ -39,3 +42,18 @@ def test_augmentation_differs_between_epochs_and_repeats_between_runs(tiny_uapd,
     assert epoch_digests(tiny_uapd, workers, persistent, augmentation=augmentation) == first
     if workers:  # and the same as in the main process
         assert epoch_digests(tiny_uapd, 0, False, augmentation=augmentation) == first
+
+
+def test_a_data_set_without_augment_seed_augments_apart_in_each_worker_and_epoch(tmp_path):
+    """``UAPDDataset(root, split, transform)`` in a user's own loader: each worker and each epoch draws its own."""
+    for k in range(8):  # one picture under eight names: any two equal outputs are equal augmentations
+        write_pair(tmp_path, "train", f"T{k}_z_40_pitch_-50_roll_5_fov_80.png", (40.0, -50.0, 5.0, 80.0), seed=3)
+    dataset = UAPDDataset(tmp_path, "train", train_transform(Augmentation(color_jitter_p=1.0, noise_p=1.0)))
+
+    def epoch() -> list[str]:
+        loader = DataLoader(dataset, batch_size=2, num_workers=2, collate_fn=list)
+        return [hashlib.sha1(s["image"].numpy().tobytes()).hexdigest() for batch in loader for s in batch]
+
+    first, second = epoch(), epoch()
+    assert len(set(first)) == 8, "two workers augmented alike"
+    assert not set(first) & set(second), "the next epoch's workers repeated the augmentations"
