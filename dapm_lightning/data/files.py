@@ -76,9 +76,20 @@ def write_error(path: Path, error: OSError) -> WriteError:
     return WriteError(path, _reason(error), _fix(error))
 
 
+_TEMP_NAME_BYTES = 200
+"""The most bytes of the target's name a temporary name keeps: with the rest (18 bytes) within NAME_MAX (255)."""
+
+
 def temporary_name(path: Path) -> Path:
-    """A hidden, unique temporary file name beside ``path`` (``.NAME.<random>.tmp``, within NAME_MAX)."""
-    return path.with_name(f"{_TEMP_PREFIX}{path.name[:200]}.{secrets.token_hex(6)}{_TEMP_SUFFIX}")
+    """A hidden, unique temporary file name beside ``path`` (``.NAME.<random>.tmp``, within NAME_MAX).
+
+    NAME is cut to :data:`_TEMP_NAME_BYTES` bytes of the file system's encoding, at a character's end: a name of
+    multi-byte characters (``深度`` is 6 bytes in UTF-8) that fits NAME_MAX must give a temporary name that does too.
+    """
+    name = path.name
+    while len(os.fsencode(name)) > _TEMP_NAME_BYTES:
+        name = name[:-1]
+    return path.with_name(f"{_TEMP_PREFIX}{name}.{secrets.token_hex(6)}{_TEMP_SUFFIX}")
 
 
 def _remove(path: Path) -> None:

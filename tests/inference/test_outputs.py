@@ -128,6 +128,17 @@ def test_a_failed_write_leaves_the_earlier_file_and_no_temporary_file(tmp_path):
     assert isinstance(error, OSError) and isinstance(error, ValueError)  # a user's error: a message, no traceback
 
 
+def test_a_long_name_of_multibyte_characters_is_written_as_a_plain_write_would(tmp_path):
+    """A name that fits NAME_MAX in bytes (78 CJK characters + .csv: 238 bytes): its temporary name fits too."""
+    target = tmp_path / ("深度" * 39 + ".csv")
+    assert len(target.name.encode()) == 238
+    write_bytes(target, b"rows\n")
+    assert target.read_bytes() == b"rows\n" and [p.name for p in tmp_path.iterdir()] == [target.name]
+    ascii_name = tmp_path / ("a" * 250 + ".csv")
+    write_bytes(ascii_name, b"x")
+    assert ascii_name.read_bytes() == b"x"
+
+
 def test_the_table_lock_is_exclusive_and_leaves_no_file(tmp_path):
     table = tmp_path / "poses.csv"
     inside, most = [0], [0]
