@@ -53,7 +53,7 @@ class DAPMDataModule(L.LightningDataModule):
             this project's light augmentation, the paper configs set the authors' stronger one).
         image_dtype: ``"uint8"`` ships 4x fewer bytes per sample; the model normalises on the device.
         eval_batch_size: batch size of validation/test/predict (default: ``batch_size``).
-        seed: the training order is a permutation drawn from (seed, epoch) and the augmentation of
+        seed: a whole number >= 0; the training order is a permutation drawn from (seed, epoch) and the augmentation of
             each sample is seeded by (seed, epoch, index), so runs repeat exactly, with any number of
             workers, persistent or not, and under DDP; a run resumed from a mid-epoch checkpoint
             continues with the batches the uninterrupted run would see.
@@ -65,7 +65,7 @@ class DAPMDataModule(L.LightningDataModule):
                  seed: int = 0, augmentation: Augmentation = Augmentation()) -> None:  # noqa: B008 (frozen)
         super().__init__()
         counts = (("batch_size", batch_size, 1, 8), ("eval_batch_size", eval_batch_size, 1, 8),
-                  ("num_workers", num_workers, 0, 2))
+                  ("num_workers", num_workers, 0, 2), ("seed", seed, 0, 0))  # seeds of numpy's SeedSequence: >= 0
         for name, value, least, example in counts:
             if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < least):
                 raise ValueError(f"data.init_args.{name}: {value!r}, but it must be a whole number of at least "

@@ -157,7 +157,8 @@ def test_a_data_setting_of_the_wrong_type_is_one_line_naming_it(option, value, e
         assert code == 2 and expected in err and len(err.splitlines()) <= 3 and "Union" not in err, err
 
 
-@pytest.mark.parametrize(("option", "value"), [("batch_size", "-2"), ("eval_batch_size", "0"), ("num_workers", "-1")])
+@pytest.mark.parametrize(("option", "value"), [("batch_size", "-2"), ("eval_batch_size", "0"), ("num_workers", "-1"),
+                                               ("seed", "-1")])
 def test_a_data_setting_out_of_range_is_refused_before_anything_is_rendered(option, value, capsys, tmp_path,
                                                                             monkeypatch):
     monkeypatch.chdir(tmp_path)
