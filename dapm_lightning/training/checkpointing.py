@@ -43,7 +43,7 @@ from dapm_lightning.training.checkpoint_files import (  # the check of foreign f
     save_atomically,
 )
 from dapm_lightning.training.module import DAPMModule
-from dapm_lightning.training.signals import request_stop
+from dapm_lightning.training.signals import request_stop, validation_follows
 
 EXIT_SIGTERM = 128 + signal.SIGTERM
 """Exit status of a run stopped by SIGTERM after saving ``last.ckpt`` (143: a job script can tell it from 0)."""
@@ -235,7 +235,7 @@ class LastCheckpoint(ModelCheckpoint):
     def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any,
                            batch_idx: int) -> None:
         step_save = self._every_n_train_steps >= 1 and trainer.global_step % self._every_n_train_steps == 0
-        if step_save and _validation_follows(trainer):
+        if step_save and validation_follows(trainer):
             self._save_after_validation = trainer.global_step
             return
         super().on_train_batch_end(trainer, pl_module, outputs, batch, batch_idx)
@@ -254,15 +254,6 @@ class LastCheckpoint(ModelCheckpoint):
             self.best_model_path = self.format_checkpoint_name({})
             trainer.save_checkpoint(self.best_model_path)
             self._last_global_step_saved = trainer.global_step
-
-
-def _validation_follows(trainer: L.Trainer) -> bool:
-    """Whether Lightning validates right after the current training batch (asked in ``on_train_batch_end``)."""
-    loop = trainer.fit_loop.epoch_loop
-    try:
-        return bool(loop._should_check_val_fx(trainer.fit_loop._data_fetcher))  # type: ignore[arg-type]
-    except (AttributeError, TypeError):  # another Lightning version: save before the validation, as Lightning does
-        return False
 
 
 def best_or_last_checkpoint(trainer: L.Trainer) -> str:
@@ -347,11 +338,11 @@ class CheckpointOnSigterm(L.Callback):
     """On SIGTERM (SLURM pre-emption) or SIGINT (Ctrl-C), save ``last.ckpt`` and exit with status 143 or 130.
 
     Lightning stops at the end of the current batch with a ``SIGTERMException`` (with a ``DAPMModule``, at the end of
-    the accumulation window: :mod:`.signals`); during training this writes the checkpoint the run resumes from with
-    ``--ckpt_path last`` (validate, test and predict save nothing: they have no training state). Lightning's
-    exception exits with status 0, as a finished run would; this sets it to :data:`EXIT_SIGTERM` (128 + 15 = 143, the
-    shell's status for a process ended by SIGTERM), so that a job script can tell pre-emption from completion and
-    requeue.
+    the accumulation window, or of the validation that follows it: :mod:`.signals`); during training this writes the
+    checkpoint the run resumes from with ``--ckpt_path last`` (validate, test and predict save nothing: they have no
+    training state). Lightning's exception exits with status 0, as a finished run would; this sets it to
+    :data:`EXIT_SIGTERM` (128 + 15 = 143, the shell's status for a process ended by SIGTERM), so that a job script
+    can tell pre-emption from completion and requeue.
 
     SIGINT during training is handled the same way (Lightning alone would stop in the middle of a step and exit
     1 without saving): the run stops where it would for SIGTERM, saves ``last.ckpt`` and exits with
@@ -404,8 +395,8 @@ class CheckpointOnSigterm(L.Callback):
         if self._stopped_by is None:
             self._stopped_by = signal.SIGINT
             if trainer.is_global_zero:  # os.write: safe inside a signal handler (print may not be)
-                os.write(2, b"\nReceived SIGINT (Ctrl-C): saving last.ckpt at the end of this training step, then "
-                            b"exiting (Ctrl-C again stops at once, without saving)\n")
+                os.write(2, b"\nReceived SIGINT (Ctrl-C): saving last.ckpt at the end of this training step (and of "
+                            b"its validation), then exiting (Ctrl-C again stops at once, without saving)\n")
             launcher = trainer.strategy.launcher
             if launcher is not None:
                 launcher.kill(signal.SIGINT)  # DDP processes started by this one, as Lightning does for SIGTERM

@@ -455,12 +455,8 @@ class DAPMModule(L.LightningModule):
             count_batches_as_resumed(fit_loop, *resumed_at)
 
     def on_train_batch_end(self, outputs: Any, batch: Any, batch_idx: int) -> None:
-        """Every process stops after this batch when any of them got SIGTERM or Ctrl-C and the optimizer stepped."""
+        """On SIGTERM or Ctrl-C to any process, all stop after this batch's optimizer step (or its validation)."""
         self.sigterm.agree(self.trainer)
-
-    def on_validation_batch_end(self, outputs: Any, batch: Any, batch_idx: int, dataloader_idx: int = 0) -> None:
-        """With one process, a validation between two optimizer steps stops after this batch on SIGTERM or Ctrl-C."""
-        self.sigterm.during_validation(self.trainer)
 
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         """Add the training image size, the training RNG states and loop counters that resume exactly.
@@ -512,15 +508,20 @@ class DAPMModule(L.LightningModule):
             self._training_rng_states = rng_states()
 
     def on_validation_end(self) -> None:
-        """Give training back the RNG states it had when the validation started.
+        """Give training back the RNG states it had when the validation started; then stop on SIGTERM or Ctrl-C.
 
         Whatever a validation draws (a callback, a metric, a data set), training then draws what it would
         have drawn without it: a run resumed from a checkpoint taken before, during or after a validation
-        (which the resumed run does not repeat) trains exactly as the uninterrupted one.
+        (which the resumed run does not repeat) trains exactly as the uninterrupted one. A stop agreed before the
+        validation, or a signal received during it, is handed to Lightning here on every process, once the callbacks
+        (the best-model and ``last.ckpt`` saves) have seen the validation
+        (:meth:`.signals.SigtermAgreement.after_validation`).
         """
         if self._training_rng_states is not None:
             set_rng_states(self._training_rng_states)
             self._training_rng_states = None
+        if self._trainer is not None:
+            self.sigterm.after_validation(self.trainer)
 
     def validation_step(self, batch: dict[str, Any], batch_idx: int) -> DAPMOutput:  # type: ignore[override]
         return self._shared_step(batch, "val")[1]

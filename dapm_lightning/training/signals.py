@@ -6,18 +6,20 @@ processes then wait in different collectives for ever: a SIGTERM at a random mom
 here. And each process stops at its own next check, so one may save while another validates. Lightning also stops
 after the current batch even in the middle of gradient accumulation (``accumulate_grad_batches`` > 1): the
 gradients of the window's first micro-batches are not saved, but the data position counts them as trained, so the
-resumed run stepped with the window's remaining micro-batches only.
+resumed run stepped with the window's remaining micro-batches only. And a stop before a validation that was due
+(under DDP) or inside one (one process) lost that validation: the resumed run skips it, so its metrics and its
+best-model checkpoint never existed.
 
 :class:`SigtermAgreement` replaces that handler (once Lightning has installed it) with one that only notes the
 signal and passes it on to the processes Lightning started (as Lightning does); ``CheckpointOnSigterm`` notes
 Ctrl-C there too (:func:`request_stop`). The signal is acted on after a training batch that ends an accumulation
-window (the optimizer steps after it; every batch without accumulation, and the epoch's last batch). Under DDP the
-processes then agree with one ``all_reduce``: when any of them got a signal, all raise Lightning's
-``SIGTERMException`` there, and ``CheckpointOnSigterm`` saves ``last.ckpt`` from that same state on each. A
-validation in progress runs to its end first (its processes may hold different numbers of batches), then training
-runs to the end of the next accumulation window. With one process the signal is handed to Lightning at such a
-point, and Lightning stops as it always does: after that batch, or after the current batch of a validation that
-runs between two optimizer steps.
+window (the optimizer steps after it; every batch without accumulation, and the epoch's last batch), or, when a
+validation follows that batch or is running, at the end of that validation. Under DDP the processes agree there
+with one ``all_reduce``: when any of them got a signal, all stop at that point. After a training batch, DDP
+processes raise Lightning's ``SIGTERMException``, and one process sets Lightning's flag (Lightning stops after the
+batch). After a validation every process sets the flag, and Lightning stops right after it (at an epoch's end,
+after the epoch's end hooks and the checkpoints they save). ``CheckpointOnSigterm`` saves ``last.ckpt`` from that
+same state on each process; a run resumed from it neither repeats nor skips the validation.
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ from types import FrameType
 import lightning as L
 import torch
 import torch.distributed as dist
+from lightning.pytorch.trainer.states import TrainerFn
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 from lightning_utilities.core.rank_zero import rank_prefixed_message
 
@@ -47,6 +50,19 @@ def between_optimizer_steps(trainer: L.Trainer) -> bool:
     return not trainer.fit_loop.epoch_loop._should_accumulate()
 
 
+def _distributed(trainer: L.Trainer) -> bool:
+    return trainer.world_size > 1 and dist.is_available() and dist.is_initialized()
+
+
+def validation_follows(trainer: L.Trainer) -> bool:
+    """Whether Lightning validates right after the current training batch (asked in ``on_train_batch_end``)."""
+    loop = trainer.fit_loop.epoch_loop
+    try:
+        return bool(loop._should_check_val_fx(trainer.fit_loop._data_fetcher))  # type: ignore[arg-type]
+    except (AttributeError, TypeError):  # another Lightning version: as if none followed
+        return False
+
+
 class SigtermAgreement:
     """SIGTERM (and Ctrl-C) noted without collectives, acted on by all processes after the same optimizer step."""
 
@@ -55,6 +71,8 @@ class SigtermAgreement:
         """Whether this process was told to stop (SIGTERM, or Ctrl-C through :func:`request_stop`)."""
         self._signum: int | None = None
         self._trainer: L.Trainer | None = None
+        self._after_validation = False
+        """A stop agreed after a training batch that a validation follows: taken when that validation ends."""
 
     def install(self, trainer: L.Trainer) -> None:
         """Replace Lightning's SIGTERM handler (call after Lightning installed it: sanity check, train start).
@@ -67,7 +85,7 @@ class SigtermAgreement:
         """
         if self._trainer is trainer:
             return
-        self._trainer, self.received, self._signum = trainer, False, None
+        self._trainer, self.received, self._signum, self._after_validation = trainer, False, None, False
         if trainer.received_sigterm:  # Lightning's handler logged it
             trainer._signal_connector.received_sigterm, self.received = False, True
         signal.signal(signal.SIGTERM, self._on_sigterm)
@@ -88,11 +106,26 @@ class SigtermAgreement:
             launcher.kill(signum)  # the processes Lightning started (plain signals, as Lightning does)
         self.note(signum)
 
+    def _agreed(self, trainer: L.Trainer) -> bool:
+        """Whether any process was told to stop (a stop already agreed counts, without a collective)."""
+        if self._after_validation:
+            return True
+        if not _distributed(trainer):
+            return self.received
+        flag = torch.tensor([int(self.received)], device=trainer.strategy.root_device)
+        dist.all_reduce(flag, op=dist.ReduceOp.MAX)
+        return bool(flag.item())
+
+    def _log(self, trainer: L.Trainer) -> None:
+        if self._signum == signal.SIGTERM:
+            log.info(rank_prefixed_message(f"Received SIGTERM: {int(signal.SIGTERM)}", trainer.local_rank))
+
     def agree(self, trainer: L.Trainer) -> None:
         """After a training batch, on every process: stop all if any was told to, when the batch ended a window.
 
-        Under DDP raises ``SIGTERMException`` on all processes; with one process sets Lightning's flag, which stops
-        after this batch (or in the validation that follows it).
+        When a validation follows the batch, the stop waits for its end (:meth:`after_validation`). Else under DDP
+        raises ``SIGTERMException`` on all processes; with one process sets Lightning's flag, which stops after
+        this batch.
 
         Args:
             trainer: the running trainer (the one :meth:`install` was called with; else nothing happens).
@@ -100,40 +133,42 @@ class SigtermAgreement:
         Raises:
             SIGTERMException: under DDP, when any process was told to stop.
         """
-        if self._trainer is not trainer or not between_optimizer_steps(trainer):
+        if self._trainer is not trainer or not between_optimizer_steps(trainer) or not self._agreed(trainer):
             return
-        distributed = trainer.world_size > 1 and dist.is_available() and dist.is_initialized()
-        stop = self.received
-        if distributed:
-            flag = torch.tensor([int(stop)], device=trainer.strategy.root_device)
-            dist.all_reduce(flag, op=dist.ReduceOp.MAX)
-            stop = bool(flag.item())
-        if not stop:
+        if validation_follows(trainer):
+            self._after_validation = True
             return
-        if self._signum == signal.SIGTERM:
-            log.info(rank_prefixed_message(f"Received SIGTERM: {int(signal.SIGTERM)}", trainer.local_rank))
-        if distributed:
+        self._after_validation = False  # it did not run after all (no batches): stop here
+        self._log(trainer)
+        if _distributed(trainer):
             raise SIGTERMException
         trainer._signal_connector.received_sigterm = True
 
-    def during_validation(self, trainer: L.Trainer) -> None:
-        """With one process, after a validation batch: hand a noted stop to Lightning, unless it would cut a window.
+    def after_validation(self, trainer: L.Trainer) -> None:
+        """At the end of a validation inside a fit, on every process: stop all if any was told to.
 
-        Lightning then stops after this batch, as it does without the agreement. Under DDP the stop waits for the
-        next training batch (the processes may hold different numbers of validation batches).
+        The stop agreed before the validation, or a signal received during it (when no accumulation window is
+        open; else the stop waits for its end, :meth:`agree`). Sets Lightning's flag on every process: Lightning
+        stops right after the validation, or at an epoch's end after the epoch's end hooks (the checkpoints saved
+        there, ``ModelCheckpoint``'s with a validation at each epoch's end).
 
         Args:
             trainer: the running trainer (the one :meth:`install` was called with; else nothing happens).
+
         """
-        if self._trainer is trainer and trainer.world_size == 1 and self.received and between_optimizer_steps(trainer):
-            trainer._signal_connector.received_sigterm = True
+        if (self._trainer is not trainer or trainer.sanity_checking or trainer.state.fn != TrainerFn.FITTING
+                or not between_optimizer_steps(trainer) or not self._agreed(trainer)):
+            return
+        self._after_validation = False
+        self._log(trainer)
+        trainer._signal_connector.received_sigterm = True  # on every process, past the validation's collectives
 
 
 def request_stop(trainer: L.Trainer, signum: int) -> None:
     """Stop a fit as SIGTERM does, for another signal (Ctrl-C); safe inside a signal handler.
 
-    Through the module's :class:`SigtermAgreement` when it handles the run (after the next optimizer step, on every
-    process); else Lightning's own stop, at the end of the current batch.
+    Through the module's :class:`SigtermAgreement` when it handles the run (after the next optimizer step, or the
+    validation that follows it, on every process); else Lightning's own stop, at the end of the current batch.
 
     Args:
         trainer: the running trainer.
@@ -183,4 +218,5 @@ def sigterm_received(trainer: L.Trainer, agreement: SigtermAgreement | None) -> 
     return bool(trainer.received_sigterm or (agreement is not None and agreement.received))
 
 
-__all__ = ["SigtermAgreement", "between_optimizer_steps", "request_stop", "sigterm_received", "stop_started_processes"]
+__all__ = ["SigtermAgreement", "between_optimizer_steps", "request_stop", "sigterm_received", "stop_started_processes",
+           "validation_follows"]

@@ -6,7 +6,8 @@ training batch STEP (counted over the run, from 1: a micro-batch under gradient 
 validation after STEP after its first batch, "valend" at the end of that validation before its metrics are gathered
 across processes; with RANK, only that process pauses (the others run on, into the gathering).
 RECORD_IMAGES=PREFIX writes PREFIX<rank>.json: per epoch, a digest of every training image as the model received
-it (after augmentation), and PREFIX<rank>_names.json: per epoch, the names of the images trained, in order.
+it (after augmentation), and PREFIX<rank>_names.json: per epoch, the names of the images trained, in order, and
+PREFIX<rank>_validations.json: the step and val_loss of each validation that ran to its end (not the sanity check).
 SLOW_EXIT=SECONDS: the main process waits that long at exit (as one with more to write than the others would).
 SIGUSR1 prints every thread's stack (every process of the run registers it: a test that waits too long sends it to
 the whole process group before killing it)."""
@@ -57,13 +58,19 @@ class PauseAt(L.Callback):
 
 class RecordImages(L.Callback):
     def __init__(self, prefix: str) -> None:
-        self.prefix, self.seen, self.names = prefix, {}, {}
+        self.prefix, self.seen, self.names, self.validations = prefix, {}, {}, []
 
     def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
         epoch = self.seen.setdefault(str(trainer.current_epoch), {})
         for name, image in zip(batch["name"], batch["image"]):
             epoch[name] = hashlib.sha1(image.cpu().numpy().tobytes()).hexdigest()
         self.names.setdefault(str(trainer.current_epoch), []).extend(batch["name"])
+
+    def on_validation_end(self, trainer, pl_module):
+        if not trainer.sanity_checking:
+            self.validations.append([trainer.global_step, float(trainer.callback_metrics["val_loss"])])
+            path = Path(f"{self.prefix}{trainer.global_rank}_validations.json")  # also in a run stopped later
+            path.write_text(json.dumps(self.validations))
 
     def on_train_end(self, trainer, pl_module):
         Path(f"{self.prefix}{trainer.global_rank}.json").write_text(json.dumps(self.seen))

@@ -50,18 +50,24 @@ a resumed run must train as the uninterrupted one, which validated in between.""
 SCHEDULE = ["--model.optimizer.schedule_steps", "8"]  # no step depends on where a job stopped (docs/long_jobs.md)
 
 
-def job_config(tmp_path, name, every_step=True):
+def job_config(tmp_path, name, every_step=True, best=False):
     """Callbacks of a resumable job: save on SIGTERM, last.ckpt every step (or as the configs: at every validation
-    and when training ends)."""
+    and when training ends); ``best``: best-model checkpoints by val_loss too, all kept, one written at each
+    validation (``best-step=N.ckpt``), one as the configs' (``epoch-step=N.ckpt``: at each epoch's end when the
+    validation is there)."""
     path = tmp_path / f"{name}.yaml"
     last = {"dirpath": str(tmp_path / name), **({"every_n_train_steps": 1} if every_step else {})}
+    ranked = [{"class_path": "lightning.pytorch.callbacks.ModelCheckpoint", "init_args": {
+        "dirpath": str(tmp_path / name), "monitor": "val_loss", "save_top_k": -1, "filename": f"{kind}-{{step}}",
+        **({"save_on_train_epoch_end": False} if kind == "best" else {"mode": "max"})}}  # max: another state key
+        for kind in ("best", "epoch")]
     path.write_text(yaml.safe_dump({"trainer": {"logger": False, "callbacks": [
-        {"class_path": "dapm_lightning.training.checkpointing.CheckpointOnSigterm"},
+        {"class_path": "dapm_lightning.training.checkpointing.CheckpointOnSigterm"}, *(ranked if best else []),
         {"class_path": "dapm_lightning.training.checkpointing.LastCheckpoint", "init_args": last}]}}))
     return ["--config", str(QUICKSTART), "--config", str(path)]
 
 
-def start(tmp_path, name, data, extra=(), pause=None, every_step=True, slow_exit=None):
+def start(tmp_path, name, data, extra=(), pause=None, every_step=True, slow_exit=None, best=False):
     """A run of resume_run.py in a process group of its own; ``pause``: a step, or "STEP,WHERE[,RANK]" (resume_run.py).
     """
     step, _, where = str(pause).partition(",")
@@ -69,7 +75,7 @@ def start(tmp_path, name, data, extra=(), pause=None, every_step=True, slow_exit
     env = dict(os.environ, PAUSE_AT=marker if pause else "", RECORD_IMAGES=str(tmp_path / f"{name}_images_rank"),
                SLOW_EXIT=str(slow_exit or ""))
     cmd = [sys.executable, str(HERE / "resume_run.py"), str(tmp_path / f"{name}.pt"),
-           *job_config(tmp_path, name, every_step),
+           *job_config(tmp_path, name, every_step, best),
            "--data.class_path", "dapm_lightning.data.datamodules.UAPDDataModule", "--data.init_args.root", str(data),
            *TINY, *VALIDATE, *extra]
     return subprocess.Popen(cmd, cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
@@ -132,10 +138,10 @@ def weights(path):
 @pytest.mark.slow
 def test_killed_and_terminated_runs_resume_to_the_uninterrupted_weights(data8, tmp_path):
     """One process, validating every 2 steps (4 batches an epoch): killed after step 3, terminated after step 5 (the
-    whole job, a persistent loader worker included, as SLURM does), interrupted by Ctrl-C after step 6 (stopped in
-    the validation that follows), terminated in the validation after step 4 (the end of epoch 0) and stopped by
-    max_steps after step 3 (last.ckpt written when training ends, as the configs do); each, resumed to step 8,
-    equals the uninterrupted run."""
+    whole job, a persistent loader worker included, as SLURM does), interrupted by Ctrl-C after step 6 (stopped
+    after the validation that follows), terminated in the validation after step 4 (the end of epoch 0; stopped when
+    it ends) and stopped by max_steps after step 3 (last.ckpt written when training ends, as the configs do); each,
+    resumed to step 8, equals the uninterrupted run."""
     code, out = finish(start(tmp_path, "straight", data8, extra=SCHEDULE))
     assert code == 0, out[-3000:]
     reference = weights(tmp_path / "straight.pt")
@@ -327,7 +333,7 @@ class SignalAfterBatch(L.Callback):
 
 def test_a_stop_inside_an_accumulation_window_waits_for_its_optimizer_step(data8, tmp_path, monkeypatch):
     """One process accumulating 2 batches a step (4 batches an epoch, validating every 2): SIGTERM after batch 1
-    stops after batch 2 (step 1, in the validation that follows), Ctrl-C after batch 5 stops after batch 6 (step 3);
+    stops after batch 2 (step 1, after the validation that follows), Ctrl-C after batch 5 stops after batch 6 (step 3);
     each saves the position after its step, and resumed to step 4 equals the uninterrupted run bit for bit. (It
     stopped after the micro-batch: the position counted it as trained, but its gradients were not saved.)"""
     monkeypatch.chdir(tmp_path)
@@ -537,9 +543,9 @@ def data16(tmp_path_factory):
 def test_two_process_ddp_resumes_mid_epoch_exactly(data16, tmp_path):
     """2 processes, persistent workers, 4 steps per epoch, validating every 2 steps: stopped by max_steps at step 6
     (last.ckpt written by the validation there, as the configs do), by SIGTERM to rank 0 (step 3), and by SIGTERM to
-    the whole job while rank 1 gathers the metrics of the validation after step 4 and rank 0 has not started to (it
-    runs on to step 5: no collective in a signal handler), each resumed from last.ckpt to step 10, equal the
-    uninterrupted run bit for bit; Ctrl-C (step 3) saves too."""
+    the whole job while rank 1 gathers the metrics of the validation after step 4 and rank 0 has not started to (both
+    stop when that validation ends: no collective in a signal handler), each resumed from last.ckpt to step 10,
+    equal the uninterrupted run bit for bit; Ctrl-C (step 3) saves too."""
     code, out = finish(start(tmp_path, "straight", data16, extra=DDP), timeout=400)
     assert code == 0, out[-3000:]
     reference = weights(tmp_path / "straight.pt")
@@ -582,7 +588,7 @@ def test_two_process_ddp_resumes_mid_epoch_exactly(data16, tmp_path):
     code, out = finish(between, timeout=400)
     assert code == EXIT_SIGTERM, out[-3000:]
     saved = torch.load(tmp_path / "termed_valend" / "last.ckpt", weights_only=True)
-    assert saved["global_step"] == 5, out[-3000:]  # the validation finished, then one more step on both
+    assert saved["global_step"] == 4, out[-3000:]  # the validation finished, then both stopped
 
     for name in ("stopped", "termed", "termed_valend"):
         code, out = finish(start(tmp_path, name, data16, every_step=name != "stopped",
@@ -683,3 +689,45 @@ def test_resumed_on_another_number_of_processes_each_sample_is_trained_once(data
     assert sorted(epoch0) == sorted(everything + first_last_batch), epochs[0]
     assert sorted(epochs[1]["one_again"] + epochs[1]["two_again"]) == everything, epochs[1]
     assert sorted(epochs[2]["two_again"]) == everything, epochs[2]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("devices", [1, 2])
+def test_a_stop_agreed_before_a_validation_runs_that_validation_first(data8, tmp_path, devices):
+    """SIGTERM to the whole job after a step that a validation follows (2 batches an epoch, a validation after each:
+    step 1 inside epoch 0, step 2 at its end; one process 2 validation batches, two processes 1 each), resumed each
+    time, to step 3: the chain's validations (steps and val_loss), its best-model checkpoints and its weights are
+    the uninterrupted run's. (The stop came before the validation under DDP, and cut it after its first batch with
+    one process: the resumed run skipped it, its val_loss and its best-*.ckpt never existed.)"""
+    args = [*DDP, "--trainer.devices", str(devices), "--trainer.strategy", "ddp" if devices > 1 else "auto",
+            "--data.init_args.batch_size", str(4 // devices), "--trainer.val_check_interval", "1",
+            "--trainer.max_steps", "3", "--model.optimizer.schedule_steps", "3"]
+
+    def validations(name):  # [step, val_loss] of each validation that ended
+        path = tmp_path / f"{name}_images_rank0_validations.json"
+        return json.loads(path.read_text()) if path.exists() else []
+
+    code, out = finish(start(tmp_path, "straight", data8, extra=args, every_step=False, best=True), timeout=400)
+    assert code == 0, out[-3000:]
+    chained = []
+    for pause in (1, 2, None):
+        for stale in (tmp_path / "chain.marker", tmp_path / "chain_images_rank0_validations.json"):
+            stale.unlink(missing_ok=True)
+        resume = ["--ckpt_path", str(tmp_path / "chain" / "last.ckpt")] if pause != 1 else []
+        run = start(tmp_path, "chain", data8, extra=[*args, *resume], pause=pause, every_step=False, best=True)
+        if pause:
+            wait_for(tmp_path / "chain.marker", run)
+            terminate_job(run)
+        code, out = finish(run, timeout=400)
+        assert code == (EXIT_SIGTERM if pause else 0), out[-3000:]
+        if pause:
+            assert torch.load(tmp_path / "chain" / "last.ckpt", weights_only=True)["global_step"] == pause
+        chained += validations("chain")
+    assert [step for step, _ in validations("straight")] == [1, 2, 3]
+    assert chained == validations("straight"), chained
+    best = sorted(path.name for path in (tmp_path / "chain").glob("*-step=*.ckpt"))
+    assert best == sorted(path.name for path in (tmp_path / "straight").glob("*-step=*.ckpt")), best
+    assert len(best) == 5  # best- at each of the 3 validations, epoch- at the 2 epochs' ends
+    reference, resumed = weights(tmp_path / "straight.pt"), weights(tmp_path / "chain.pt")
+    for key, value in reference["state_dict"].items():
+        assert torch.equal(value, resumed["state_dict"][key]), f"{key} differs"
