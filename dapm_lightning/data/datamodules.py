@@ -137,7 +137,8 @@ class DAPMDataModule(L.LightningDataModule):
         The position is rounded down to a multiple of the global batch (batch size x processes), so that it is a
         whole number of this run's batches (:attr:`resumed_at`) also when the checkpoint was saved by another number
         of processes (or batch size): fewer than one global batch of samples is then trained twice. An epoch keeps
-        at least its last batch.
+        at least its last batch, the last of this run's epoch (:meth:`_epoch_batches`: ``limit_train_batches``
+        counts each process's batches, so an epoch holds another number of samples on another number of processes).
         """
         dataset = self.datasets[split]
         world_size, rank = self._processes()
@@ -153,10 +154,17 @@ class DAPMDataModule(L.LightningDataModule):
             self.resumed_at = None
             if self._resume_position is not None:  # restored from a checkpoint
                 epoch, samples = self._resume_position["epoch"], self._resume_position["samples_seen"]
-                batches = min(samples // (batch_size * world_size), max(len(loader) - 1, 0))
+                batches = min(samples // (batch_size * world_size), max(self._epoch_batches(len(loader)) - 1, 0))
                 sampler.resume(epoch, batches * batch_size * world_size)
                 self.resumed_at, self._resume_position = (epoch, batches), None
         return loader
+
+    def _epoch_batches(self, loader_batches: int) -> int:
+        """Training batches in an epoch of this run: the loader's, cut by ``limit_train_batches`` as Lightning does."""
+        limit = self.trainer.limit_train_batches if self.trainer is not None else 1.0
+        if isinstance(limit, int):
+            return min(loader_batches, limit)
+        return int(loader_batches * limit)
 
     def train_dataloader(self) -> DataLoader[dict[str, Any]]:
         return self._loader("train", train=True)

@@ -387,6 +387,27 @@ def test_a_resume_with_another_global_batch_trains_each_sample_once(data8, tmp_p
     assert sorted(epochs[1]) == sorted(epochs[2]) == everything
 
 
+def test_a_resume_past_this_runs_limit_train_batches_ends_that_epoch(data8, tmp_path, monkeypatch):
+    """limit_train_batches 2 counts batches of each process: an epoch is 8 samples 4 a batch, 4 samples 2 a batch
+    (the global batch here the batch size, the process count in the slow tier). Stopped after 1 batch of 4 (4
+    samples: all of the resumed run's epoch) and resumed 2 a batch: epoch 0 trains the last batch of its 2 again
+    (samples 2-3 of the order) and ends, epoch 1 trains 2. It ran 2 more batches (samples 4-7) in epoch 0."""
+    monkeypatch.chdir(tmp_path)
+
+    def batch(size):
+        return ["--data.init_args.batch_size", str(size), "--trainer.limit_train_batches", "2",
+                "--trainer.max_steps", "-1", "--trainer.max_epochs", "2", "--trainer.val_check_interval", "1"]
+
+    _, first = fit_in_process(tmp_path, "run", data8, 0, [*batch(4), "--trainer.max_steps", "1"])
+    assert torch.load(tmp_path / "run" / "last.ckpt", weights_only=True)["UAPDDataModule"] == {"epoch": 0,
+                                                                                            "samples_seen": 4}
+    _, second = fit_in_process(tmp_path, "run", data8, 0, batch(2), ckpt=str(tmp_path / "run" / "last.ckpt"))
+    epochs = names_per_epoch(second)
+    assert epochs[0] == list(first[0][2][2:]) and len(set(epochs[1])) == 4, epochs
+    assert torch.load(tmp_path / "run" / "last.ckpt", weights_only=True)["UAPDDataModule"] == {"epoch": 2,
+                                                                                            "samples_seen": 0}
+
+
 def test_validation_leaves_training_alone_even_when_it_draws_random_numbers(data8, tmp_path, monkeypatch):
     """Training draws (dropout) the same numbers whether validations ran in between or not, whatever they draw: the
     RNG states of training are put back after each validation, and a checkpoint written during one saves those."""
@@ -731,3 +752,37 @@ def test_a_stop_agreed_before_a_validation_runs_that_validation_first(data8, tmp
     reference, resumed = weights(tmp_path / "straight.pt"), weights(tmp_path / "chain.pt")
     for key, value in reference["state_dict"].items():
         assert torch.equal(value, resumed["state_dict"][key]), f"{key} differs"
+
+
+@pytest.mark.slow
+def test_limit_train_batches_resumed_on_another_number_of_processes_ends_the_epoch_at_its_limit(data16, tmp_path):
+    """limit_train_batches 3 counts each process's batches: an epoch is 12 of the 16 images on 2 processes, 6 on 1
+    (2 a batch). 2 processes stopped after 2 steps (8 images) and resumed on 1: epoch 0 trains the last batch of its
+    3 again (images 4-5 of the order) and ends, epoch 1 trains 3 batches (it ran 3 more, images 8-13, in epoch 0).
+    1 process stopped after 2 steps (4 images) and resumed on 2: epoch 0 trains images 4-11 once each, epoch 1
+    3 batches on each process."""
+    def processes(count, resume=None):
+        return [*DDP, "--trainer.devices", str(count), "--trainer.strategy", "ddp" if count > 1 else "auto",
+                "--trainer.max_steps", "-1" if resume else "2", "--trainer.max_epochs", "2",
+                "--trainer.limit_train_batches", "3", "--trainer.limit_val_batches", "0",
+                *(["--ckpt_path", str(tmp_path / resume / "last.ckpt")] if resume else [])]
+
+    def names(name):  # the images each epoch trained, all processes
+        epochs = {}
+        for path in sorted(tmp_path.glob(f"{name}_images_rank*_names.json")):
+            for epoch, trained in json.loads(path.read_text()).items():
+                epochs.setdefault(int(epoch), []).extend(trained)
+        return epochs
+
+    runs = (("two", processes(2), 8), ("one", processes(1, "two"), 0), ("one_b", processes(1), 4),
+            ("two_b", processes(2, "one_b"), 0))
+    for name, args, samples in runs:
+        code, out = finish(start(tmp_path, name, data16, extra=args, every_step=False), timeout=400)
+        assert code == 0, out[-3000:]
+        saved = torch.load(tmp_path / name / "last.ckpt", weights_only=True)
+        assert saved["UAPDDataModule"] == {"epoch": 2 if samples == 0 else 0, "samples_seen": samples}, name
+    two = [json.loads((tmp_path / f"two_images_rank{rank}_names.json").read_text())["0"] for rank in (0, 1)]
+    one = names("one")
+    assert one[0] == [two[0][2], two[1][2]] and len(set(one[1])) == 6, one  # images 4 and 5 of the order: step 2's
+    epoch0 = names("one_b")[0] + names("two_b")[0]
+    assert len(epoch0) == len(set(epoch0)) == 12 and len(set(names("two_b")[1])) == 12
