@@ -150,6 +150,11 @@ def laplacian_gradient_loss(pred: Tensor, target: Tensor, mask: Tensor) -> Tenso
 
 
 def _resize_nearest(x: Tensor, size: tuple[int, int]) -> Tensor:
+    """``x`` at ``size``, each cell's top-left pixel: the coarse bins' targets.
+
+    Centre pixels or each cell's shares of the bins measured no better at the quickstart's budget
+    (docs/transfer.md, "Coarse bins supervised where their cells lie").
+    """
     if x.shape[-2:] == size:
         return x
     return F.interpolate(x.float(), size=size, mode="nearest")
