@@ -30,7 +30,8 @@ class EpochShuffleSampler(DistributedSampler[SampleKey]):
         num_replicas, rank: processes and this one's rank (1 and 0 outside DDP).
         shuffle: ``False`` keeps the data set order (evaluation).
         drop_last: drop the tail that does not divide among processes (training); ``False`` gives the
-            first ranks one sample more instead (evaluation: every sample exactly once, none repeated).
+            first ranks one sample more instead (evaluation: every sample exactly once, none repeated; a
+            process without a sample still counts one, see :meth:`__len__`).
     """
 
     def __init__(self, length: int, seed: int = 0, *, num_replicas: int = 1, rank: int = 0, shuffle: bool = True,
@@ -68,7 +69,12 @@ class EpochShuffleSampler(DistributedSampler[SampleKey]):
         return iter([(self.epoch, index) for index in order[self.rank::self.num_replicas]])
 
     def __len__(self) -> int:
-        """Keys per process in a whole epoch (a resumed epoch yields fewer; Lightning counts on from where it was)."""
+        """Keys per process in a whole epoch (a resumed epoch yields fewer; Lightning counts on from where it was).
+
+        Without ``drop_last``, 1 for a process left without a sample (fewer samples than processes), which yields
+        none: Lightning skips the evaluation loop of a process with no batch, and the others would wait for its
+        share of the collectives (metrics, logs, callbacks); counted as one, its loop runs and ends at once.
+        """
         if self.drop_last:
             return self.length // self.num_replicas
-        return len(range(self.rank, self.length, self.num_replicas))
+        return max(len(range(self.rank, self.length, self.num_replicas)), min(self.length, 1))

@@ -7,12 +7,14 @@ protocol (3-point AUC, MAE).
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from typing import Any
 
 import torch
 from torch import Tensor
 from torchmetrics import Metric
 from torchmetrics.utilities import dim_zero_cat
+from torchmetrics.utilities.distributed import gather_all_tensors
 
 from dapm_lightning.geometry.constants import POSE_KEYS
 
@@ -71,6 +73,17 @@ class PoseMetrics(Metric):
             raise ValueError(f"pred {tuple(pred.shape)} and target {tuple(target.shape)} must both be [B, 4]")
         assert isinstance(self.errors, list)
         self.errors.append((pred.detach().double() - target.double()).abs())
+
+    def _sync_dist(self, dist_sync_fn: Callable[..., Any] = gather_all_tensors,
+                   process_group: Any | None = None) -> None:
+        """Gather the errors (DDP), a process without any (no image with a pose) taking part with ``[0, 4]``.
+
+        torchmetrics' own stand-in for an empty list is a 1-D float32 tensor, which the others' ``[B, 4]`` float64
+        errors do not gather with.
+        """
+        if isinstance(self.errors, list) and not self.errors:
+            self.errors = [torch.zeros(0, 4, dtype=torch.float64, device=self.device)]
+        super()._sync_dist(dist_sync_fn, process_group)
 
     def compute(self) -> dict[str, Tensor]:
         errors = self.errors

@@ -79,13 +79,15 @@ class DepthPanelLogger(L.Callback):
     def __init__(self, every_n_steps: int = 500, max_images: int = 4, output_dir: str | None = None) -> None:
         self.every_n_steps, self.max_images, self.output_dir = every_n_steps, max_images, output_dir
         self.written: list[Path] = []
+        self._test_log_dir: str | None = None
 
     @property
     def needs_logger(self) -> bool:
         """True without ``output_dir``: the panels go to the logger and its log folder."""
         return self.output_dir is None
 
-    def _render(self, trainer: L.Trainer, pl_module: L.LightningModule, batch: dict[str, Any], tag: str) -> None:
+    def _render(self, trainer: L.Trainer, pl_module: L.LightningModule, batch: dict[str, Any], tag: str,
+                log_dir: str | None) -> None:
         was_training = pl_module.training
         pl_module.eval()
         with torch.no_grad():
@@ -95,7 +97,6 @@ class DepthPanelLogger(L.Callback):
         panel = depth_panel(image, batch["depth"][: self.max_images], out, self.max_images,
                             _dapm_module(pl_module).net_config.igd)
         step = trainer.global_step
-        log_dir = trainer.log_dir  # a broadcast under DDP: every rank asks, or rank 0 waits for the others forever
         experiment = getattr(trainer.logger, "experiment", None)
         if experiment is not None and hasattr(experiment, "add_image"):
             experiment.add_image(f"panels/{tag}", panel, step, dataformats="HWC")
@@ -109,9 +110,13 @@ class DepthPanelLogger(L.Callback):
     def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any,
                            batch_idx: int) -> None:
         if self.every_n_steps > 0 and trainer.global_step % self.every_n_steps == 0:
-            self._render(trainer, pl_module, batch, "train")
+            # a broadcast under DDP: every rank asks (all train every step), or rank 0 waits for the others forever
+            self._render(trainer, pl_module, batch, "train", trainer.log_dir)
+
+    def on_test_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self._test_log_dir = trainer.log_dir  # asked here, by every rank: one may have no test batch (DDP)
 
     def on_test_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any,
                           batch_idx: int, dataloader_idx: int = 0) -> None:
         if batch_idx == 0:
-            self._render(trainer, pl_module, batch, "test")
+            self._render(trainer, pl_module, batch, "test", self._test_log_dir)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 import zlib
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass, replace
@@ -17,6 +18,7 @@ from lightning.pytorch.trainer.states import TrainerFn
 from lightning.pytorch.utilities import rank_zero_info, rank_zero_warn
 from lightning.pytorch.utilities.types import LRSchedulerTypeUnion, OptimizerLRSchedulerConfig
 from torch import Tensor
+from torch.nn.parallel import DistributedDataParallel
 from torchmetrics import Metric
 
 from dapm_lightning.data.sample import depth_masks
@@ -292,6 +294,9 @@ class DAPMModule(L.LightningModule):
         """SIGTERM and Ctrl-C acted on by every process after the same optimizer step (:mod:`.signals`)."""
         self.train_image_size: tuple[int, int] | None = None
         """``(H, W)`` of the training images (saved in checkpoints; inference runs at the same pixel count)."""
+        self.eval_losses: dict[str, tuple[dict[str, Tensor], int]] = {}
+        """Per evaluation stage: ``({key: sum of loss x batch size}, images)`` of this process, logged at the
+        epoch's end (:meth:`_log_metrics`)."""
 
     def configure_models(self) -> None:
         """The network, :attr:`net`, from ``net``."""
@@ -381,14 +386,14 @@ class DAPMModule(L.LightningModule):
         terms = self.criterion(out, {**batch, "sky": sky, "valid": valid})
         batch_size = image.shape[0]
         named = {f"{stage}_loss_{k}": v.detach() for k, v in terms.items() if k != "total"}
-        # sync_dist: epoch-level values are the mean over all processes (one value every rank agrees on)
-        if stage != "train":
-            self.log_dict(named, batch_size=batch_size, on_step=False, on_epoch=True, sync_dist=True)
-            self.log(f"{stage}_loss", terms["total"].detach(), batch_size=batch_size, prog_bar=True,
-                     on_step=False, on_epoch=True, sync_dist=True)
+        if stage != "train":  # the mean over the epoch's images, logged at its end (_log_metrics)
+            sums, images = self.eval_losses.get(stage, ({}, 0))
+            for key, value in {**named, f"{stage}_loss": terms["total"].detach()}.items():
+                sums[key] = sums.get(key, 0.0) + value * batch_size
+            self.eval_losses[stage] = (sums, images + batch_size)
         else:  # each step's values as they are (NaN included); the epoch's mean over the steps whose loss is finite
             # (a non-finite step, skipped by default, weighs 0): <key>_step and <key>_epoch, as Lightning names a value
-            # logged on both
+            # logged on both; sync_dist: epoch-level values are the mean over all processes
             finite = bool(torch.isfinite(terms["total"]))
             for key, value in {**named, "train_loss": terms["total"].detach()}.items():
                 self.log(f"{key}_step", value, batch_size=batch_size, prog_bar=key == "train_loss", on_step=True,
@@ -413,12 +418,38 @@ class DAPMModule(L.LightningModule):
                 metric.update(out.pose_physical[has_pose], batch["pose"][has_pose])
 
     def _log_metrics(self, stage: str) -> None:
-        for name, module in self.metrics.items():
-            metric = cast(Metric, module)
-            if name.startswith(stage + "_") and metric.update_called:
-                # compute() already reduced over processes; every rank holds the same value, so the mean that
-                # sync_dist takes is that value (and Lightning does not warn about unsynced epoch-level logs)
-                self.log_dict({f"{name}_{k}": v for k, v in metric.compute().items()}, sync_dist=True)
+        """Log the epoch's losses (means over its images) and metrics, figures of all processes' images.
+
+        Under DDP a process may have fewer images than another, or none (fewer images than processes): every
+        process logs the same keys in the same order (their collectives pair up), and one without images adds
+        nothing. A metric that no process updated (no image with a pose) is left out, as with one process.
+        Every value is then the same on every rank, so the mean that ``sync_dist`` takes is that value (and
+        Lightning does not warn about unsynced epoch-level logs).
+        """
+        sums, images = self.eval_losses.pop(stage, ({}, 0))
+        metrics = {name: cast(Metric, m) for name, m in self.metrics.items() if name.startswith(stage + "_")}
+        names, updated = list(sums), {name for name, metric in metrics.items() if metric.update_called}
+        distributed = self._trainer is not None and self.trainer.world_size > 1 and dist.is_initialized()
+        if distributed:
+            parts: list[Any] = [None] * self.trainer.world_size
+            dist.all_gather_object(parts, (names, updated))
+            names = max((part[0] for part in parts), key=len)  # [] from a process without images
+            updated = set().union(*(part[1] for part in parts))
+        if names:
+            zero = torch.zeros((), device=self.device)
+            totals = torch.stack([*(sums.get(key, zero) for key in names), zero + images])
+            if distributed:
+                dist.all_reduce(totals)
+            means = dict(zip(names, totals[:-1] / totals[-1]))
+            total = means.pop(f"{stage}_loss")
+            self.log_dict(means, sync_dist=True)
+            self.log(f"{stage}_loss", total, prog_bar=True, sync_dist=True)
+        for name, metric in metrics.items():
+            if name in updated:
+                with warnings.catch_warnings():  # compute() on a process without images: its sync is still due
+                    warnings.filterwarnings("ignore", "The ``compute`` method of metric", UserWarning)
+                    values = metric.compute()  # reduced over processes
+                self.log_dict({f"{name}_{k}": v for k, v in values.items()}, sync_dist=True)
                 metric.reset()
 
     def training_step(self, batch: dict[str, Any], batch_idx: int) -> Tensor | None:
@@ -503,9 +534,19 @@ class DAPMModule(L.LightningModule):
             set_rng_states(checkpoint["dapm_rng_states"])  # a resumed run draws what the uninterrupted one would
 
     def on_validation_start(self) -> None:
-        """During a fit, keep the RNG states of the training stream (see :meth:`on_validation_end`)."""
+        """During a fit, keep the RNG states of the training stream (see :meth:`on_validation_end`).
+
+        Under DDP, also sync the buffers (rank 0's batch-norm statistics) here, on every process, where DDP would
+        have the first validation forward sync them: a process without a validation batch (fewer images than
+        processes) would never join that collective, and the others would wait for it.
+        """
         if self._trainer is not None and self.trainer.state.fn == TrainerFn.FITTING:
             self._training_rng_states = rng_states()
+            wrapper = self.trainer.strategy.model
+            if isinstance(wrapper, DistributedDataParallel):
+                if wrapper.will_sync_module_buffers():  # type: ignore[no-untyped-call]
+                    wrapper._sync_buffers()  # type: ignore[no-untyped-call]
+                wrapper.require_forward_param_sync = False  # no validation forward syncs them again
 
     def on_validation_end(self) -> None:
         """Give training back the RNG states it had when the validation started; then stop on SIGTERM or Ctrl-C.

@@ -47,6 +47,14 @@ def test_evaluation_order_keeps_every_sample_once():
     assert [len(r) for r in ranks] == [4, 3]
 
 
+def test_an_evaluation_process_without_a_sample_counts_one_and_yields_none():
+    """So that Lightning runs its evaluation loop (and collectives) there too: it skips a process with no batch."""
+    ranks = [EpochShuffleSampler(1, num_replicas=2, rank=r, shuffle=False, drop_last=False) for r in (0, 1)]
+    assert [keys(r) for r in ranks] == [[(0, 0)], []] and [len(r) for r in ranks] == [1, 1]
+    assert len(EpochShuffleSampler(0, num_replicas=2, rank=1, shuffle=False, drop_last=False)) == 0  # none anywhere
+    assert len(EpochShuffleSampler(1, num_replicas=2, rank=1)) == 0  # training: the tail is dropped
+
+
 def test_resume_sets_the_epoch_before_lightning_does():
     """Loader workers prefetch as soon as the resumed loader's iterator exists, before Lightning's set_epoch."""
     sampler = EpochShuffleSampler(8, seed=2)

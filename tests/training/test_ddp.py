@@ -1,6 +1,8 @@
 """DDP with 2 CPU processes (gloo): every config trains, and logged validation figures equal a single-process run."""
 
 import json
+import os
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -15,15 +17,26 @@ HERE = Path(__file__).resolve().parent
 QUICKSTART = HERE.parents[1] / "dapm_lightning" / "configs" / "quickstart.yaml"
 
 
-def run(tmp_path, name, *args):
+def run(tmp_path, name, *args, timeout=300):
+    """Rank 0's figures; a run still going after ``timeout`` s fails the test, every process it started killed (the
+    others would wait in a collective for the process group's 30 minutes)."""
     out = tmp_path / f"{name}.json"
-    subprocess.run([sys.executable, str(HERE / "ddp_run.py"), str(out), *args], check=True, cwd=tmp_path,
-                   capture_output=True, text=True, timeout=300)
+    process = subprocess.Popen([sys.executable, str(HERE / "ddp_run.py"), str(out), *args], cwd=tmp_path, text=True,
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
+    try:
+        stdout, stderr = process.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        os.killpg(process.pid, signal.SIGKILL)
+        pytest.fail(f"{name}: still running after {timeout} s (processes waiting for each other):\n"
+                    f"{process.communicate()[1][-3000:]}")
+    if process.returncode:
+        raise subprocess.CalledProcessError(process.returncode, process.args, stdout, stderr)
     return json.loads(out.read_text())
 
 
 def test_ddp_two_cpu_processes_match_single_process(tmp_path):
-    root = generate_uapd(tmp_path / "data", train=8, val=6, size=(24, 40), seed=11, workers=1)
+    # 5 validation images: 3 on rank 0, 2 on rank 1 (the losses' means weigh the processes by their images)
+    root = generate_uapd(tmp_path / "data", train=8, val=5, size=(24, 40), seed=11, workers=1)
     common = ["--config", str(QUICKSTART), "--data.class_path", "dapm_lightning.data.datamodules.UAPDDataModule",
               "--data.init_args.root", str(root), "--data.init_args.batch_size", "2",
               "--data.init_args.num_workers", "0", "--trainer.accelerator", "cpu",
@@ -52,6 +65,37 @@ def test_ddp_two_cpu_processes_match_single_process(tmp_path):
     tested = run(tmp_path, "test", "test", *common, "--trainer.devices", "2", "--trainer.strategy", "ddp",
                  "--trainer.default_root_dir", str(tmp_path / "test_run"), "--ckpt_path", str(ckpt))
     assert tested["metrics"]["test_depth_d1"] == pytest.approx(single["metrics"]["val_depth_d1"], rel=1e-5)
+    assert list((tmp_path / "test_run").rglob("viewpoints.png")) and list((tmp_path / "test_run").rglob("panels/*.png"))
+
+
+def test_ddp_evaluates_fewer_images_than_processes(tmp_path):
+    """One validation image, two processes: rank 1 has no batch, yet fit (its sanity check and validation), validate
+    and test (with the quickstart's loggers, panels and viewpoint figure) end with one process's figures. Rank 1 once
+    stopped with Lightning's "`DataLoader` within local rank has zero length"; allowed, it skipped the evaluation
+    loop, and rank 0 waited in the collectives of the metrics, the logged losses and DDP's buffer sync."""
+    root = generate_uapd(tmp_path / "data", train=4, val=1, size=(24, 32), seed=15, workers=1)
+    common = ["--config", str(QUICKSTART), "--data.class_path", "dapm_lightning.data.datamodules.UAPDDataModule",
+              "--data.init_args.root", str(root), "--data.init_args.batch_size", "2",
+              "--data.init_args.num_workers", "0", "--trainer.accelerator", "cpu"]
+    ddp = ["--trainer.devices", "2", "--trainer.strategy", "ddp"]
+
+    def launch(name, subcommand, *args):
+        try:
+            return run(tmp_path, name, subcommand, *common, *args, timeout=180)
+        except subprocess.CalledProcessError as error:
+            pytest.fail(f"{name} failed:\n{error.stderr[-3000:]}")
+
+    fit = launch("fit", "fit", *ddp, "--trainer.max_steps", "1", "--trainer.logger", "false",
+                 "--trainer.callbacks+=lightning.pytorch.callbacks.ModelCheckpoint",
+                 "--trainer.callbacks.dirpath", str(tmp_path / "ckpt"))  # one step per epoch: validated after it
+    ckpt = str(next((tmp_path / "ckpt").glob("*.ckpt")))
+    single = launch("one", "validate", "--trainer.devices", "1", "--trainer.logger", "false", "--ckpt_path", ckpt)
+    tested = launch("test", "test", *ddp, "--trainer.default_root_dir", str(tmp_path / "test_run"), "--ckpt_path", ckpt)
+    keys = [k for k in single["metrics"] if k.startswith("val_")]
+    assert {"val_pose_roll_median", "val_depth_abs_rel", "val_loss", "val_loss_pd"} <= set(keys)
+    for key in keys:
+        expected = pytest.approx(single["metrics"][key], rel=1e-5, abs=1e-6)
+        assert fit["metrics"][key] == expected and tested["metrics"]["test" + key[3:]] == expected, key
     assert list((tmp_path / "test_run").rglob("viewpoints.png")) and list((tmp_path / "test_run").rglob("panels/*.png"))
 
 
