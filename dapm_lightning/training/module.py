@@ -570,6 +570,19 @@ class DAPMModule(L.LightningModule):
     def test_step(self, batch: dict[str, Any], batch_idx: int) -> DAPMOutput:  # type: ignore[override]
         return self._shared_step(batch, "test")[1]
 
+    def _start_evaluation(self, stage: str) -> None:
+        """Forget what an evaluation of ``stage`` cut short by an error left (its loss sums, its metrics' states)."""
+        self.eval_losses.pop(stage, None)
+        for name, metric in self.metrics.items():
+            if name.startswith(stage + "_"):
+                cast(Metric, metric).reset()
+
+    def on_validation_epoch_start(self) -> None:
+        self._start_evaluation("val")
+
+    def on_test_epoch_start(self) -> None:
+        self._start_evaluation("test")
+
     def on_validation_epoch_end(self) -> None:
         self._log_metrics("val")
 

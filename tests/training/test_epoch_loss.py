@@ -55,3 +55,30 @@ def test_a_skipped_nonfinite_step_leaves_the_epoch_losses_finite(tiny_uapd, tmp_
         assert value == pytest.approx(second[key.replace("_epoch", "_step")], rel=1e-6), key
     assert all(math.isfinite(v) for v in epoch.values()), epoch
     assert torch.isfinite(cli.trainer.callback_metrics["train_loss_epoch"])
+
+
+def test_an_evaluation_cut_short_leaves_nothing_to_the_next(tiny_uapd, tmp_path, monkeypatch):
+    """A validation stopped by an error mid-way (out of memory, Ctrl-C in a notebook): the next one starts afresh."""
+    monkeypatch.chdir(tmp_path)
+    cli = run_lightning_cli(["--config", str(QUICKSTART), "--data.class_path",
+                             "dapm_lightning.data.datamodules.UAPDDataModule", "--data.init_args.root", str(tiny_uapd),
+                             *TINY, "--data.init_args.eval_batch_size", "1", "--trainer.limit_val_batches", "1.0"],
+                            run=False)
+    model, trainer = cli.model, cli.trainer
+    expected = {k: float(v) for k, v in trainer.validate(model, datamodule=cli.datamodule, verbose=False)[0].items()}
+    real, calls = model.criterion.forward, []
+
+    def fail_on_the_second_batch(out, targets):
+        calls.append(1)
+        if len(calls) == 2:
+            raise RuntimeError("out of memory")
+        return real(out, targets)
+
+    monkeypatch.setattr(model.criterion, "forward", fail_on_the_second_batch)
+    with pytest.raises(RuntimeError, match="out of memory"):
+        trainer.validate(model, datamodule=cli.datamodule, verbose=False)
+    monkeypatch.setattr(model.criterion, "forward", real)
+    again = {k: float(v) for k, v in trainer.validate(model, datamodule=cli.datamodule, verbose=False)[0].items()}
+    assert again.keys() == expected.keys() and "val_loss" in again and "val_depth_d1" in again
+    for key, value in expected.items():
+        assert again[key] == pytest.approx(value, rel=1e-6, nan_ok=True), key
