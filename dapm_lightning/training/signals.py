@@ -123,7 +123,8 @@ class SigtermAgreement:
     def agree(self, trainer: L.Trainer) -> None:
         """After a training batch, on every process: stop all if any was told to, when the batch ended a window.
 
-        When a validation follows the batch, the stop waits for its end (:meth:`after_validation`). Else under DDP
+        When a validation follows the batch, the stop waits for its end (:meth:`after_validation`); if it did not
+        run after all (Lightning skipped it), the stop is taken after the next window instead. Else under DDP
         raises ``SIGTERMException`` on all processes; with one process sets Lightning's flag, which stops after
         this batch.
 
@@ -135,10 +136,10 @@ class SigtermAgreement:
         """
         if self._trainer is not trainer or not between_optimizer_steps(trainer) or not self._agreed(trainer):
             return
-        if validation_follows(trainer):
+        if validation_follows(trainer) and not self._after_validation:  # set still: the last one did not run
             self._after_validation = True
             return
-        self._after_validation = False  # it did not run after all (no batches): stop here
+        self._after_validation = False  # no validation follows, or the one expected did not run: stop here
         self._log(trainer)
         if _distributed(trainer):
             raise SIGTERMException
