@@ -52,6 +52,10 @@ class WriteError(OSError, ValueError):
         self.fix = fix or "write to another folder"
         super().__init__(f"{path}: cannot be written ({reason})\nFix: {self.fix}")
 
+    def __reduce__(self) -> tuple[type[WriteError], tuple[Path, str, str]]:
+        """Pickled as its three fields: a worker process's error reaches its parent whole (not as a broken pool)."""
+        return type(self), (self.path, self.reason, self.fix)
+
 
 def _fix(error: OSError) -> str:
     if error.errno in _FULL:

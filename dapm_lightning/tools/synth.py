@@ -5,11 +5,13 @@ from __future__ import annotations
 import argparse
 import math
 import re
+import signal
+import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from dapm_lightning.data.files import check_folder_writable
+from dapm_lightning.data.files import WriteError, check_folder_writable
 from dapm_lightning.data.synthetic import FAMILIES, SynthFolderError, generate_uapd, normalize_families, shard_range
 from dapm_lightning.geometry.constants import MAX_DEPTH_M, MIN_DEPTH_LIMIT_M
 from dapm_lightning.tools.progress import progress_bar
@@ -67,6 +69,15 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+EXIT_SIGTERM = 128 + signal.SIGTERM
+"""Exit status of a render stopped by SIGTERM (143, as a process killed by it): a job script tells it from 0."""
+
+
+def _stop_on_sigterm(signum: int, frame: object) -> None:
+    print("\nstopped by SIGTERM: no synth.json written; rerun the same command to render the set", file=sys.stderr)
+    raise SystemExit(EXIT_SIGTERM)
+
+
 def synth_main(argv: Sequence[str]) -> None:
     """Entry point of ``dapm-lightning synth``."""
     parser = build_parser()
@@ -81,15 +92,18 @@ def synth_main(argv: Sequence[str]) -> None:
     part = shard_range(args.train + args.val, args.shard)
     check_folder_writable(args.out, "--out")
     start = time.perf_counter()
+    previous = signal.signal(signal.SIGTERM, _stop_on_sigterm)  # as Ctrl-C: the worker processes end with the run
     try:
         with progress_bar(len(part), quiet=args.quiet, what="rendering") as bar:
             out = generate_uapd(args.out, train=args.train, val=args.val, size=size, seed=args.seed,
                                 workers=args.workers, families=args.families, effects=args.effects, shard=args.shard,
                                 distortion=args.distortion, max_depth=args.max_depth, progress=bar.update)
-    except SynthFolderError:
-        raise  # a folder problem, not a wrong option: its message and fix, without the usage
+    except (SynthFolderError, WriteError):
+        raise  # a folder or disk problem, not a wrong option: its message and fix, without the usage
     except ValueError as error:
         parser.error(str(error))
+    finally:
+        signal.signal(signal.SIGTERM, previous)
     seconds = time.perf_counter() - start
     what = (f"images {part.start}..{part.stop - 1} (shard {args.shard[0]}/{args.shard[1]}) of "
             if args.shard[1] > 1 else "")

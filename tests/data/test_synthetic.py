@@ -331,3 +331,60 @@ def test_skies_are_blue_pale_or_white_with_the_rest_of_the_scene_unchanged():
             > sky_color(near_sun, sun, plain, np.zeros(3), 1e-3, 0) + 0.1).all()
 
     assert scene_fingerprint(range(6)) == VERSION_3_SCENES
+
+
+def test_an_image_a_worker_cannot_write_ends_the_command_naming_it(tmp_path, capsys):
+    """A worker's WriteError reaches the command whole (it pickles): the file and the fix, no usage, status 1.
+
+    Before, it could not be unpickled and the render ended in 'BrokenProcessPool: ... terminated abruptly'.
+    """
+    import pickle
+
+    from dapm_lightning.data.files import WriteError
+
+    error = pickle.loads(pickle.dumps(WriteError(tmp_path / "x.png", "No space left on device", "free space")))
+    assert (error.path, error.reason, error.fix) == (tmp_path / "x.png", "No space left on device", "free space")
+    args = ["--out", str(tmp_path / "s"), "--train", "3", "--val", "0", "--size", "12", "--quiet"]
+    synth_main([*args, "--workers", "1"])
+    blocked = next((tmp_path / "s" / "train" / "rgb").glob("synth_000002_*.png"))
+    blocked.unlink()
+    blocked.mkdir()  # the image cannot replace a folder: the worker's write fails
+    code, err = run_main(["synth", *args, "--workers", "2"], capsys)
+    assert code == 1 and f"{blocked}: cannot be written" in err and "Fix:" in err
+    assert "usage:" not in err and "BrokenProcessPool" not in err
+
+
+def test_sigterm_stops_the_render_and_its_workers(tmp_path):
+    """SIGTERM (scancel, a job's time limit) ends the worker processes too, with status 143 and no synth.json.
+
+    Before, only the main process died: its workers rendered on after the command had ended, then hung for good.
+    """
+    import os
+    import signal
+    import time
+
+    out = tmp_path / "s"
+    command = [sys.executable, "-m", "dapm_lightning", "synth", "--out", str(out), "--train", "2000", "--val", "0",
+               "--size", "48", "--workers", "2", "--quiet"]
+    process = subprocess.Popen(command, start_new_session=True, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 120
+        while not list(out.glob("train/rgb/synth_*.png")) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        process.send_signal(signal.SIGTERM)
+        _, err = process.communicate(timeout=60)  # before: hung here, the orphaned workers holding stderr
+        assert process.returncode == 143 and "stopped by SIGTERM" in err and "Traceback" not in err
+        deadline, left = time.monotonic() + 10, ["?"]
+        while left and time.monotonic() < deadline:
+            time.sleep(0.2)
+            left = subprocess.run(["pgrep", "-a", "-s", str(process.pid)], capture_output=True, text=True).stdout
+            left = left.splitlines()
+        assert left == []
+        count = len(list(out.rglob("synth_*.png")))
+        time.sleep(1)
+        assert len(list(out.rglob("synth_*.png"))) == count < 2000
+        assert not (out / "synth.json").exists() and not list(out.rglob(".*.tmp"))
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+        subprocess.run(["pkill", "-KILL", "-s", str(process.pid)], check=False)

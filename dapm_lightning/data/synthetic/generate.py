@@ -125,6 +125,17 @@ def shard_range(count: int, shard: tuple[int, int]) -> range:
     return range(count * k // n, count * (k + 1) // n)
 
 
+def _stop_workers(pool: ProcessPoolExecutor) -> None:
+    """Cancel the images not started and end the worker processes now (``shutdown`` would let them finish)."""
+    processes = list((getattr(pool, "_processes", None) or {}).values())
+    pool.shutdown(wait=False, cancel_futures=True)
+    for process in processes:
+        if process.is_alive():
+            process.terminate()
+    for process in processes:
+        process.join(timeout=5)
+
+
 class SynthFolderError(ValueError):
     """The output folder cannot take this render (it holds other images); the message names it and the fix."""
 
@@ -214,10 +225,19 @@ def generate_uapd(out: str | Path, *, train: int = 200, val: int = 50, size: int
         saved = {k: os.environ.get(k) for k in _THREAD_VARS}
         os.environ.update({k: "1" for k in _THREAD_VARS})  # one thread per worker process: no oversubscription
         try:
-            with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+            pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"))
+            try:
                 for _ in pool.map(_render_one, jobs, chunksize=max(1, min(16, len(jobs) // (workers * 4)))):
                     if progress is not None:
                         progress(1)
+            except BaseException:  # a failed image, Ctrl-C, SIGTERM (synth): no worker renders on, none outlives us
+                _stop_workers(pool)
+                if shard[1] == 1:  # the temporary files of images cut off (a shard's siblings may be writing theirs)
+                    for folder in _image_folders(out):
+                        for path in folder.glob(".synth_*.tmp"):
+                            path.unlink(missing_ok=True)
+                raise
+            pool.shutdown()
         finally:
             for key, value in saved.items():
                 if value is None:
