@@ -36,6 +36,7 @@ from dapm_lightning.data.depth_kind import (
     other_kind,
 )
 from dapm_lightning.data.errors import DatasetError
+from dapm_lightning.data.files import write_error, write_text
 from dapm_lightning.data.uapd import UAPDDataset, read_depth_grey, read_rgb
 from dapm_lightning.geometry.constants import MAX_DEPTH_M, POSE_KEYS, POSE_RANGES, SKY_GREY
 from dapm_lightning.geometry.depth_codec import depth_to_grey, grey_to_depth
@@ -321,7 +322,8 @@ def doctor(root: Path, splits: list[str] | None = None, depth_kind: DepthKind = 
     Returns:
         the exit status: 0 clean, 1 a broken file or a flagged sample, 2 no data set at ROOT (ROOT is not a
         folder, holds no split folder, or a split asked for has neither rgb/ nor depth/) or a ``json`` path that
-        cannot be written (checked before the scan); the reason is then printed to stderr.
+        cannot be written (checked before the scan; a write that fails after it, e.g. on a full disk, leaves no
+        partial file); the reason is then printed to stderr.
     """
     root = Path(root)
     problem = None
@@ -350,8 +352,12 @@ def doctor(root: Path, splits: list[str] | None = None, depth_kind: DepthKind = 
     bad = sum(len(r["errors"]) + len(r["flagged"]) + bool(r.get("depth_kind_problem")) for r in reports)
     where = ""
     if json is not None:
-        Path(json).parent.mkdir(parents=True, exist_ok=True)
-        Path(json).write_text(dumps(reports, indent=2) + "\n")
+        try:  # atomically: a full disk leaves no half report, and an earlier one whole
+            Path(json).parent.mkdir(parents=True, exist_ok=True)
+            write_text(json, dumps(reports, indent=2) + "\n")
+        except OSError as error:
+            print(f"error: {write_error(Path(json), error)}", file=sys.stderr)
+            return EXIT_NOT_A_DATA_SET
         where = f"report: {json}; "
     print(f"\n{where}{'no problems found' if not bad else f'{bad} problem(s)'}")
     return EXIT_PROBLEMS if bad else EXIT_CLEAN

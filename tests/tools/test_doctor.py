@@ -330,3 +330,29 @@ def test_fitting_on_depth_of_the_other_kind_warns_with_the_fix(synthetic, tmp_pa
         warnings.simplefilter("error")
         UAPDDataModule(root=str(synthetic), batch_size=2).setup("fit")
         UAPDDataModule(root=str(root), batch_size=2, depth_kind="planar").setup("fit")
+
+
+def test_a_report_the_disk_cannot_hold_is_not_left_half_written(synthetic, tmp_path):
+    """--json on a disk that fills up (here: a file size limit, EFBIG) names the file and the fix, exits 2, and leaves
+    the earlier report whole (before: a truncated JSON file and 'OSError: [Errno 27] File too large')."""
+    import os
+    import resource
+    import signal
+    import subprocess
+    import sys
+
+    report = tmp_path / "report.json"
+    report.write_text('{"earlier": true}\n')
+
+    def small_files():
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past the limit fails with EFBIG instead
+        resource.setrlimit(resource.RLIMIT_FSIZE, (1000, resource.getrlimit(resource.RLIMIT_FSIZE)[1]))
+
+    done = subprocess.run([sys.executable, "-B", "-m", "dapm_lightning", "doctor", str(synthetic), "--json",
+                           str(report), "--quiet"], capture_output=True, text=True, preexec_fn=small_files,
+                          env={**os.environ, "PYTHONDONTWRITEBYTECODE": "1"}, timeout=300)
+    assert done.returncode == 2, done.stderr
+    assert f"error: {report}: cannot be written (File too large)" in done.stderr and "Fix:" in done.stderr
+    assert "Traceback" not in done.stderr
+    assert json.loads(report.read_text()) == {"earlier": True}
+    assert [p.name for p in tmp_path.iterdir()] == ["report.json"]
