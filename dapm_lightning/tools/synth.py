@@ -88,6 +88,10 @@ def synth_main(argv: Sequence[str]) -> None:
         parser.error(f"--max_depth must be > {MIN_DEPTH_LIMIT_M:g} m, got {args.max_depth}")
     if args.train < 0 or args.val < 0:
         parser.error("--train and --val must be >= 0")
+    if args.train + args.val == 0:
+        parser.error("nothing to render: --train and --val are both 0 (give either a number of images)")
+    if args.workers is not None and args.workers < 1:
+        parser.error(f"--workers must be at least 1 (omit it for the CPU count, at most 8), got {args.workers}")
     size = args.size[0] if len(args.size) == 1 else (args.size[0], args.size[1])
     part = shard_range(args.train + args.val, args.shard)
     check_folder_writable(args.out, "--out")

@@ -214,7 +214,9 @@ def test_cli_synth(tmp_path, capsys):
     assert "wrote 2 train + 1 val images" in capsys.readouterr().out
     assert len(UAPDDataset(out, "train")) == 2
     assert json.loads((out / "synth.json").read_text())["families"] == {"suburb": 1 / 3, "water": 2 / 3}
-    for bad, message in ((["--shard", "2/2"], "0 <= K < N"), (["--families", "moon=1"], "unknown scene family")):
+    for bad, message in ((["--shard", "2/2"], "0 <= K < N"), (["--families", "moon=1"], "unknown scene family"),
+                         (["--train", "0", "--val", "0"], "nothing to render"),
+                         (["--workers", "0"], "--workers must be at least 1")):
         with pytest.raises(SystemExit) as info:
             synth_main(["--out", str(out), *bad])
         assert info.value.code == 2 and message in capsys.readouterr().err
