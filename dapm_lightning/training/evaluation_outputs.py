@@ -20,6 +20,11 @@ from dapm_lightning.metrics.depth import DEPTH_METRIC_NAMES, per_image_depth_met
 from dapm_lightning.models.dapm import DAPMOutput
 
 
+def depth_limit(pl_module: L.LightningModule) -> float:
+    """The model's depth limit in metres (``model.net.igd.max_depth``), as the logged depth metrics use it."""
+    return float(getattr(getattr(getattr(pl_module, "net_config", None), "igd", None), "max_depth", MAX_DEPTH_M))
+
+
 def stage_maps(out: DAPMOutput, index: int, max_depth: float = MAX_DEPTH_M) -> dict[str, np.ndarray]:
     """The per-stage maps of image ``index`` as uint8 grey images, keyed by folder name.
 
@@ -91,8 +96,7 @@ class EvaluationOutputWriter(L.Callback):
     def on_test_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         base = self.dirpath or str(Path(trainer.log_dir or trainer.default_root_dir) / "test_outputs")
         self._root, self._rows = Path(base), []
-        igd = getattr(getattr(pl_module, "net_config", None), "igd", None)
-        self.max_depth = self.limit if self.limit is not None else float(getattr(igd, "max_depth", MAX_DEPTH_M))
+        self.max_depth = self.limit if self.limit is not None else depth_limit(pl_module)
         self._root.mkdir(parents=True, exist_ok=True)
 
     def on_test_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any,

@@ -10,9 +10,10 @@ import lightning as L
 import torch
 from torch import Tensor
 
-from dapm_lightning.geometry.constants import MAX_DEPTH_M, POSE_KEYS, POSE_RANGES, POSE_UNITS
+from dapm_lightning.geometry.constants import POSE_KEYS, POSE_RANGES, POSE_UNITS
 from dapm_lightning.metrics import per_image_depth_metrics
 from dapm_lightning.models.dapm import DAPMOutput
+from dapm_lightning.training.evaluation_outputs import depth_limit
 
 
 def viewpoint_table(records: Tensor, bins: int = 5) -> list[dict[str, Any]]:
@@ -96,8 +97,7 @@ class ViewpointBreakdown(L.Callback):
         nan = torch.full((pose.shape[0],), math.nan, device=pose.device)
         depth_m, pose_pred = outputs.depth_m, outputs.pose_physical
         # the model's depth limit, as test_depth_d1 (its sky is excluded: a data set's grey 255 may mean 500 m)
-        max_depth = float(getattr(getattr(getattr(pl_module, "net_config", None), "igd", None), "max_depth",
-                                  MAX_DEPTH_M))
+        max_depth = depth_limit(pl_module)
         d1 = nan if depth_m is None else per_image_depth_metrics(depth_m, batch["depth"],
                                                                  max_depth=max_depth)["d1"].to(pose)
         error = torch.full_like(pose, math.nan) if pose_pred is None else (pose_pred - pose).abs().float()
