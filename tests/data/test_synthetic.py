@@ -98,6 +98,25 @@ def test_a_folder_of_other_images_is_not_rendered_into(tmp_path, capsys):
     assert len(list(out.rglob("*.png"))) == 4 and (out / "synth.json").is_file()
 
 
+def test_two_renders_replacing_one_stale_set_at_once_both_succeed(tmp_path, monkeypatch):
+    """The nodes of a multi-node run render a shared folder each (Lightning prepares data once a node): where both
+    replace a stale set, an image the other deleted between this one's listing and its deletion is no error."""
+    from pathlib import Path
+
+    out = generate_uapd(tmp_path / "shared", train=3, val=1, size=16, seed=1, workers=1)
+    (out / "synth.json").unlink()  # a render cut short: both nodes replace its images
+    unlink = Path.unlink
+
+    def deleted_by_the_other_node_first(path, missing_ok=False):
+        if path.name.startswith("synth_") and path.exists():
+            unlink(path)
+        unlink(path, missing_ok=missing_ok)
+
+    monkeypatch.setattr(Path, "unlink", deleted_by_the_other_node_first)
+    generate_uapd(out, train=2, val=1, size=16, seed=1, workers=1)
+    assert len(list(out.rglob("*.png"))) == 6 and (out / "synth.json").is_file()
+
+
 def test_a_new_folder_renders_each_image_once(tmp_path, monkeypatch):
     """Only a set being replaced renders its first image ahead (to fail before deleting); a new folder does not."""
     from dapm_lightning.data.synthetic import generate

@@ -242,3 +242,70 @@ def test_two_process_ddp_steps_by_one_clock_and_resumes_it(tmp_path):
     resumed = fit("resumed", "--trainer.max_steps", "6", "--ckpt_path", str(tmp_path / "ckpt" / "last.ckpt"))
     assert len(resumed[0]["steps"]) == 3 and resumed[0] == resumed[1]
     assert resumed[0]["steps"][0][1] == first[0]["steps"][-1][1]  # goes on from the time saved
+
+
+def test_two_nodes_train_as_one_node_of_two_processes_and_resume(tmp_path, monkeypatch):
+    """``num_nodes 2`` x ``devices 1``: two torchrun launchers on this machine (static rendezvous), sharing the data
+    and run folders as a cluster's nodes share a file system. Each node renders the synthetic set into the same root
+    at once (where a render cut short left images), trains one epoch, is resumed on two nodes for a second, and ends
+    with the weights of one node of two processes trained without a stop."""
+    import socket
+
+    import torch
+
+    from dapm_lightning.training.checkpoint_files import read_checkpoint
+
+    root = tmp_path / "data"
+    generate_uapd(root, train=3, val=1, size=(16, 16), seed=5, workers=1)
+    (root / "synth.json").unlink()  # a render cut short: its images are replaced by each node's render
+    common = ["--config", str(QUICKSTART), "--data.init_args.root", str(root), "--data.init_args.train_size", "8",
+              "--data.init_args.val_size", "2", "--data.init_args.image_size", "32",
+              "--data.init_args.batch_size", "2", "--data.init_args.num_workers", "1",
+              "--data.init_args.persistent_workers", "true", "--data.init_args.render_workers", "1",
+              "--trainer.accelerator", "cpu", "--trainer.strategy", "ddp",
+              "--model.optimizer.schedule_steps", "4"]  # the learning rates of a 2-epoch run, before a resume too
+    # one thread a process in both layouts (Lightning gives a node's processes the cores shared out, a node of one
+    # process all of them; other thread counts sum the convolutions in another order: equal to rounding, not the bit)
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+
+    def two_nodes(name, *args):
+        with socket.socket() as probe:
+            probe.bind(("127.0.0.1", 0))
+            port = probe.getsockname()[1]
+        out = tmp_path / f"{name}.json"
+        launchers = [subprocess.Popen(
+            [sys.executable, "-m", "torch.distributed.run", "--nnodes", "2", "--nproc_per_node", "1",
+             "--node_rank", str(node), "--rdzv_backend", "static", "--master_addr", "127.0.0.1",
+             "--master_port", str(port), str(HERE / "ddp_run.py"), str(out), "fit", *common,
+             "--trainer.num_nodes", "2", "--trainer.devices", "1", *args],
+            cwd=tmp_path, text=True, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+            start_new_session=True) for node in (0, 1)]
+        logs = []
+        for launcher in launchers:
+            try:
+                logs.append(launcher.communicate(timeout=300)[0])
+            except subprocess.TimeoutExpired:
+                for each in launchers:
+                    os.killpg(each.pid, signal.SIGKILL)
+                pytest.fail(f"{name}: still running after 300 s:\n{launcher.communicate()[0][-3000:]}")
+        if any(launcher.returncode for launcher in launchers):
+            pytest.fail(f"{name} failed:\n"
+                        + "\n".join(f"== node {node}\n{log[-3000:]}" for node, log in enumerate(logs)))
+        return json.loads(out.read_text()), logs
+
+    first, logs = two_nodes("first", "--trainer.max_epochs", "1", "--trainer.default_root_dir", str(tmp_path / "nodes"))
+    assert all(f"{root}: rendering 8 + 2 synthetic images" in log for log in logs)  # one render per node
+    assert first["global_step"] == 2  # 8 images, 2 processes, batches of 2
+    resumed, _ = two_nodes("resumed", "--trainer.max_epochs", "2", "--ckpt_path", "last",
+                           "--trainer.default_root_dir", str(tmp_path / "nodes"))
+    assert resumed["global_step"] == 4
+    try:
+        one = run(tmp_path, "one_node", "fit", *common, "--trainer.devices", "2", "--trainer.max_epochs", "2",
+                  "--trainer.default_root_dir", str(tmp_path / "one_node"))
+    except subprocess.CalledProcessError as error:
+        pytest.fail(f"one node failed:\n{error.stderr[-3000:]}")
+    assert one["global_step"] == 4
+    nodes, single = (read_checkpoint(max((tmp_path / folder).rglob("last.ckpt"), key=os.path.getmtime))["state_dict"]
+                     for folder in ("nodes", "one_node"))
+    assert sorted(nodes) == sorted(single)
+    assert all(torch.equal(nodes[key], single[key]) for key in single)

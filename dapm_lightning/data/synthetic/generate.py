@@ -217,7 +217,7 @@ def generate_uapd(out: str | Path, *, train: int = 200, val: int = 50, size: int
             render_sample(seed, split, index, hw, weights, effects, distortion, max_depth)
         for folder in _image_folders(out):
             for path in folder.glob("synth_*.png"):
-                path.unlink()
+                path.unlink(missing_ok=True)  # each node of a multi-node run replaces a shared folder's set at once
     for folder in _image_folders(out):
         folder.mkdir(parents=True, exist_ok=True)
     workers = workers or min(os.cpu_count() or 1, 8)
