@@ -95,6 +95,26 @@ def _uapd_ranges() -> dict[str, tuple[float, float]]:
     return dict(POSE_RANGES)
 
 
+def _pose_range(key: str, value: object) -> tuple[float, float]:
+    """``(lo, hi)`` of one pose component's normalisation range: two finite numbers, ``lo < hi``.
+
+    Raises:
+        ValueError: naming ``model.net.igd.pose_ranges.<key>`` and the fix (an empty range divides by 0: every pose
+            target would be NaN, and training fails on its first step with a bins class id out of bounds).
+    """
+    try:
+        lo, hi = (float(x) for x in value)  # type: ignore[attr-defined]
+    except (TypeError, ValueError):
+        lo = hi = math.nan
+    if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+        default = POSE_RANGES.get(key)
+        fix = f"[{default[0]:g}, {default[1]:g}] (UAPD's)" if default else "[lo, hi] with lo < hi"
+        raise ValueError(f"model.net.igd.pose_ranges.{key}: {value!r}, but a normalisation range must be two finite "
+                         f"numbers [lo, hi] with lo < hi (a component that never varies still needs a range around "
+                         f"its value).\nFix: model.net.igd.pose_ranges.{key}: {fix}")
+    return lo, hi
+
+
 @dataclass(frozen=True)
 class IGDSpec:
     """How a pose becomes an ideal ground depth: one specification shared by the network and the loss.
@@ -116,10 +136,10 @@ class IGDSpec:
     pose_ranges: Mapping[str, tuple[float, float]] = field(default_factory=_uapd_ranges)
 
     def __post_init__(self) -> None:
-        ranges = {str(k): (float(v[0]), float(v[1])) for k, v in self.pose_ranges.items()}
-        missing = set(POSE_RANGES) - set(ranges)
+        missing = set(POSE_RANGES) - {str(k) for k in self.pose_ranges}
         if missing:
             raise ValueError(f"pose_ranges lacks {sorted(missing)}; it needs {list(POSE_RANGES)}")
+        ranges = {str(k): _pose_range(str(k), v) for k, v in self.pose_ranges.items()}
         object.__setattr__(self, "pose_ranges", ranges)
         object.__setattr__(self, "max_depth", check_depth_limit(self.max_depth, "model.net.igd.max_depth"))
 

@@ -3,7 +3,15 @@ import math
 import pytest
 import torch
 
-from dapm_lightning.geometry import MAX_DEPTH_M, camera_rays, decode_log_depth, encode_log_depth, ideal_ground_depth
+from dapm_lightning.geometry import (
+    MAX_DEPTH_M,
+    POSE_RANGES,
+    IGDSpec,
+    camera_rays,
+    decode_log_depth,
+    encode_log_depth,
+    ideal_ground_depth,
+)
 
 
 def pose(h, p, r, f, dtype=torch.float64):
@@ -149,3 +157,14 @@ def test_codec_roundtrip_and_limits():
     assert encode_log_depth(torch.tensor(5000.0)).item() == pytest.approx(1.0)
     x = torch.linspace(0, 1, 11, dtype=torch.float64)
     torch.testing.assert_close(encode_log_depth(decode_log_depth(x)), x)
+
+
+@pytest.mark.parametrize("bad", [(90.0, 90.0), (120.0, 30.0), (30.0, math.inf), (30.0,), "30"])
+def test_a_pose_range_that_normalises_nothing_is_refused_naming_the_setting(bad):
+    """fov: [90, 90] (one lens) used to be accepted: every pose target became NaN, and the first training step failed
+    in the pose bins' cross-entropy with 'IndexError: Target -9223372036854775808 is out of bounds'."""
+    ranges = {**POSE_RANGES, "fov": bad}
+    with pytest.raises(ValueError, match=r"model.net.igd.pose_ranges.fov: .*lo < hi.*\nFix: model.net.igd.pose_ranges"
+                                         r".fov: \[30, 120\] \(UAPD's\)"):
+        IGDSpec(pose_ranges=ranges)
+    assert IGDSpec(pose_ranges={**POSE_RANGES, "fov": [89, 91]}).pose_ranges["fov"] == (89.0, 91.0)
