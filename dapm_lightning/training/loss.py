@@ -81,6 +81,16 @@ class LossConfig:
             raise ValueError(f"depth_space must be 'metric' or 'log_norm', got {self.depth_space!r}")
         if not self.sky_object_weight > 0:
             raise ValueError(f"model.loss.sky_object_weight must be above 0, got {self.sky_object_weight!r}")
+        stride = self.igd_loss_stride
+        if isinstance(stride, bool) or not (isinstance(stride, int) and stride >= 1):
+            raise ValueError(f"model.loss.igd_loss_stride must be a whole number >= 1 (L_pd at 1 / stride of the image "
+                             f"size; 4 by default), got {stride!r}")
+        if not 0.0 <= self.variance_focus <= 1.0:  # above 1 the root's argument can be negative: clamped, no gradient
+            raise ValueError(f"model.loss.variance_focus (lambda of Eq. 17) must be in [0, 1] (the paper's 0.85), "
+                             f"got {self.variance_focus!r}")
+        if not self.silog_scale > 0:
+            raise ValueError(f"model.loss.silog_scale (alpha of Eq. 17) must be above 0 (the paper's 10), "
+                             f"got {self.silog_scale!r}")
         object.__setattr__(self, "weights", {**known, **self.weights})
 
 

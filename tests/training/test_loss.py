@@ -153,3 +153,15 @@ def test_sky_object_weight_weighs_what_stands_against_the_sky():
     assert dq(5.0, has_pose=False) == pytest.approx(dq(1.0, has_pose=False))  # no pose: no horizon, no weight
     with pytest.raises(ValueError, match="sky_object_weight"):
         LossConfig(sky_object_weight=0.0)
+
+
+@pytest.mark.parametrize(("setting", "value"), [("igd_loss_stride", 0), ("igd_loss_stride", -4),
+                                                ("igd_loss_stride", 2.5), ("variance_focus", 1.5),
+                                                ("variance_focus", -0.1), ("silog_scale", -10.0), ("silog_scale", 0.0)])
+def test_loss_numbers_that_break_a_term_are_refused_naming_the_setting(setting, value):
+    """Before: igd_loss_stride 0 died in the first step ('ZeroDivisionError: integer division or modulo by zero'), -4
+    silently computed L_pd on a 1 x 1 IGD, variance_focus 1.5 left Eq. 17 clamped at 0 (no gradient) and a negative
+    silog_scale made the depth terms rewards."""
+    with pytest.raises(ValueError, match=rf"model.loss.{setting} .*must be .*got {value!r}"):
+        LossConfig(**{setting: value})
+    assert LossConfig(igd_loss_stride=1, variance_focus=1.0, silog_scale=1.0).variance_focus == 1.0
