@@ -22,6 +22,9 @@ def predicted_share_at(progress: float, *, start_share: float = 0.0, end_share: 
     """
     if not 0.0 <= start_fraction < end_fraction:
         raise ValueError(f"need 0 <= start_fraction < end_fraction, got {start_fraction}, {end_fraction}")
+    if not (0.0 <= start_share <= 1.0 and 0.0 <= end_share <= 1.0):  # outside: a pose beyond the true or the predicted
+        raise ValueError(f"start_share and end_share are shares of the predicted pose, in [0, 1] (0: the true pose, 1: "
+                         f"the prediction), got {start_share}, {end_share}")
     t = min(1.0, max(0.0, (progress - start_fraction) / (end_fraction - start_fraction)))
     return start_share + (end_share - start_share) * t
 

@@ -29,9 +29,9 @@ class IGDTeacherForcing(L.Callback):
 
     def __init__(self, start_share: float = 0.0, end_share: float = 1.0, start_fraction: float = 0.0,
                  end_fraction: float = 1.0) -> None:
-        predicted_share_at(0.0, start_fraction=start_fraction, end_fraction=end_fraction)  # checks the fractions
         self.schedule = dict(start_share=start_share, end_share=end_share, start_fraction=start_fraction,
                              end_fraction=end_fraction)
+        predicted_share_at(0.0, **self.schedule)  # checks the shares and the fractions
 
     def share(self, step: int, total_steps: int) -> float:
         """The predicted share at ``step`` of ``total_steps``."""

@@ -22,6 +22,14 @@ def test_teacher_forcing_schedule_start_middle_end():
         IGDTeacherForcing(start_fraction=0.8, end_fraction=0.2)
 
 
+@pytest.mark.parametrize("shares", [(-0.5, 1.0), (0.0, 10.0)])
+def test_teacher_forcing_shares_outside_0_1_are_refused(shares):
+    """Before: accepted; start_share -0.5 fed the IGD 1.5 x the true pose - 0.5 x the prediction (a pose beyond the true
+    one), end_share 10 (meant as 10 %?) handed the IGD over to the prediction by a tenth of training."""
+    with pytest.raises(ValueError, match=r"start_share and end_share are shares of the predicted pose, in \[0, 1\]"):
+        IGDTeacherForcing(start_share=shares[0], end_share=shares[1])
+
+
 def test_priors_under_a_teacher_forcing_that_keeps_the_true_pose_are_flagged():
     with_priors = DAPMModule(DAPMConfig(backbone="resnet18"), prior_training=PriorTraining(enabled=True))
     with pytest.warns(UserWarning, match="prior_training changes nothing"):
