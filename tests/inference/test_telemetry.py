@@ -281,6 +281,18 @@ def test_csv_in_utf16_is_read_and_other_encodings_are_errors_naming_file_and_lin
         read_telemetry_csv(latin1)
 
 
+def test_a_spreadsheets_unicode_text_tab_separated_utf16_is_read(tmp_path):
+    """Excel's "Unicode text" is UTF-16 with a byte-order mark and tabs between the columns (CRLF lines)."""
+    unicode_text = tmp_path / "flight.txt"
+    unicode_text.write_bytes("name\theight_m\tpitch_deg\tfov_deg\r\nvue_élevée.jpg\t40\t-45\t\r\n"
+                             "b.jpg\t\t-30.5\t71.6\r\n".encode("utf-16"))
+    rows = read_telemetry_csv(unicode_text)
+    assert_pose(rows["vue_élevée"], [40.0, -45.0, NAN, NAN])
+    assert_pose(rows["b"], [NAN, -30.5, NAN, 71.6])
+    tabs_in_a_cell = write_csv(tmp_path / "t.csv", 'name,height_m\n"a\tb.jpg",40\n')  # commas: read by commas
+    assert_pose(read_telemetry_csv(tabs_in_a_cell)["a\tb"], [40.0, NAN, NAN, NAN])
+
+
 @pytest.mark.parametrize(("cell", "column", "match"), [
     ("abc", "pitch_deg", r"'abc' is not a number"),
     ("0", "height_m", "must be > 0 m"),

@@ -66,7 +66,8 @@ def read_telemetry_csv(path: StrPath) -> dict[str, PoseTelemetry]:
 
     ``name`` is the image's file name with or without its extension (``DJI_0001.JPG`` or ``DJI_0001``; a
     directory part is ignored). A missing value column or an empty cell means unknown. Columns may come in any
-    order; other columns are ignored with a warning. Blank lines are skipped.
+    order; other columns are ignored with a warning. Blank lines are skipped. Columns are comma-separated, or
+    tab-separated when the header holds tabs and no comma (a spreadsheet's "Unicode text" or "Text (Tab delimited)").
 
     Raises:
         TelemetryError: no ``name`` column (names the expected header); a value that is not a number or is
@@ -77,8 +78,12 @@ def read_telemetry_csv(path: StrPath) -> dict[str, PoseTelemetry]:
     """
     path = Path(path)
     header_hint = f"the first line must be the header `{','.join(CSV_COLUMNS)}` (value columns optional)"
-    with io.StringIO(_csv_text(path), newline="") as stream:
-        reader = csv.reader(stream)
+    text = _csv_text(path)
+    first = text.split("\n", 1)[0]
+    # a spreadsheet's "Unicode text" (Excel: UTF-16, like its "Text (Tab delimited)") separates columns by tabs
+    delimiter = "\t" if "\t" in first and "," not in first else ","
+    with io.StringIO(text, newline="") as stream:
+        reader = csv.reader(stream, delimiter=delimiter)
         header = next(reader, None)
         if header is None:
             raise TelemetryError(f"{path}: the file is empty; {header_hint}")
