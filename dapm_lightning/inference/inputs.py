@@ -293,7 +293,7 @@ def _video_telemetry(video: VideoFramesDataset, source: PredictSource, srt: Path
     height, width = video.frame_size
     found, report = flight.video_telemetry(video.path, frames, srt, table, fps=video.fps,
                                            size=(width, height) if width > 0 and height > 0 else None,
-                                           strict=source.strict_telemetry)
+                                           strict=source.strict_telemetry, name=video.name)
     video.priors = {frame: t.values() for frame, t in found.items()}
     video.provenance = {frame: t.provenance for frame, t in found.items()}
     return report

@@ -237,3 +237,21 @@ def test_an_srt_given_with_images_serves_its_video_and_the_images_keep_their_met
         source_datasets(PredictSource([str(image), str(video), str(other)], telemetry=srt), 32)
     with pytest.raises(TelemetryError, match="flight.SRT: a DJI SRT gives the telemetry of the video"):
         source_datasets(PredictSource([str(image)], telemetry=srt), 32)
+
+
+def test_a_csv_names_the_frames_of_videos_found_by_a_pattern_as_their_outputs_are_named(tmp_path):
+    """Two flights' DJI_0005 in 100MEDIA/ and 101MEDIA/: outputs 100MEDIA_DJI_0005_f..., 101MEDIA_DJI_0005_f...; each
+    video takes the rows naming its own frames (before: the rows named DJI_0005_f..., the same for both videos)."""
+    for folder in ("100MEDIA", "101MEDIA"):
+        (tmp_path / folder).mkdir()
+        write_video(tmp_path / folder / "DJI_0005.avi", frames=3)
+    table = tmp_path / "flight.csv"
+    table.write_text("name,height_m\n100MEDIA_DJI_0005_f000000,40\n101MEDIA_DJI_0005_f000001,80\nDJI_0005_f000002,9\n")
+    (first, second), caught = record(source_datasets,
+                                     PredictSource(str(tmp_path / "*" / "DJI_0005.avi"), telemetry=table), 32)
+    assert (first.name, second.name) == ("100MEDIA_DJI_0005", "101MEDIA_DJI_0005")
+    assert {f: p[0] for f, p in first.priors.items()} == {0: 40.0}
+    assert {f: p[0] for f, p in second.priors.items()} == {1: 80.0}
+    assert first.provenance[0][0] == "flight.csv line 2"
+    assert len(caught) == 1 and "1 of 3 name(s) match no frame of DJI_0005.avi or DJI_0005.avi (frames are named " \
+        "as their outputs: 100MEDIA_DJI_0005_f000012): DJI_0005_f000002" in caught[0]

@@ -83,6 +83,7 @@ class TelemetryCsv:
     matched: set[str] = field(default_factory=set)
     images: bool = False
     videos: list[Path] = field(default_factory=list)
+    frame_prefixes: list[str] = field(default_factory=list)
 
     @classmethod
     def read(cls, path: StrPath) -> TelemetryCsv:
@@ -94,9 +95,10 @@ class TelemetryCsv:
         self.images = True
         self.matched.update(stem for stem in stems if stem in self.rows)
 
-    def match_video(self, video: Path, frame_name: re.Pattern[str]) -> None:
-        """A video is predicted: the rows naming any of its frames (``frame_name``) are its."""
+    def match_video(self, video: Path, frame_name: re.Pattern[str], prefix: str | None = None) -> None:
+        """A video is predicted: the rows naming any of its frames (``frame_name``, ``PREFIX_f000012``) are its."""
         self.videos.append(video)
+        self.frame_prefixes.append(video.stem if prefix is None else prefix)
         self.matched.update(name for name in self.rows if frame_name.fullmatch(name))
 
     def warn_unmatched(self) -> None:
@@ -107,7 +109,7 @@ class TelemetryCsv:
         what = ["image"] if self.images else []
         if self.videos:
             what.append(f"frame of {first_few([v.name for v in self.videos], ' or ')} (frames are named as their "
-                        f"outputs: {self.videos[0].stem}_f000012)")
+                        f"outputs: {self.frame_prefixes[0]}_f000012)")
         warnings.warn(f"{self.path}: {len(unmatched)} of {len(self.rows)} name(s) match no {' or '.join(what)}: "
                       f"{first_few(unmatched)}; names are matched by file name with or without extension "
                       "(case-sensitive), those rows are unused", TelemetryWarning, stacklevel=3)
@@ -194,7 +196,8 @@ def telemetry_for_images(paths: Iterable[StrPath], csv_path: StrPath | None = No
 
 def video_telemetry(video: Path, frames: Sequence[int] | None, srt_path: StrPath | None = None,
                     csv_path: StrPath | TelemetryCsv | None = None, *, size: tuple[int, int] | None = None,
-                    fps: float | None = None, strict: bool = False) -> tuple[dict[int, PoseTelemetry], TelemetryReport]:
+                    fps: float | None = None, strict: bool = False,
+                    name: str | None = None) -> tuple[dict[int, PoseTelemetry], TelemetryReport]:
     """Per frame to be predicted (``frames``), its telemetry: a CSV row, each unknown component from the SRT.
 
     The CSV names frames as their outputs are named (``DJI_0005_f000012``); its names that match no frame of the
@@ -202,7 +205,9 @@ def video_telemetry(video: Path, frames: Sequence[int] | None, srt_path: StrPath
     subtitles on frames by their timing (:func:`read_srt`). An SRT that cannot be read falls back to the network
     with one warning (an error with ``strict``); one that covers fewer frames than are predicted gives one warning
     naming the frames left to the network. ``size``: the video's ``(width, height)``;
-    ``frames`` None: the video's frame count is not known, every frame the SRT or the CSV names.
+    ``frames`` None: the video's frame count is not known, every frame the SRT or the CSV names. ``name``: the
+    frames' output name before ``_f<frame>`` (default: the video's stem; a video found by a pattern in a sub-folder
+    is ``100MEDIA_DJI_0005``), by which the CSV names them.
     """
     report = TelemetryReport("frame")
     srt: dict[int, PoseTelemetry] = {}
@@ -215,13 +220,14 @@ def video_telemetry(video: Path, frames: Sequence[int] | None, srt_path: StrPath
             report.fell_back.append(Path(srt_path).name)
     table, shared = _table(csv_path), isinstance(csv_path, TelemetryCsv)
     rows = table.rows if table is not None else {}
-    frame_name = re.compile(re.escape(video.stem) + r"_f(\d{6,})")
+    prefix = video.stem if name is None else name  # the CSV names frames as their outputs are named
+    frame_name = re.compile(re.escape(prefix) + r"_f(\d{6,})")
     if frames is None:
         named = (frame_name.fullmatch(k) for k in rows)
         frames = sorted(set(srt) | {int(m.group(1)) for m in named if m is not None})
     out: dict[int, PoseTelemetry] = {}
     for frame in frames:
-        telemetry = rows.get(f"{video.stem}_f{frame:06d}", PoseTelemetry()).merged(srt.get(frame, PoseTelemetry()))
+        telemetry = rows.get(f"{prefix}_f{frame:06d}", PoseTelemetry()).merged(srt.get(frame, PoseTelemetry()))
         report.add(telemetry)
         if any(telemetry.known()):
             out[frame] = telemetry
@@ -232,7 +238,7 @@ def video_telemetry(video: Path, frames: Sequence[int] | None, srt_path: StrPath
                           f"of the {len(frames)} frame(s) predicted (the first: {missing[0]}) have none, the network "
                           "estimates their pose (is it this video's SRT?)", TelemetryWarning, stacklevel=2)
     if table is not None:
-        table.match_video(video, frame_name)
+        table.match_video(video, frame_name, prefix)
         if not shared:
             table.warn_unmatched()
     return out, report
