@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
-from PIL import Image
+from PIL import Image, PngImagePlugin
 
 from dapm_lightning.cli import main
 from dapm_lightning.inference.inputs import PredictSource, source_dataset, source_datasets
@@ -74,6 +74,24 @@ def test_one_bad_image_falls_back_alone_with_one_warning(flight):
     report, _ = record(lambda: images_telemetry(paths, table)[1])
     assert report.summary() == ("telemetry: 2 of 3 image(s) with telemetry (height 2, pitch 1) from XMP 1, "
                                 "flight.csv 1; telemetry unreadable, network pose used: b.jpg")
+
+
+def test_an_image_whose_metadata_pillow_refuses_falls_back_alone_naming_it(tmp_path):
+    """A PNG whose XMP text chunk inflates past Pillow's MAX_TEXT_CHUNK (1 MiB; Photoshop's DocumentAncestors bloat
+    XMP so) is readable pixels with unreadable metadata (before: 'ValueError: Decompressed data too large for
+    PngImagePlugin.MAX_TEXT_CHUNK', naming no file, stopped the run)."""
+    good = dji_jpeg(tmp_path / "a.jpg", RelativeAltitude="+40.0")
+    info = PngImagePlugin.PngInfo()
+    info.add_itxt("XML:com.adobe.xmp", f"<x:xmpmeta xmlns:x='adobe:ns:meta/'><!-- {'a' * (2 << 20)} --></x:xmpmeta>",
+                  zip=True)
+    bloated = tmp_path / "b.png"
+    Image.new("RGB", (60, 40)).save(bloated, pnginfo=info)
+    (a, b), caught = record(lambda: images_telemetry([good, bloated])[0])
+    assert a.height_m == 40.0 and b == PoseTelemetry()
+    assert len(caught) == 1 and f"{bloated}: its metadata cannot be read (ValueError: Decompressed" in caught[0]
+    assert "--no_metadata" in caught[0] and "this image's telemetry is not used" in caught[0]
+    with pytest.raises(TelemetryError, match=r"b.png: its metadata cannot be read.*--strict_telemetry"):
+        images_telemetry([good, bloated], strict=True)
 
 
 def write_video(path, frames=9, size=(36, 48), fps=10.0):

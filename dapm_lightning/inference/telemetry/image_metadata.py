@@ -106,6 +106,12 @@ def _read_header(path: Path) -> tuple[int, int, Any, float, float] | None:
                                          "metadata (--no_metadata; read_metadata=False in Python)") from exc
     except (UnidentifiedImageError, Image.DecompressionBombError, OSError):
         return None  # not an image Pillow reads: no metadata (the image reader reports damage)
+    except TelemetryError:
+        raise
+    except Exception as exc:  # metadata Pillow refuses while opening (a PNG text chunk over MAX_TEXT_CHUNK, ...)
+        raise TelemetryError(f"{path}: its metadata cannot be read ({type(exc).__name__}: {exc}); strip it "
+                             "(`exiftool -all= FILE`), give the pose in a --telemetry CSV, or read no image metadata "
+                             "(--no_metadata; read_metadata=False in Python)") from exc
     return width, height, packet, f35, focal
 
 
@@ -114,7 +120,8 @@ def image_telemetry(path: StrPath, sensor_width_mm: float | None) -> tuple[PoseT
 
     Raises:
         FileNotFoundError: no such file. ValueError: a sensor width that is not a positive number.
-        TelemetryError: a DJI tag that is there but is not a number or is impossible; a damaged XMP / EXIF block.
+        TelemetryError: a DJI tag that is there but is not a number or is impossible; a damaged XMP / EXIF block,
+            metadata Pillow refuses to open (a PNG text chunk inflating past 1 MiB).
     """
     path = Path(path)
     if sensor_width_mm is not None and not (math.isfinite(sensor_width_mm) and sensor_width_mm > 0):
@@ -202,7 +209,8 @@ def telemetry_from_image(path: StrPath, sensor_width_mm: float | None = None) ->
 
     Raises:
         FileNotFoundError: no such file.
-        TelemetryError: a tag that is there but is not a number or is impossible, a damaged XMP / EXIF block.
+        TelemetryError: a tag that is there but is not a number or is impossible, a damaged XMP / EXIF block,
+            metadata Pillow refuses to open (a PNG text chunk inflating past 1 MiB).
     """
     telemetry, notes = image_telemetry(path, sensor_width_mm)
     warn_notes({Path(path).name: notes} if notes else {}, stacklevel=2)
