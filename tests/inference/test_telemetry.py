@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 from PIL import ExifTags, Image
-from PIL.TiffImagePlugin import IFDRational
+from PIL.TiffImagePlugin import IFDRational, ImageFileDirectory_v2
 
 from dapm_lightning.geometry.camera import camera_rays
 from dapm_lightning.geometry.constants import POSE_KEYS
@@ -186,6 +186,20 @@ def test_malformed_xmp_values_are_errors_naming_the_file_and_tag(tmp_path, tags,
     with pytest.raises(TelemetryError, match=match) as info:
         telemetry_from_image(path)
     assert "DJI_0009.JPG" in str(info.value) and "read_metadata=False" in str(info.value)
+
+
+def test_a_focal_length_giving_an_impossible_fov_is_an_error_naming_the_file_and_tag(tmp_path):
+    """A damaged EXIF block's FocalLength of 1e-300 mm (a DOUBLE where Exif has a RATIONAL) gives fov 180.0: a
+    TelemetryError, so the image falls back alone (before: a plain ValueError from PoseTelemetry stopped the run)."""
+    ifd = ImageFileDirectory_v2(prefix=b"II")
+    ifd.tagtype[ExifTags.Base.FocalLength] = 12  # DOUBLE
+    ifd[ExifTags.Base.FocalLength] = 1e-300
+    path = tmp_path / "DJI_0010.JPG"
+    Image.new("RGB", (64, 48)).save(path, exif=b"Exif\x00\x00II*\x00\x08\x00\x00\x00" + ifd.tobytes(8))
+    with pytest.raises(TelemetryError, match=r"DJI_0010.JPG: EXIF FocalLength = 1e-300 mm gives a FoV that must be "
+                                             r"within \(0, 180\).*--no_metadata"):
+        telemetry_from_image(path, sensor_width_mm=13.2)
+    assert math.isnan(telemetry_from_image(path).fov_deg)  # without a sensor width the focal length is not read
 
 
 def test_broken_xmp_packet_is_an_error(tmp_path):

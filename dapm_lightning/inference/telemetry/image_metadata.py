@@ -120,7 +120,8 @@ def image_telemetry(path: StrPath, sensor_width_mm: float | None) -> tuple[PoseT
 
     Raises:
         FileNotFoundError: no such file. ValueError: a sensor width that is not a positive number.
-        TelemetryError: a DJI tag that is there but is not a number or is impossible; a damaged XMP / EXIF block,
+        TelemetryError: a DJI tag that is there but is not a number or is impossible, an EXIF focal length giving an
+            impossible FoV; a damaged XMP / EXIF block,
             metadata Pillow refuses to open (a PNG text chunk inflating past 1 MiB).
     """
     path = Path(path)
@@ -171,6 +172,11 @@ def image_telemetry(path: StrPath, sensor_width_mm: float | None) -> tuple[PoseT
     if fov_from and spherical:
         notes["fov"] = f"a 360-degree (equirectangular, {width}x{height}) image: no pinhole FoV, fov left unknown"
     elif fov_from:
+        if (why := limit_error("fov", fov)) is not None:  # a focal length of 1e-300 mm in a damaged EXIF block
+            focal_mm = focal if fov_from.startswith("FocalLength ") else f35
+            raise TelemetryError(f"{path}: EXIF {fov_from.split(' ')[0]} = {focal_mm!r} mm gives a FoV that {why}; "
+                                 "repair or strip the EXIF block, give the pose in a --telemetry CSV, or read no image "
+                                 "metadata (--no_metadata; read_metadata=False in Python)")
         values["fov"], provenance["fov"] = fov, f"{path.name} EXIF {fov_from}"
         parts.append("EXIF")
     source = f"{path.name} {'/'.join(parts)}" if parts else ""
