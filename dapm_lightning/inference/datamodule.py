@@ -39,7 +39,8 @@ class PredictDataModule(DAPMDataModule):
             video's own .SRT beside it).
         read_metadata: also read each JPEG's DJI XMP (relative altitude, gimbal pitch and roll) and EXIF focal
             length, for what the CSV does not give.
-        sensor_width_mm: sensor width, to turn an EXIF FocalLength into a FoV when no 35 mm equivalent is given.
+        sensor_width_mm: sensor width in mm (of the area the images cover): each image's EXIF FocalLength then gives
+            its FoV, before its 35 mm equivalent (which gives it otherwise).
         strict_telemetry: stop when an image's metadata or a video's SRT cannot be read (by default that image or
             video falls back to the network's pose with one warning).
         telemetry_mode: condition (the known pose enters the network's IGD feature), scale (the depth is fitted

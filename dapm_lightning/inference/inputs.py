@@ -258,7 +258,8 @@ class PredictSource:
             telemetry of the one video predicted (images beside it keep their own metadata).
         read_metadata: images: each component the CSV lacks from the image's own DJI XMP / EXIF; videos: the
             video's own ``.SRT`` beside it, for what no ``telemetry`` CSV gives.
-        sensor_width_mm: sensor width, for an EXIF FocalLength without a 35 mm equivalent.
+        sensor_width_mm: sensor width in mm (of the area the images cover): each image's EXIF FocalLength then gives
+            its FoV, before its 35 mm equivalent (which gives it otherwise).
         strict_telemetry: a drone-written file whose telemetry cannot be read (a damaged XMP, an SRT that is not
             one) stops the run; by default that image or video falls back to the network with one warning.
     """

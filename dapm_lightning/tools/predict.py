@@ -121,7 +121,8 @@ def build_parser() -> argparse.ArgumentParser:
     flight.add_argument("--no_metadata", action="store_true",
                         help="ignore the images' DJI XMP / EXIF and a video's own .SRT")
     flight.add_argument("--sensor_width_mm", type=float, default=None,
-                        help="sensor width, for an EXIF FocalLength without a 35 mm equivalent")
+                        help="sensor width in mm (of the area the images cover): each image's EXIF FocalLength then "
+                             "gives its FoV, before its 35 mm equivalent")
     flight.add_argument("--strict_telemetry", action="store_true",
                         help="stop when an image's XMP/EXIF or a video's SRT cannot be read (default: that image or "
                              "video falls back to the network's pose, with a warning)")

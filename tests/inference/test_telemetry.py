@@ -161,6 +161,22 @@ def test_focal_length_with_sensor_width_wins_over_35mm(tmp_path):
     assert without.fov_deg == pytest.approx(math.degrees(2 * math.atan(36 / 40)), abs=1e-3)  # from f35 = 20
 
 
+def test_the_sensor_width_help_says_it_wins_over_the_35mm_equivalent(capsys):
+    """As the code does (above): the help of --sensor_width_mm and data.init_args.sensor_width_mm said it served only
+    images without a 35 mm equivalent."""
+    from dapm_lightning.cli import main
+    from dapm_lightning.inference.datamodule import PredictDataModule
+
+    with pytest.raises(SystemExit):
+        main(["predict", "--help"])
+    help_text = " ".join(capsys.readouterr().out.split())
+    assert "each image's EXIF FocalLength then gives its FoV, before its 35 mm equivalent" in help_text
+    assert "without a 35 mm equivalent" not in help_text
+    docstring = " ".join((PredictDataModule.__doc__ or "").split())
+    assert "sensor_width_mm: sensor width in mm (of the area the images cover): each image's EXIF FocalLength then " \
+           "gives its FoV, before its 35 mm equivalent" in docstring
+
+
 def test_focal_length_without_sensor_width_or_35mm_is_unknown(tmp_path):
     path = write_jpeg(tmp_path / "f.jpg", focal=IFDRational(88, 10))
     assert telemetry_from_image(path) == PoseTelemetry()
