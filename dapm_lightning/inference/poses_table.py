@@ -79,9 +79,14 @@ def write_poses(out: Path, rows: list[dict[str, Any]]) -> Path:
             writer = csv.DictWriter(handle, fieldnames=columns, restval="")
             writer.writeheader()
             writer.writerows(merged.values())
-        values = [{k: _number(v) for k, v in row.items()} for row in merged.values()]
+        values = [{k: v if _text_column(k) else _number(v) for k, v in row.items()} for row in merged.values()]
         write_text(out / "poses.json", json.dumps(values, indent=2) + "\n")
     return path
+
+
+def _text_column(column: str) -> bool:
+    """Whether a column holds text: the name (``000123``, ``20230514_101502`` stay names), sources, provenance."""
+    return column == "name" or column.endswith(("_source", "_provenance"))
 
 
 def _number(value: Any) -> Any:

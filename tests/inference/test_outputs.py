@@ -194,6 +194,20 @@ def test_runs_writing_one_poses_table_at_once_keep_every_row(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["poses.csv", "poses.json"]  # no lock or temporary file
 
 
+def test_poses_json_keeps_names_that_look_like_numbers_as_names(tmp_path):
+    """Frames named 000123 or by their time (20230514_101502, which float() reads as a number) keep their names in
+    poses.json, merged rows included; the pose values stay numbers."""
+    rows = [{"name": name, "height_m": 50.0, "pitch_deg": -30.0, "roll_deg": 0.5, "fov_deg": 80.0,
+             "height_m_source": "telemetry", "height_m_provenance": "1e3", "height_m_network": 48.0}
+            for name in ("000123", "20230514_101502", "nan")]
+    write_poses(tmp_path, rows[:2])
+    write_poses(tmp_path, rows[2:])  # the first two merged back from poses.csv, as text
+    table = json.loads((tmp_path / "poses.json").read_text())
+    assert [row["name"] for row in table] == ["000123", "20230514_101502", "nan"]
+    assert {row["height_m_provenance"] for row in table} == {"1e3"}
+    assert all(row["pitch_deg"] == -30.0 and row["height_m_network"] == 48.0 for row in table)
+
+
 # --------------------------------------------------------------------------------------------------- a full disk
 def test_a_full_disk_fails_the_run_naming_the_file_and_keeps_the_table(checkpoint, flight, small_disk, capsys,
                                                                         monkeypatch):
