@@ -1,7 +1,8 @@
 """``STEM_depth.mp4``: a video source's frames beside their depth, written as the frames come (OpenCV's writer).
 
 The frame rate is the kept frames' own (the video's, over ``frame_step``), from their times in the video; the
-preview is at most :data:`PREVIEW_HEIGHT` pixels high. It is written to a hidden file and renamed when complete.
+preview is at most :data:`PREVIEW_HEIGHT` pixels high. It is written to a hidden file and renamed once read back
+whole (OpenCV's writer reports no failed write: a full disk leaves a file no player opens).
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from dapm_lightning.data.files import WriteError
 from dapm_lightning.inference.postprocess import Prediction
 
 PREVIEW_HEIGHT = 720
@@ -34,19 +36,23 @@ class _Preview:
         self.pending: tuple[np.ndarray, float] | None = None
         self.writer: Any = None
         self.size: tuple[int, int] | None = None
+        self.frames = 0
 
     def _open(self, fps: float, frame: np.ndarray) -> None:
         self.size = (frame.shape[1], frame.shape[0])
         fourcc = cv2.VideoWriter_fourcc(*"mp4v")  # type: ignore[attr-defined]
         self.writer = cv2.VideoWriter(str(self.partial), fourcc, fps, self.size)
         if not self.writer.isOpened():
-            raise OSError(f"{self.path}: OpenCV cannot write an mp4 here (its FFmpeg lacks the mp4v encoder)")
+            self.partial.unlink(missing_ok=True)
+            raise WriteError(self.path, "OpenCV cannot write an mp4 here: its FFmpeg lacks the mp4v encoder, or the "
+                             "folder refuses the file", "leave videos out of the run, or write to another folder")
 
     def _write(self, frame: np.ndarray) -> None:
         assert self.size is not None
         if (frame.shape[1], frame.shape[0]) != self.size:
             frame = cv2.resize(frame, self.size, interpolation=cv2.INTER_AREA)
         self.writer.write(cv2.cvtColor(frame, cv2.COLOR_RGB2BGR))
+        self.frames += 1
 
     def add(self, frame: np.ndarray, time_s: float) -> None:
         if self.writer is None and self.pending is None:
@@ -65,6 +71,11 @@ class _Preview:
             self._open(1.0, self.pending[0])
             self._write(self.pending[0])
         self.writer.release()
+        read = _frames_readable(self.partial)  # the writer's failures are silent: the file is checked
+        if read != self.frames:
+            self.partial.unlink(missing_ok=True)
+            raise WriteError(self.path, f"{read} of its {self.frames} frames read back: a full disk?",
+                             "free space on that disk, or write to another folder")
         os.replace(self.partial, self.path)
         return self.path
 
@@ -72,6 +83,15 @@ class _Preview:
         if self.writer is not None:
             self.writer.release()
         self.partial.unlink(missing_ok=True)
+
+
+def _frames_readable(path: Path) -> int:
+    """How many frames a video file says it holds (0 when it does not open: an mp4 without its index)."""
+    capture = cv2.VideoCapture(str(path))
+    try:
+        return int(capture.get(cv2.CAP_PROP_FRAME_COUNT)) if capture.isOpened() else 0
+    finally:
+        capture.release()
 
 
 def preview_frame(rgb: np.ndarray, depth: np.ndarray) -> np.ndarray:

@@ -1,6 +1,8 @@
 """Readable pictures: each depth map in its own range with a colour bar in metres; an aligned contact sheet with
 headings and poses; a video's frames beside their depth as an mp4."""
 
+import subprocess
+
 import cv2
 import numpy as np
 import pytest
@@ -11,6 +13,7 @@ from dapm_lightning.data.pictures import BAR_MIN_HEIGHT, SKY_RGB, depth_picture,
 from dapm_lightning.geometry.igd import IGDSpec
 from dapm_lightning.inference.contact_sheet import CONTACT_HEADING, CONTACT_TILE, contact_sheet, contact_tiles
 from dapm_lightning.inference.postprocess import make_prediction
+from tests.inference.test_outputs import mount_tmpfs
 from tests.inference.test_predict import write_video
 
 
@@ -73,3 +76,33 @@ def test_a_video_gives_an_mp4_of_its_frames_beside_their_depth(checkpoint, tmp_p
     assert len(frames) == 4 and preview.get(cv2.CAP_PROP_FPS) == pytest.approx(5.0)
     assert frames[0].shape[0] == 120 and frames[0].shape[1] > 2 * 160  # frame | depth | colour bar
     assert not list(out.glob(".*"))  # no partial file left
+
+
+def test_a_preview_the_disk_cuts_short_is_an_error_naming_it_not_a_file_listed(tmp_path, monkeypatch):
+    """OpenCV's video writer reports no failed write: a full disk left an mp4 without its index (no player opens
+    it) that the summary listed as written. Now it is read back: the error names it and the fix, nothing is left."""
+    from dapm_lightning.data.files import WriteError
+    from dapm_lightning.inference import video_preview
+    from dapm_lightning.inference.postprocess import Prediction
+    from dapm_lightning.inference.video_preview import VideoPreviews
+
+    out = tmp_path / "disk"
+    mounted = mount_tmpfs(out, "size=384k")
+    if not mounted:  # no tmpfs here: the writer's file holds fewer frames than it was given
+        monkeypatch.setattr(video_preview, "_frames_readable", lambda path: 0)
+    rng = np.random.default_rng(0)
+    previews = VideoPreviews()
+    for k in range(60):  # ~16 KB a frame of noise: more than the 384 KiB disk holds
+        rgb = rng.integers(0, 255, (120, 160, 3), np.uint8)
+        previews.add(out, Prediction(np.full((120, 160), 40.0, np.float32), None, None, name=f"clip_f{k:06d}",
+                                     size=(120, 160), rgb=rgb, time_s=k / 25), rgb)
+    try:
+        with pytest.raises(WriteError) as raised:
+            previews.finish()
+        files = list(out.iterdir())
+    finally:
+        if mounted:
+            subprocess.run(["umount", "-l", str(out)], capture_output=True)
+    assert str(raised.value).startswith(f"{out / 'clip_depth.mp4'}: cannot be written (")
+    assert "Fix: free space on that disk" in str(raised.value)
+    assert not files  # neither the preview nor its partial file
