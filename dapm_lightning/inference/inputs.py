@@ -215,12 +215,23 @@ class VideoFramesDataset(IterableDataset[PredictInput]):
                 item = predict_input(to_rgb8(bgr, f"{self.path} frame {frame}"), f"{self.name}_f{frame:06d}",
                                      f"{self.path}#{frame}", self.target, self.keep_rgb, self.priors.get(frame),
                                      self.provenance.get(frame))
-                item.time_s = frame / self.fps if self.fps > 0 else None
+                item.time_s = self._time_s(capture, frame)
                 yield item
         finally:
             capture.release()
         if ended and shard == 0:  # each worker reads the whole video: the first one says so
             self._check_length(frame + 1)
+
+    def _time_s(self, capture: Any, frame: int) -> float | None:
+        """The grabbed frame's time in the video (s).
+
+        Its own timestamp (right for a variable frame rate too), else ``frame / fps`` (a container without
+        timestamps), else None.
+        """
+        msec = capture.get(cv2.CAP_PROP_POS_MSEC)
+        if msec > 0 or (frame == 0 and msec == 0):
+            return msec / 1000.0
+        return frame / self.fps if self.fps > 0 else None
 
     def _check_length(self, read: int) -> None:
         """Warn when the video ended well before the frame count its container announces (a file cut short)."""

@@ -1,5 +1,6 @@
 import json
 import math
+import struct
 import warnings
 
 import cv2
@@ -112,6 +113,48 @@ def test_video_frames_in_order_with_step_limit_and_workers(tmp_path):
     loader = torch.utils.data.DataLoader(VideoFramesDataset(video, 32, chunk=2), batch_size=2, num_workers=2,
                                          collate_fn=lambda items: [i.name for i in items])
     assert [n for batch in loader for n in batch] == [f"flight_f{k:06d}" for k in range(9)]
+
+
+def write_variable_rate_video(path, durations, size=(36, 48)):
+    """An mp4 whose frames last ``durations`` (units of 1/10240 s; OpenCV writes 1024 a frame at 10 fps).
+
+    Its time-to-sample table (``moov/trak/mdia/minf/stbl/stts``, after the frames) is rewritten and the boxes
+    around it resized.
+    """
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), 10.0, (size[1], size[0]))
+    for k in range(len(durations)):
+        writer.write(np.full((*size, 3), 20 * k, np.uint8))
+    writer.release()
+    data = bytearray(path.read_bytes())
+    boxes, start, end = [], 0, len(data)
+    for name in (b"moov", b"trak", b"mdia", b"minf", b"stbl", b"stts"):
+        while struct.unpack(">4s", data[start + 4:start + 8])[0] != name:
+            start += struct.unpack(">I", data[start:start + 4])[0]
+            assert start < end, name
+        boxes.append(start)
+        start, end = start + 8, start + struct.unpack(">I", data[start:start + 4])[0]
+    stts = boxes[-1]
+    assert struct.unpack(">II", data[stts + 12:stts + 20]) == (1, len(durations))  # one run of equal frames
+    table = struct.pack(">I", len(durations)) + b"".join(struct.pack(">II", 1, d) for d in durations)
+    grow = len(table) - 12
+    data[stts + 12:stts + 24] = table
+    for box in boxes:
+        data[box:box + 4] = struct.pack(">I", struct.unpack(">I", data[box:box + 4])[0] + grow)
+    path.write_bytes(bytes(data))
+    return path
+
+
+def test_video_frames_of_a_variable_frame_rate_get_their_own_times(tmp_path):
+    """A phone's video is recorded at a variable frame rate: each frame's time is its own timestamp (before: frame
+    number / average rate, 0.3 s for a frame shown at 0.5 s)."""
+    video = write_variable_rate_video(tmp_path / "phone.mp4", [1024, 1024, 3072, 512, 512, 512, 512, 1024])
+    dataset = VideoFramesDataset(video, 32)
+    assert dataset.fps == pytest.approx(10.0)  # the average: 8 frames in 0.8 s
+    times = [0.0, 0.1, 0.2, 0.5, 0.55, 0.6, 0.65, 0.7]
+    assert [f.time_s for f in dataset] == pytest.approx(times, abs=1e-3)
+    assert [f.time_s for f in VideoFramesDataset(video, 32, frame_step=3)] == pytest.approx(times[::3], abs=1e-3)
+    steady = [f.time_s for f in VideoFramesDataset(write_video(tmp_path / "steady.avi"), 32)]
+    assert steady == pytest.approx([k / 10 for k in range(9)])  # a constant rate as before
 
 
 def test_a_video_cut_short_is_predicted_as_far_as_it_goes_with_a_warning(tmp_path):
