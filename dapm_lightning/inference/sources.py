@@ -123,18 +123,30 @@ def _entry(text: str, origin: str = "") -> tuple[list[tuple[Path, str]], list[st
                             f"'flight/**/*.jpg', images, videos or a {LIST_SUFFIX} list of paths)")
 
 
+def is_list_file(source: str | Path) -> bool:
+    """Whether a SOURCE is a ``.txt`` list of paths."""
+    path = Path(source).expanduser()
+    return path.is_file() and path.suffix.lower() == LIST_SUFFIX
+
+
+def list_entries(path: Path) -> list[tuple[int, str, str]]:
+    """A ``.txt`` list's entries: ``(line number, entry, path)``; a relative entry's path from the list's folder."""
+    entries = []
+    for number, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
+        entry = line.strip()
+        if entry and not entry.startswith("#"):
+            target = Path(entry).expanduser()
+            entries.append((number, entry, str(target if target.is_absolute() else path.parent / target)))
+    return entries
+
+
 def _list_file(path: Path) -> tuple[list[tuple[Path, str]], list[str]]:
     """The entries of a ``.txt`` list, paths relative to the list's folder."""
     found: list[tuple[Path, str]] = []
     notes: list[str] = []
-    for number, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
-        entry = line.strip()
-        if not entry or entry.startswith("#"):
-            continue
+    for number, entry, text in list_entries(path):
         if entry.lower().endswith(LIST_SUFFIX):
             raise ValueError(f"{path} line {number}: {entry}: a list inside a list is not read")
-        target = Path(entry).expanduser()
-        text = str(target if target.is_absolute() else path.parent / target)
         try:
             files, more = _entry(text, f"{path} line {number}: ")
         except FileNotFoundError as error:  # its own fix: the entry starts from the list's folder, not from here
@@ -177,9 +189,7 @@ def resolve_sources(sources: Sources) -> tuple[list[SourceFile], list[str]]:
     found: list[tuple[Path, str]] = []
     notes: list[str] = []
     for source in as_list(sources):
-        path = Path(source).expanduser()
-        files, more = (_list_file(path) if path.is_file() and path.suffix.lower() == LIST_SUFFIX
-                       else _entry(str(source)))
+        files, more = _list_file(Path(source).expanduser()) if is_list_file(source) else _entry(str(source))
         found += files
         notes += more
     if not found:

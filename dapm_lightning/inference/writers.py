@@ -50,7 +50,7 @@ from dapm_lightning.inference.poses_table import pose_row, write_poses
 from dapm_lightning.inference.postprocess import Prediction, batch_predictions
 from dapm_lightning.inference.run_folder import remove_stale_files, run_folder
 from dapm_lightning.inference.runtime import apply_inference_options
-from dapm_lightning.inference.sources import Sources, as_list
+from dapm_lightning.inference.sources import Sources, as_list, is_list_file, list_entries
 from dapm_lightning.inference.video_preview import VideoPreviews
 from dapm_lightning.models.dapm import DAPMOutput
 from dapm_lightning.options import DEFAULT_OUTPUTS as DEFAULT_OUTPUTS
@@ -177,15 +177,24 @@ def source_holding(out: str | Path, source: str | Path) -> Path | None:
 def check_output_outside_source(out: str | Path, source: Sources, option: str = "--out") -> None:
     """Refuse an output folder whose files a source would read back as images (one line).
 
+    The folders and patterns a ``.txt`` list names count as sources too (the next run would read them).
+
     Raises:
         ValueError: ``out`` is a source folder or lies inside one (:func:`source_holding`).
     """
-    for root in (source_holding(out, one) for one in as_list(source)):
+    named: list[tuple[str | Path, str]] = []  # each source with where it was named
+    for one in as_list(source):
+        if is_list_file(one):
+            named += [(text, f" (line {number} of {one})") for number, _, text in list_entries(Path(one).expanduser())]
+        else:
+            named.append((one, ""))
+    for one, origin in named:
+        root = source_holding(out, one)
         if root is None:
             continue
         where = "is" if Path(out).expanduser().resolve() == root.resolve() else "lies inside"
-        raise ValueError(f"{option} {out} {where} the source {root}, so its files would be read back as images: "
-                         "give an output folder outside the source")
+        raise ValueError(f"{option} {out} {where} the source {root}{origin}, so its files would be read back as "
+                         "images: give an output folder outside the source")
 
 
 class PredictionFiles:

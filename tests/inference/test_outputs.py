@@ -36,7 +36,12 @@ from dapm_lightning.inference.contact_sheet import (
 from dapm_lightning.inference.poses_table import write_poses
 from dapm_lightning.inference.postprocess import make_prediction
 from dapm_lightning.inference.predictor import DAPMPredictor
-from dapm_lightning.inference.writers import PredictionFiles, PredictionWriter, source_holding
+from dapm_lightning.inference.writers import (
+    PredictionFiles,
+    PredictionWriter,
+    check_output_outside_source,
+    source_holding,
+)
 from dapm_lightning.models import DAPMConfig
 from dapm_lightning.training.module import DAPMModule
 from tests.conftest import run_main
@@ -384,6 +389,24 @@ def test_an_output_folder_in_the_source_is_refused_before_the_model_loads(checkp
     assert source_holding(flight / "pred", f"{flight}/day*/*.png") is None
     assert source_holding(flight / "pred", flight / "im00.png") is None  # an image holds nothing
     assert source_holding(flight.parent / "out", flight) is None
+
+
+def test_an_output_folder_in_a_folder_a_list_names_is_refused(flight, tmp_path, capsys, monkeypatch):
+    """A .txt list naming flight/ with --out flight/pred is refused as the folder itself is (before: accepted, and
+    the next run into that folder, --exist_ok, read its depth and sky PNGs back as drone images)."""
+    monkeypatch.setattr(DAPMPredictor, "from_checkpoint", lambda *a, **k: pytest.fail("the model was loaded"))
+    todo = tmp_path / "todo.txt"
+    todo.write_text("# the flight\nflight\n")
+    out = flight / "pred"
+    code, err = run_main(["predict", str(todo), "--ckpt_path", "model.ckpt", "--out", str(out)], capsys)
+    assert code == 1 and err.splitlines()[0] == (f"error: --out {out} lies inside the source {flight} (line 2 of "
+                                                 f"{todo}), so its files would be read back as images: give an "
+                                                 "output folder outside the source"), err
+    assert not out.exists()
+    todo.write_text("flight/im0*.png\n")  # a pattern's root holds what the pattern reaches
+    with pytest.raises(ValueError, match=f"--out {flight} is the source {flight} \\(line 1 of"):
+        check_output_outside_source(flight, [todo])
+    check_output_outside_source(tmp_path / "out", todo)  # beside the flight: apart
 
 
 def test_the_lightning_form_refuses_an_output_folder_in_the_source(checkpoint, flight, tmp_path, capsys,
