@@ -35,6 +35,9 @@ from dapm_lightning.inference.sources import Sources
 from dapm_lightning.models.prior import EXACT_SIGMA, IGD_BOUND_MARGIN, PriorMode, PriorSettings
 from dapm_lightning.training.checkpointing import load_dapm_module
 
+PIL_MODES_TO_RGB = ("1", "P", "PA", "CMYK", "YCbCr", "LAB", "HSV")
+"""PIL images whose arrays are not RGB or grey pixels (palette indices, CMYK inks, ...): converted to RGB first."""
+
 
 class DAPMPredictor:
     """Python API: load a checkpoint once, then call it on images, batches, tensors, folders or videos.
@@ -139,6 +142,8 @@ class DAPMPredictor:
                     raise ValueError(f"image {index}: a tensor must be [3, H, W] or [B, 3, H, W] RGB, got "
                                      f"{tuple(image.shape)}")
                 image = image.expand(3, -1, -1).permute(1, 2, 0).numpy()
+            if getattr(image, "mode", None) in PIL_MODES_TO_RGB:  # a PIL image of codes, not of RGB or grey values
+                image = image.convert("RGB")
             rgb = to_rgb8(np.asarray(image), f"image {index}", bgr=False)
             item = predict_input(rgb, str(index), "", self.target, False, prior.numpy(), provenance)
         note = upscale_note(f"image {index}", item.size, tuple(item.image.shape[-2:]))

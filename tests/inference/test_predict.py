@@ -287,6 +287,21 @@ def test_python_api_images_batches_and_tensors(checkpoint):
         DAPMPredictor.from_checkpoint("missing.ckpt")
 
 
+def test_python_api_pil_images_of_palette_cmyk_and_1_bit_are_read_as_their_colours():
+    """A PIL palette image's array holds palette indices, a CMYK one's inks: they were read as grey values and as
+    RGB + alpha (a wrong picture, silently; a 1-bit one was refused as 'bool'). Now as their RGB colours, as the
+    same file given by its path is."""
+    torch.manual_seed(0)
+    predictor = DAPMPredictor(DAPMModule(net=DAPMConfig(**TINY)), image_width=32)
+    rgb = np.random.default_rng(2).integers(0, 255, (30, 40, 3), np.uint8)
+    for mode in ("P", "CMYK", "1"):
+        image = Image.fromarray(rgb).convert(mode)
+        expected = predictor(np.asarray(image.convert("RGB")))
+        got = predictor(image)
+        np.testing.assert_array_equal(got.depth_m, expected.depth_m, err_msg=mode)
+        assert got.pose == expected.pose, mode
+
+
 def test_python_api_video_and_single_branch_models(tmp_path):
     video = write_video(tmp_path / "v.avi", frames=5)
     torch.manual_seed(0)
