@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import difflib
+import signal
 import sys
 import warnings
 from collections.abc import Callable, Sequence
@@ -28,6 +29,12 @@ from dapm_lightning.options import (  # nothing heavy until the command line is 
 
 LIGHTNING_OPTIONS = ("--config", "--data", "--trainer", "--model", "--print_config", "--seed_everything")
 """Options that select the Lightning form of ``predict``."""
+EXIT_SIGTERM = 128 + signal.SIGTERM
+"""Exit status of a run stopped by SIGTERM (143, as a process killed by it): a job script tells it from 0."""
+
+
+def _stop_on_sigterm(signum: int, frame: object) -> None:
+    raise SystemExit(EXIT_SIGTERM)
 
 
 def is_lightning_form(args: Sequence[str]) -> bool:
@@ -192,6 +199,7 @@ def predict_main(argv: Sequence[str]) -> None:
                            args.sensor_width_mm, args.strict_telemetry)
     # the pixels ride along (the points' colours, the contact sheet, a video's preview): one batch at a time
     loader = predictor.loader(source, keep_rgb=True, num_workers=args.num_workers)
+    previous = signal.signal(signal.SIGTERM, _stop_on_sigterm)  # as Ctrl-C: the tables take the images written
     try:
         with files, progress_bar(loader.expected_images(), args.quiet) as bar:  # no folder if nothing was written
             for batch in loader:
@@ -200,7 +208,12 @@ def predict_main(argv: Sequence[str]) -> None:
                     bar.update(1)
             bar.close()
             print(files.finish(), file=sys.stdout, flush=True)
-    except BaseException:  # a damaged image, Ctrl-C, a failed write: the tables were brought up to date on closing
-        if files.kept:
+    except BaseException as error:  # a damaged image, Ctrl-C, SIGTERM, a failed write: the tables were brought
+        sigterm = isinstance(error, SystemExit) and error.code == EXIT_SIGTERM  # up to date on closing
+        if sigterm:
+            print(f"\nstopped by SIGTERM{f': {files.kept}' if files.kept else ''}", file=sys.stderr, flush=True)
+        elif files.kept:
             print(f"stopped early by the error below: {files.kept}", file=sys.stderr, flush=True)
         raise
+    finally:
+        signal.signal(signal.SIGTERM, previous)

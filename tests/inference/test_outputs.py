@@ -6,6 +6,8 @@ a run that fails before writing, images of extreme aspect, and runs writing one 
 
 import csv
 import json
+import os
+import signal
 import subprocess
 import threading
 
@@ -347,6 +349,35 @@ def test_a_damaged_image_mid_run_keeps_the_tables_true_to_the_files(checkpoint, 
     assert [float(table[f"im{k}"]["height_m"]) for k in range(4)] == [123.5, 124.5, 125.5, 126.5]
     assert (out / "contact_sheet.png").read_bytes() != sheet  # the sheet shows this run's predictions
     assert_whole(out)
+
+
+def test_sigterm_mid_run_writes_the_tables_of_the_images_written_and_exits_143(checkpoint, flight, tmp_path,
+                                                                             capsys, monkeypatch):
+    """A job scheduler's SIGTERM (a time limit) stops the run as Ctrl-C does: the tables and the sheet take the
+    images written, one line says so, exit status 143 (before: killed at once, their files without a poses.csv)."""
+    out = tmp_path / "out"
+    add = PredictionFiles.add
+
+    def add_then_sigterm(self, prediction):
+        add(self, prediction)
+        if self.images == 3:
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    def unhandled(signum, frame):  # what the command's own handler replaces (else SIGTERM would end pytest)
+        raise RuntimeError("SIGTERM reached the handler from before the run")
+
+    monkeypatch.setattr(PredictionFiles, "add", add_then_sigterm)
+    previous = signal.signal(signal.SIGTERM, unhandled)
+    try:
+        code, err = run_main(["predict", str(flight), "--ckpt_path", str(checkpoint), "--out", str(out),
+                              "--device", "cpu", "--batch_size", "1", "--outputs", "camera"], capsys)
+        assert code == 143 and signal.getsignal(signal.SIGTERM) is unhandled  # the handler from before, back
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    assert err.splitlines()[-1] == (f"stopped by SIGTERM: predicted 3 images: camera per image; poses.csv, "
+                                    f"contact_sheet.png in {out}/")
+    table, cameras = table_describes_the_files(out)
+    assert len(table) == len(cameras) == 3 and (out / "contact_sheet.png").is_file()
 
 
 def test_a_writer_closed_without_finishing_writes_the_tables_of_what_it_wrote(tmp_path):
