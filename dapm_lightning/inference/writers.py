@@ -31,6 +31,7 @@ import numpy as np
 import torch.distributed as dist
 from lightning.pytorch.callbacks import BasePredictionWriter
 from lightning.pytorch.utilities import rank_zero_info
+from lightning.pytorch.utilities.exceptions import SIGTERMException
 
 from dapm_lightning.data.files import (
     WriteError,
@@ -57,6 +58,7 @@ from dapm_lightning.options import DEFAULT_OUTPUTS as DEFAULT_OUTPUTS
 from dapm_lightning.options import OUTPUT_KINDS as OUTPUT_KINDS
 from dapm_lightning.options import Output as Output
 from dapm_lightning.options import check_outputs as check_outputs
+from dapm_lightning.training.checkpointing import EXIT_SIGTERM, started_by_lightning
 
 DEPTH16_SCALE = 64.0
 """``depth16.png`` stores ``round(depth_m * 64)``: 1/64 m steps, 1000 m = 64000."""
@@ -455,6 +457,8 @@ class PredictionWriter(BasePredictionWriter):
         output: DAPMOutput = prediction  # DAPMModule.predict_step's
         for result in batch_predictions(output.inference_outputs(spread=True), batch, self.spec):
             self.files.add(result)
+        if trainer.received_sigterm:  # Lightning's predict loop runs on after SIGTERM: stop here, as for Ctrl-C
+            raise SIGTERMException(0 if started_by_lightning(trainer) else EXIT_SIGTERM)
 
     def on_predict_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         """The run's tables and sheet: under DDP every process's rows gathered, written once by the first process."""
@@ -474,7 +478,9 @@ class PredictionWriter(BasePredictionWriter):
         if not trainer.is_global_zero:
             self.files.contact_rows = []
         self.files.close()
-        if self.files.kept:
+        if isinstance(exception, SIGTERMException):
+            rank_zero_info(f"stopped by SIGTERM{f': {self.files.kept}' if self.files.kept else ''}")
+        elif self.files.kept:
             rank_zero_info(f"stopped early by the error below: {self.files.kept}")
 
 

@@ -380,6 +380,30 @@ def test_sigterm_mid_run_writes_the_tables_of_the_images_written_and_exits_143(c
     assert len(table) == len(cameras) == 3 and (out / "contact_sheet.png").is_file()
 
 
+def test_the_lightning_form_stops_at_sigterm_after_the_batch_with_the_tables_and_143(checkpoint, flight, tmp_path,
+                                                                                   capsys, monkeypatch):
+    """Lightning's predict loop notes SIGTERM and runs on (before: all 48 images, exit status 0, so a scheduler's
+    kill after its grace period left files without tables). Now it stops after the batch being written: the tables
+    take those images, exit status 143."""
+    monkeypatch.chdir(tmp_path)
+    out = tmp_path / "out"
+    add = PredictionFiles.add
+
+    def add_then_sigterm(self, prediction):
+        add(self, prediction)
+        if self.images == 3:
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    monkeypatch.setattr(PredictionFiles, "add", add_then_sigterm)
+    code, _ = run_main(["predict", "--config", "configs/predict.yaml", "--ckpt_path", str(checkpoint),
+                        "--data.init_args.source", str(flight), "--data.init_args.num_workers", "0",
+                        "--data.init_args.batch_size", "2", "--trainer.accelerator", "cpu",
+                        "--trainer.callbacks.output_dir", str(out)], capsys)
+    assert code == 143
+    table, cameras = table_describes_the_files(out)
+    assert len(table) == len(cameras) == 4 and (out / "contact_sheet.png").is_file()  # the batch it was writing
+
+
 def test_a_writer_closed_without_finishing_writes_the_tables_of_what_it_wrote(tmp_path):
     """The Lightning form's writer after a failed batch: the rows of the images written, the sheet of them."""
     from types import SimpleNamespace
