@@ -10,6 +10,7 @@ macOS's ``._DJI_0001.JPG``) are left out.
 from __future__ import annotations
 
 import glob
+from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -164,7 +165,7 @@ def _unique_names(found: list[tuple[Path, str]]) -> list[tuple[Path, str]]:
     """Names made unique by their parent folders' names; two files that stay alike are refused."""
     names = [name for _, name in found]
     for level in range(1, 4):
-        clashes = {n for n in names if names.count(n) > 1}
+        clashes = {n for n, count in Counter(names).items() if count > 1}  # counted once: linear in the files
         if not clashes:
             break
         names = [f"{found[k][0].parent.parts[-level]}_{n}"
