@@ -212,11 +212,11 @@ def export_onnx(net: nn.Module, path: str | Path, size: tuple[int, int], *, chec
                 expected = reference(*inputs)
             got = session.run(None, {name: value.numpy() for name, value in zip(model.input_names, inputs)})
             row: dict[str, Any] = {"shape": shape, CHECK_DRAW: (check + 1, checks),
-                                   **{name: float(np.abs(g - e.numpy()).max())
-                                                      for name, g, e in zip(model.names, got, expected)}}
+                                   **{name: float(output_difference(g, e.numpy()).max())
+                                      for name, g, e in zip(model.names, got, expected)}}
             if "depth_m" in model.names:
                 depth, reference_depth = got[model.names.index("depth_m")], expected[model.names.index("depth_m")]
-                relative = np.abs(depth - reference_depth.numpy()) / np.maximum(reference_depth.numpy(), 1e-3)
+                relative = output_difference(depth, reference_depth.numpy()) / np.fmax(reference_depth.numpy(), 1e-3)
                 row[DEPTH_SHARE_OFF] = float((relative > 0.01).mean())
             rows.append(row)
     return rows
@@ -230,12 +230,20 @@ EXPORT_TOLERANCES = {False: {DEPTH_SHARE_OFF: 1e-3, "sky_prob": 0.01, "pose": 0.
 (True): the share of depth pixels off by more than 1 %, the sky probability, the pose (m or deg)."""
 
 
+def output_difference(got: np.ndarray, expected: np.ndarray) -> np.ndarray:
+    """``|got - expected|`` per element: 0 where both are NaN (or the same infinity), inf where only one is NaN."""
+    with np.errstate(invalid="ignore"):
+        difference = np.where((got == expected) | (np.isnan(got) & np.isnan(expected)), 0.0, np.abs(got - expected))
+    return np.nan_to_num(difference, nan=np.inf)
+
+
 def export_mismatches(rows: Sequence[Mapping[str, Any]], fp16: bool = False) -> list[str]:
-    """The checks of :func:`export_onnx` that exceed :data:`EXPORT_TOLERANCES`, each as a sentence."""
+    """The checks of :func:`export_onnx` that exceed :data:`EXPORT_TOLERANCES`, each as a sentence (NaN exceeds)."""
     failures = []
     for key, limit in EXPORT_TOLERANCES[fp16].items():
-        worst = max((row for row in rows if key in row), key=lambda row: row[key], default=None)
-        if worst is not None and worst[key] > limit:
+        worst = max((row for row in rows if key in row), key=lambda row: np.nan_to_num(row[key], nan=np.inf),
+                    default=None)
+        if worst is not None and not worst[key] <= limit:
             failures.append(f"{key} {worst[key]:.3g} > {limit:g} at {tuple(worst['shape'])}")
     return failures
 

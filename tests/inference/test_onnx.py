@@ -243,6 +243,25 @@ def test_export_mismatches_name_what_exceeds_its_tolerance():
         "depth_share_off_1pct 0.02 > 0.01 at (1, 64, 64)"]
 
 
+def test_an_output_that_is_nan_in_onnxruntime_alone_fails_the_check():
+    """A NaN (an fp16 overflow) is a difference, not a pass: NaN compares false with every limit, so it once passed
+    the check and, as the first row, hid a real mismatch in the rows after it."""
+    import numpy as np
+
+    from dapm_lightning.inference.onnx import output_difference
+
+    good = {"shape": (1, 64, 64), "depth_m": 0.01, "sky_prob": 1e-5, "pose": 1e-4, DEPTH_SHARE_OFF: 0.0}
+    nan = float("nan")
+    assert export_mismatches([{**good, "sky_prob": nan}]) == ["sky_prob nan > 0.01 at (1, 64, 64)"]
+    assert export_mismatches([{**good, "pose": nan}, {**good, "shape": (2, 51, 117), "pose": 0.06}],
+                             fp16=True) == ["pose nan > 0.5 at (1, 64, 64)"]
+    assert export_mismatches([good, {**good, "shape": (2, 51, 117), "pose": 0.06}]) == [
+        "pose 0.06 > 0.05 at (2, 51, 117)"]
+    got = np.array([1.0, nan, nan, np.inf, 5.0], np.float32)
+    expected = np.array([1.5, nan, 2.0, np.inf, nan], np.float32)
+    assert output_difference(got, expected).tolist() == [0.5, 0.0, np.inf, 0.0, np.inf]  # only one NaN: inf
+
+
 @pytest.mark.slow
 def test_the_shipped_model_exports_exactly_at_odd_sizes(tmp_path, capsys, monkeypatch):
     """The trained model shows what a random network hides: a head a pixel off at sides not divisible by its stride
