@@ -16,6 +16,9 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
+import shutil
+import tempfile
 import warnings
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
@@ -299,23 +302,37 @@ def missing_weights_message(path: Path) -> str | None:
             f"name: dapm-lightning export CKPT --out {path} (writes {path.name} and {renamed.name})")
 
 
-def remove_exported(path: str | Path) -> None:
-    """Delete an exported model: the graph and its weights file, where they exist."""
-    for written in (Path(path), weights_file(path)):
-        written.unlink(missing_ok=True)
+def move_exported(staged: Path, final: Path) -> None:
+    """Move an export (its graph and, where there is one, its weights file) from ``staged`` to ``final``."""
+    staged_data, final_data = weights_file(staged), weights_file(final)
+    if staged_data.is_file():
+        os.replace(staged_data, final_data)
+    else:
+        final_data.unlink(missing_ok=True)  # an earlier export's weights, not this graph's
+    os.replace(staged, final)
 
 
 def ensure_exported(module: nn.Module, path: Path) -> Path:
-    """``path``, exported from ``module`` (dynamic sizes, checked, with its metadata) when it does not exist."""
+    """``path``, exported from ``module`` (dynamic sizes, checked, with its metadata) when it does not exist.
+
+    Exported into a hidden folder beside ``path`` and moved there once checked: an export interrupted or refused
+    leaves no file that a later call would take as exported and checked.
+    """
     if not path.is_file():
         net = getattr(module, "net", module).eval()
         trained = getattr(module, "train_image_size", None)
         size = network_size(int(trained[0]), int(trained[1]), (int(trained[0]), int(trained[1]))) if trained \
             else (64, 64)
-        failures = export_mismatches(export_onnx(net, path, size, checks=1, dynamic=True,
-                                                 metadata=export_metadata(net, trained)))
+        path.parent.mkdir(parents=True, exist_ok=True)
+        staging = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
+        try:  # the graph records its weights file's name: the staged file has the final name
+            failures = export_mismatches(export_onnx(net, staging / path.name, size, checks=1, dynamic=True,
+                                                     metadata=export_metadata(net, trained)))
+            if not failures:
+                move_exported(staging / path.name, path)
+        finally:
+            shutil.rmtree(staging, ignore_errors=True)
         if failures:  # never run a model that disagrees with the network it came from
-            remove_exported(path)
-            raise RuntimeError(f"{path}: the exported model disagrees with PyTorch ({'; '.join(failures)}); removed. "
-                               "Fix: predict with the PyTorch runtime, and report this as a bug of the export")
+            raise RuntimeError(f"{path}: the exported model disagrees with PyTorch ({'; '.join(failures)}); not "
+                               "written. Fix: predict with the PyTorch runtime, and report this as a bug of the export")
     return path

@@ -20,7 +20,6 @@ Settings can come from a YAML file (--config FILE; --print_config shows one).
 
 from __future__ import annotations
 
-import os
 import shutil
 import tempfile
 import time
@@ -37,6 +36,7 @@ from dapm_lightning.inference.onnx import (
     export_metadata,
     export_mismatches,
     export_onnx,
+    move_exported,
     weights_file,
     write_metadata,
 )
@@ -109,7 +109,7 @@ def export(ckpt_path: Path, out: Path | None = None, height: int | None = None, 
         failures = export_mismatches(rows, fp16)
         kept = not failures or force
         if kept:
-            _move_exported(staging / float_out.name, float_out)
+            move_exported(staging / float_out.name, float_out)
     except OSError as error:
         if isinstance(error, WriteError) or error.errno not in WRITE_ERRNOS:
             raise
@@ -209,16 +209,6 @@ def _out_error(out: Path, error: OSError) -> WriteError:
     """A failed write of the export (in its hidden staging folder beside ``out``, or the move) naming ``out``."""
     failed = write_error(out, error)
     return WriteError(out, failed.reason, f"{failed.fix} (--out)")
-
-
-def _move_exported(staged: Path, final: Path) -> None:
-    """Move an export (its graph and, where there is one, its weights file) from ``staged`` to ``final``."""
-    staged_data, final_data = weights_file(staged), weights_file(final)
-    if staged_data.is_file():
-        os.replace(staged_data, final_data)
-    else:
-        final_data.unlink(missing_ok=True)  # an earlier export's weights, not this graph's
-    os.replace(staged, final)
 
 
 def export_main(argv: Sequence[str]) -> None:

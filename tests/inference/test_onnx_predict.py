@@ -30,6 +30,31 @@ def exported(tmp_path_factory):
     return module, path
 
 
+@pytest.mark.parametrize("ending", ["interrupted", "mismatch", "passes"])
+def test_the_api_export_is_moved_into_place_only_once_checked(tmp_path, monkeypatch, ending):
+    """DAPMPredictor(module, onnx_path=...) exports when the file is missing: one interrupted during its check
+    (Ctrl-C) or refused by it once left the file there, which the next call then ran as exported and checked."""
+    import dapm_lightning.inference.onnx as onnx_module
+    from tests.inference.test_onnx import tiny_net
+
+    def fake_export(net, path, size, **kwargs):
+        path.write_bytes(b"graph")
+        (path.parent / (path.name + ".data")).write_bytes(b"weights")
+        if ending == "interrupted":
+            raise KeyboardInterrupt
+        return [{"shape": (1, *size), "sky_prob": 0.5 if ending == "mismatch" else 0.0}]
+
+    monkeypatch.setattr(onnx_module, "export_onnx", fake_export)
+    path = tmp_path / "m.onnx"
+    if ending == "passes":
+        assert onnx_module.ensure_exported(tiny_net(), path) == path
+        assert sorted(p.name for p in path.parent.iterdir()) == ["m.onnx", "m.onnx.data"]
+        return
+    with pytest.raises(KeyboardInterrupt if ending == "interrupted" else RuntimeError):
+        onnx_module.ensure_exported(tiny_net(), path)
+    assert list(path.parent.iterdir()) == []  # nothing at the path, no staging folder left
+
+
 def relative_depth_gap(got, expected):
     return float(np.median(np.abs(got - expected) / expected))
 
