@@ -144,10 +144,35 @@ class OnnxRuntime:
         self.input_names = [value.name for value in self.session.get_inputs()]
         self.names = [value.name for value in self.session.get_outputs()]
         self.takes_prior = PRIOR_INPUTS[0] in self.input_names
+        # [B, 3, H, W]: names where dynamic, numbers where exported at a fixed size (--dynamic false: [1, 3, H, W])
+        dims = self.session.get_inputs()[0].shape
+        self.fixed_batch: int | None = dims[0] if isinstance(dims[0], int) else None
+        self.fixed_size: tuple[int, int] | None = (dims[2], dims[3]) if all(isinstance(d, int) for d in dims[2:]) \
+            else None
 
     def __call__(self, images: Tensor, prior: PosePrior | None = None) -> InferenceOutput:
+        size = (int(images.shape[-2]), int(images.shape[-1]))
+        if self.fixed_size is not None and size != self.fixed_size:
+            height, width = self.fixed_size
+            raise ValueError(f"{self.path}: exported at the fixed size {height}x{width} (--dynamic false); this "
+                             f"image's network size is {size[0]}x{size[1]} (height x width, the image's own aspect)."
+                             "\nFix: export it again with dynamic sizes (leave --dynamic false out), or predict only "
+                             f"images of that aspect, at that size (--image_width {width})")
+        if self.fixed_batch is not None and images.shape[0] != self.fixed_batch:  # one image at a time
+            parts = [self(images[i:i + 1], None if prior is None else _prior_row(prior, i))
+                     for i in range(images.shape[0])]
+            return InferenceOutput(**{name: torch.cat([getattr(part, name) for part in parts])
+                                      for name in parts[0].named()})
         feed = onnx_feed(unit_image(images.cpu()).float().numpy(), self.input_names, prior)
         outputs = {name: torch.from_numpy(value) for name, value in zip(self.names, self.session.run(None, feed))}
         if prior is None:  # given no prior, the pose used is the network's own (as PyTorch reports it)
             outputs.pop("pose_network", None)
         return InferenceOutput(**outputs)
+
+
+def _prior_row(prior: PosePrior, index: int) -> PosePrior:
+    """Image ``index``'s prior (a row shared by the batch stays as it is)."""
+    def row(tensor: Tensor | None) -> Tensor | None:
+        return tensor[index:index + 1] if tensor is not None and tensor.shape[0] > 1 else tensor
+
+    return PosePrior(row(prior.value), row(prior.sigma), row(prior.mask))  # type: ignore[arg-type]

@@ -127,3 +127,30 @@ def test_cli_exports_then_predicts_from_the_onnx_file_alone(checkpoint, tmp_path
         for key, entry in cameras[0]["pose"].items():
             assert entry["source"] == cameras[1]["pose"][key]["source"]
             assert abs(entry["value"] - cameras[1]["pose"][key]["value"]) < 0.05
+
+
+@pytest.mark.slow
+def test_a_fixed_size_export_predicts_batches_and_refuses_another_size_in_one_line(exported, tmp_path, capsys):
+    """--dynamic false gives [1, 3, H, W]: a batch of several images once failed in onnxruntime (prior_known: 'Got 2
+    Expected: 1'), and an image of another aspect with onnxruntime's INVALID_ARGUMENT, named as an unexpected error."""
+    from dapm_lightning.inference.onnx import export_metadata, export_onnx
+
+    module, dynamic = exported
+    fixed = tmp_path / "fixed.onnx"
+    export_onnx(module.net, fixed, (48, 80), checks=1, dynamic=False, metadata=export_metadata(module.net, (48, 80)))
+    rng = np.random.default_rng(3)
+    frames = [rng.integers(0, 255, (96, 160, 3), np.uint8) for _ in range(3)]  # the training aspect: 48 x 80
+    prior = {"height_m": 35.0}
+    want = DAPMPredictor.from_checkpoint(dynamic)(frames, prior=[prior, None, prior])
+    got = DAPMPredictor.from_checkpoint(fixed, batch_size=3)(frames, prior=[prior, None, prior])
+    for a, b in zip(got, want):
+        assert relative_depth_gap(a.depth_m, b.depth_m) < 1e-4 and pose_gap(a.pose, b.pose) < 1e-3
+    images = tmp_path / "images"
+    images.mkdir()
+    cv2.imwrite(str(images / "square.png"), frames[0][:, :96])
+    with pytest.raises(SystemExit) as info:
+        main(["predict", str(images), "--ckpt_path", str(fixed), "--out", str(tmp_path / "out"), "--device", "cpu"])
+    err = capsys.readouterr().err
+    assert info.value.code == 1 and "Traceback" not in err and "possibly a bug" not in err, err
+    assert f"{fixed}: exported at the fixed size 48x80 (--dynamic false); this image's network size is" in err
+    assert "Fix: export it again with dynamic sizes" in err
