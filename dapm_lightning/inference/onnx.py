@@ -1,10 +1,11 @@
 """ONNX: the network as a self-contained ONNX model, checked against PyTorch on the spot.
 
 Inputs: ``image [B, 3, H, W]`` float RGB in [0, 1] at any height and width (the network size the predict path
-chooses, the same as PyTorch's); a model with a pose branch also takes ``prior [B, 4]`` (height m, pitch, roll,
-fov deg; NaN where unknown) and ``prior_sigma [B, 4]``, fused with the network's pose before its IGD feature
-exactly as in PyTorch. Outputs are named as :data:`~dapm_lightning.models.dapm.INFERENCE_OUTPUTS` (those the model
-has). The file's metadata (:func:`export_metadata`) holds what prediction needs besides the graph: the network's
+chooses, the same as PyTorch's); a model with a pose branch also takes ``prior [B, 4]`` (height m, pitch, roll, fov
+deg; any value where unknown), ``prior_known [B, 4]`` (bool) and ``prior_sigma [B, 4]``, fused with the network's
+pose before its IGD feature exactly as in PyTorch. Outputs are named as
+:data:`~dapm_lightning.models.dapm.INFERENCE_OUTPUTS` (those the model has).
+The file's metadata (:func:`export_metadata`) holds what prediction needs besides the graph: the network's
 settings (depth kind, depth limit, IGD model, pose ranges), the training size, the pose order and units, the sky
 threshold, the project version and the source checkpoint's hash. The ops that differ while exporting are defined
 where the network uses them (:func:`dapm_lightning.models.blocks.adaptive_avg_pool2d`). PyTorch's exporter writes the

@@ -1,9 +1,9 @@
 """dapm-lightning export: an ONNX model (image in; depth, sky probability and/or pose out), checked on the spot.
 
-Any DAPM checkpoint exports: the full model (depth_m, sky_prob, pose, with the telemetry inputs prior and
-prior_sigma), DAPM(D) (depth_m, sky_prob) and DAPM(P) (pose). Batch, height and width are dynamic by default
-(any size: the predict path feeds the same network size as PyTorch). The file carries the network's settings
-and training size as metadata, so `dapm-lightning predict SOURCE --ckpt_path MODEL.onnx` needs nothing else.
+Any DAPM checkpoint exports: the full model (depth_m, sky_prob, pose, with the telemetry inputs prior, prior_known
+and prior_sigma), DAPM(D) (depth_m, sky_prob) and DAPM(P) (pose). Batch, height and width are dynamic by default
+(any size: the predict path feeds the same network size as PyTorch). The file carries the network's settings and
+training size as metadata, so `dapm-lightning predict SOURCE --ckpt_path MODEL.onnx` needs nothing else.
 After writing, onnxruntime and PyTorch run the same random inputs at two sizes and the largest difference of
 each output is printed; beyond the tolerances (float32: 0.1 % of depth pixels off by more than 1 %, sky
 probability 0.01, pose 0.05 m or deg; float16: 1 %, 0.15, 0.5) the file is removed and the export fails, unless

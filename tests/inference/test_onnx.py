@@ -299,3 +299,8 @@ def test_the_docs_name_every_input_and_output_of_the_exported_model():
     section = doc[doc.index("dapm-lightning export CKPT"):doc.index("The file carries what prediction needs")]
     assert [name for name in ("image", *PRIOR_INPUTS, *INFERENCE_OUTPUTS) if f"`{name}`" not in section] == []
     assert "NaN where unknown" not in section  # the graph takes no NaN: prior_known says what is known
+    import dapm_lightning.inference.onnx as onnx_module
+    import dapm_lightning.tools.export as export_tool
+
+    for text in (export_tool.__doc__, onnx_module.__doc__):  # `export --help`, and the module's reference
+        assert [name for name in PRIOR_INPUTS if name not in text] == [] and "NaN where unknown" not in text
