@@ -84,6 +84,7 @@ def export(ckpt_path: Path, out: Path | None = None, height: int | None = None, 
     if int8 and fp16:
         raise ValueError("--int8 quantises the float32 model: leave --fp16 out")
     check_export_size(height, width)
+    check_export_counts(checks=checks, calibration_images=calibration_images, verdict_images=verdict_images)
     suffix = "_fp16" if fp16 else "_int8" if int8 else ""
     out = Path(out) if out else ckpt_path.with_name(ckpt_path.stem + suffix + ".onnx")
     check_export_path(out, ckpt_path)
@@ -189,6 +190,14 @@ def check_export_size(height: int | None, width: int | None) -> None:
             raise ValueError(f"{name} {side}: an exported model takes sides of {SIZE_MULTIPLE} to {MAX_EXPORT_SIDE} "
                              f"pixels (at least the encoder's stride).\nFix: give {name} in that range, or leave it "
                              "out for the checkpoint's training size.")
+
+
+def check_export_counts(**counts: int) -> None:
+    """Refuse a count below 1 (``--checks``, ``--calibration_images``, ``--verdict_images``) before the export."""
+    for name, count in counts.items():
+        if count < 1:
+            raise ValueError(f"--{name} {count}: at least 1 (the export is checked on random inputs, an int8 model "
+                             f"calibrated and measured on renders).\nFix: give --{name} 1 or more, or leave it out")
 
 
 def check_export_path(out: Path, ckpt_path: Path) -> None:

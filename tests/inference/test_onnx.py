@@ -107,7 +107,9 @@ def test_export_refuses_an_out_it_would_wrongly_replace_and_sizes_it_cannot_expo
                           (["--out", str(ckpt / "m.onnx")],
                            f"{ckpt}: cannot be written (it is a file, not a folder)\nFix: give another output folder"),
                           (["--height", "16"], "--height 16: an exported model takes sides of 32 to 8192"),
-                          (["--width", "9000"], "--width 9000: an exported model takes sides of 32 to 8192")):
+                          (["--width", "9000"], "--width 9000: an exported model takes sides of 32 to 8192"),
+                          (["--checks", "0"], "--checks 0: at least 1"),  # once: IndexError, the file unchecked
+                          (["--int8", "--verdict_images", "0"], "--verdict_images 0: at least 1")):
         with pytest.raises(SystemExit) as info:
             main(["export", "--ckpt_path", str(ckpt), *argv])
         err = capsys.readouterr().err
