@@ -192,7 +192,9 @@ def export_onnx(net: nn.Module, path: str | Path, size: tuple[int, int], *, chec
     path.parent.mkdir(parents=True, exist_ok=True)
     # torch.export specialises what the example makes look constant: a batch of 1 to 1, and sides that divide by
     # the strides to expressions true only for such sides; a batch of 2 and odd sides keep the graph general
-    traced = (size[0] | 1, size[1] | 1) if dynamic else size
+    # (odd, and within the range of sides the graph is exported for: 8192 is traced at 8191)
+    top = MAX_EXPORT_SIDE - 1
+    traced = (min(size[0] | 1, top), min(size[1] | 1, top)) if dynamic else size
     example = example_inputs(2 if dynamic else 1, traced, model.takes_prior, seed=seed)
     dynamic_shapes = None
     if dynamic:

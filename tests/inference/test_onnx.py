@@ -74,6 +74,18 @@ def test_every_variant_exports(kind, tmp_path):
         assert model.graph.input[0].type.tensor_type.elem_type == onnx.TensorProto.FLOAT
 
 
+@pytest.mark.slow
+def test_the_largest_side_allowed_exports(tmp_path):
+    """--height 8192 is allowed (32 to 8192): the export traced it at 8193, outside the graph's range of sides
+    (torch.export's ConstraintViolationError '8193 not in range [32, 8192]')."""
+    from dapm_lightning.inference.onnx import MAX_EXPORT_SIDE
+
+    net = tiny_net(use_pose=False, use_igd_feature=False)
+    rows = export_onnx(net, tmp_path / "m.onnx", (MAX_EXPORT_SIDE, 32), checks=1)
+    assert [r["shape"] for r in rows] == [(1, MAX_EXPORT_SIDE, 32), (2, MAX_EXPORT_SIDE - 13, 53)]
+    assert export_mismatches(rows) == []
+
+
 def test_cli_export_settings_from_a_config_file(tmp_path, capsys):
     config = tmp_path / "export.yaml"
     config.write_text(yaml.safe_dump({"ckpt_path": str(tmp_path / "model.ckpt"), "height": 64, "fp16": True}))
