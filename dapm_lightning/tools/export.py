@@ -143,7 +143,8 @@ def export(ckpt_path: Path, out: Path | None = None, height: int | None = None, 
     if failures:
         print(f"kept anyway (--force true): {float_out} disagrees with PyTorch ({'; '.join(failures)})")
     if int8:
-        _int8(float_out, out, trained, (height, width), calibration_images, verdict_images, force, threads,
+        calibrated = trained if dynamic else (height, width)  # a fixed-size graph takes its own size alone
+        _int8(float_out, out, calibrated, (height, width), calibration_images, verdict_images, force, threads,
               {**metadata, "dapm.precision": "int8"})
     return out if int8 else float_out
 

@@ -187,3 +187,18 @@ def test_int8_benchmark_runs_the_three_side_by_side_at_each_size(trained):
     assert ort_float["x_ort_fp32"] == 1.0 and ort_float["d1_change"] == pytest.approx(0.0, abs=1e-6)
     assert all(r["median_ms"] > 0 and 0 <= r["d1"] <= 1 and "fov_median" in r for r in rows)
     assert "ORT int8" in format_int8(rows, "title")
+
+
+@pytest.mark.slow
+def test_a_fixed_size_model_is_calibrated_at_its_own_size(tmp_path, capsys):
+    """--dynamic false at another size than the training size: the calibration fed renders at the training size
+    to a graph that takes only the export size (onnxruntime: 'INVALID_ARGUMENT ... Got: 256 Expected: 64')."""
+    from pathlib import Path
+
+    from dapm_lightning.tools.export import export
+
+    shipped = Path(__file__).resolve().parents[2] / "models" / "dapm-synthetic-r18-256"  # trained at 256 x 256
+    out = tmp_path / "m_int8.onnx"
+    assert export(shipped, out, height=64, width=96, dynamic=False, int8=True, checks=1, calibration_images=4,
+                  verdict_images=4, force=True) == out
+    assert out.is_file() and "calibrated on 4 renders at 64x96)" in capsys.readouterr().out
