@@ -138,7 +138,13 @@ class OnnxRuntime:
             raise ValueError(f"{self.path}: not a dapm-lightning export: its metadata lacks {METADATA_NET} (the "
                              "network's settings: depth limit, depth kind, pose ranges) and its training size.\n"
                              "Fix: export the checkpoint with `dapm-lightning export --ckpt_path CKPT`")
-        self.config = DAPMConfig.from_dict(json.loads(metadata[METADATA_NET]))
+        try:
+            self.config = DAPMConfig.from_dict(json.loads(metadata[METADATA_NET]))
+        except ValueError as error:  # settings of another version (an unknown one, a value refused), or not JSON
+            raise ValueError(f"{self.path}: its network settings ({METADATA_NET}, exported by dapm-lightning "
+                             f"{metadata.get('dapm.version', '?')}) do not load here: {str(error).splitlines()[0]}"
+                             "\nFix: predict with the dapm-lightning version that exported it, or export the "
+                             "checkpoint again with this one") from error
         trained = json.loads(metadata.get("dapm.train_image_size", "null"))
         self.train_image_size: tuple[int, int] | None = (int(trained[0]), int(trained[1])) if trained else None
         self.input_names = [value.name for value in self.session.get_inputs()]

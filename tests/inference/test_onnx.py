@@ -238,6 +238,41 @@ def test_a_renamed_model_names_the_weights_file_its_graph_records(tmp_path, caps
         OnnxRuntime(folder / "broken.onnx")
 
 
+def test_a_model_of_another_version_names_the_file_and_the_fix(tmp_path, capsys):
+    """A newer export's settings (one this version does not know) once gave "unknown model.net setting(s)
+    ['future_setting']; known: [...]", naming neither the .onnx file nor what to do."""
+    import json
+
+    import cv2
+    import numpy as np
+    import onnx
+    from onnx import TensorProto, helper
+
+    from dapm_lightning.inference.runtime import OnnxRuntime
+
+    graph = helper.make_graph([helper.make_node("Identity", ["image"], ["depth_m"])], "g",
+                              [helper.make_tensor_value_info("image", TensorProto.FLOAT, ["b", 3, "h", "w"])],
+                              [helper.make_tensor_value_info("depth_m", TensorProto.FLOAT, ["b", 3, "h", "w"])])
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)], ir_version=9)
+    settings = {**DAPMConfig(**TINY).to_dict(), "future_setting": 1}
+    for key, value in {"dapm.net": json.dumps(settings), "dapm.version": "9.0.0"}.items():
+        model.metadata_props.add(key=key, value=value)
+    path = tmp_path / "newer.onnx"
+    onnx.save(model, str(path))
+    with pytest.raises(ValueError) as info:
+        OnnxRuntime(path)
+    assert str(info.value).startswith(f"{path}: its network settings (dapm.net, exported by dapm-lightning 9.0.0) "
+                                      "do not load here: unknown model.net setting(s) ['future_setting']")
+    assert str(info.value).endswith("\nFix: predict with the dapm-lightning version that exported it, or export "
+                                    "the checkpoint again with this one")
+    image = tmp_path / "a.png"
+    assert cv2.imwrite(str(image), np.zeros((40, 60, 3), np.uint8))
+    with pytest.raises(SystemExit) as stop:
+        main(["predict", str(image), "--ckpt_path", str(path), "--out", str(tmp_path / "out"), "--device", "cpu"])
+    err = capsys.readouterr().err
+    assert stop.value.code == 1 and "newer.onnx: its network settings" in err and "Traceback" not in err
+
+
 @pytest.mark.slow
 def test_cli_export(checkpoint, tmp_path, capsys):
     out = tmp_path / "model.onnx"
