@@ -22,6 +22,8 @@ DEBUG_FLAG = "--debug"
 DEBUG_ENV = "DAPM_DEBUG"
 EXIT_ERROR = 1
 EXIT_INTERRUPTED = 130
+EXPORT_MODULES = ("onnx", "onnxscript", "onnxruntime")
+"""The packages of the ``export`` extra (pyproject.toml): ONNX export, int8 and onnxruntime prediction."""
 _PATH_ERRORS = (FileNotFoundError, NotADirectoryError, IsADirectoryError, PermissionError)
 _WORKER_TAIL = re.compile(r"^(?:[\w.]+\.)?(\w*(?:Error|Exception)): ", re.MULTILINE)
 
@@ -120,6 +122,9 @@ def describe(error: BaseException) -> tuple[str, bool]:
         held = f"MASTER_PORT={port} is" if port else "the port is"
         return (f"{name}: {message}\nFix: {held} taken by another program or run on this machine: unset "
                 "MASTER_PORT (Lightning then picks a free port) or set it to a free one."), True
+    if isinstance(error, ModuleNotFoundError) and (error.name or "").split(".")[0] in EXPORT_MODULES:
+        return (f"{name}: {message}: ONNX export and running an .onnx model need the export extra.\n"
+                f"Fix: pip install \"dapm-lightning[export]\" ({', '.join(EXPORT_MODULES)})"), True
     if isinstance(error, (ValueError, KeyError)) or name == "ValueError":
         return message, True
     if isinstance(error, (RuntimeError, ImportError, OSError)) or name == "MisconfigurationException":

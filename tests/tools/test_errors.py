@@ -248,3 +248,27 @@ def test_synth_into_a_file_and_export_under_a_file_say_so(capsys, tmp_path):
                           "--workers", "1", "--quiet"], capsys)
     assert code == 1 and f"it lies under {a_file}, which is a file, not a folder" in err, err
     assert "Fix: give another output folder (--out)" in err and a_file.read_text() == "kept"
+
+
+def test_a_missing_export_extra_names_the_install(tmp_path, capsys, monkeypatch):
+    """predict on an .onnx model (or export) without onnxruntime once ended in "ModuleNotFoundError: No module named
+    'onnxruntime'" alone, with no word of the export extra that holds it."""
+    import sys
+
+    import cv2
+    import numpy as np
+
+    from dapm_lightning.cli import main
+
+    monkeypatch.setitem(sys.modules, "onnxruntime", None)  # importing it raises ModuleNotFoundError
+    image = tmp_path / "a.png"
+    assert cv2.imwrite(str(image), np.zeros((40, 60, 3), np.uint8))
+    (tmp_path / "m.onnx").write_bytes(b"graph")
+    with pytest.raises(SystemExit) as stop:
+        main(["predict", str(image), "--ckpt_path", str(tmp_path / "m.onnx"), "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err
+    assert stop.value.code == 1 and "Traceback" not in err, err
+    assert "ONNX export and running an .onnx model need the export extra.\nFix: pip install " \
+           '"dapm-lightning[export]" (onnx, onnxscript, onnxruntime)' in err, err
+    message, _ = describe(ModuleNotFoundError("No module named 'yaml'", name="yaml"))
+    assert "export extra" not in message  # another missing package is not said to be the extra's
