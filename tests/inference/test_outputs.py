@@ -351,22 +351,28 @@ def test_a_damaged_image_mid_run_keeps_the_tables_true_to_the_files(checkpoint, 
     assert_whole(out)
 
 
+def sigterm_after_images(monkeypatch, count):
+    """A SIGTERM to this process once the output files hold ``count`` images (a job scheduler's time limit)."""
+    add = PredictionFiles.add
+
+    def add_then_sigterm(self, prediction):
+        add(self, prediction)
+        if self.images == count:
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    monkeypatch.setattr(PredictionFiles, "add", add_then_sigterm)
+
+
 def test_sigterm_mid_run_writes_the_tables_of_the_images_written_and_exits_143(checkpoint, flight, tmp_path,
                                                                              capsys, monkeypatch):
     """A job scheduler's SIGTERM (a time limit) stops the run as Ctrl-C does: the tables and the sheet take the
     images written, one line says so, exit status 143 (before: killed at once, their files without a poses.csv)."""
     out = tmp_path / "out"
-    add = PredictionFiles.add
-
-    def add_then_sigterm(self, prediction):
-        add(self, prediction)
-        if self.images == 3:
-            os.kill(os.getpid(), signal.SIGTERM)
+    sigterm_after_images(monkeypatch, 3)
 
     def unhandled(signum, frame):  # what the command's own handler replaces (else SIGTERM would end pytest)
         raise RuntimeError("SIGTERM reached the handler from before the run")
 
-    monkeypatch.setattr(PredictionFiles, "add", add_then_sigterm)
     previous = signal.signal(signal.SIGTERM, unhandled)
     try:
         code, err = run_main(["predict", str(flight), "--ckpt_path", str(checkpoint), "--out", str(out),
@@ -387,14 +393,7 @@ def test_the_lightning_form_stops_at_sigterm_after_the_batch_with_the_tables_and
     take those images, exit status 143."""
     monkeypatch.chdir(tmp_path)
     out = tmp_path / "out"
-    add = PredictionFiles.add
-
-    def add_then_sigterm(self, prediction):
-        add(self, prediction)
-        if self.images == 3:
-            os.kill(os.getpid(), signal.SIGTERM)
-
-    monkeypatch.setattr(PredictionFiles, "add", add_then_sigterm)
+    sigterm_after_images(monkeypatch, 3)
     code, _ = run_main(["predict", "--config", "configs/predict.yaml", "--ckpt_path", str(checkpoint),
                         "--data.init_args.source", str(flight), "--data.init_args.num_workers", "0",
                         "--data.init_args.batch_size", "2", "--trainer.accelerator", "cpu",
