@@ -23,6 +23,7 @@ from lightning.pytorch.utilities import rank_zero_info
 from torch.utils.data import DataLoader, Dataset, IterableDataset, Sampler, get_worker_info
 
 from dapm_lightning.data.unlabelled import PredictBatch, PredictCollate, PredictInput
+from dapm_lightning.data.workers import worker_init_fn
 from dapm_lightning.inference import telemetry as flight
 from dapm_lightning.inference.pixels import DEFAULT_NETWORK_SIZE as DEFAULT_NETWORK_SIZE
 from dapm_lightning.inference.pixels import MAX_UPSCALE as MAX_UPSCALE
@@ -420,14 +421,15 @@ def predict_loaders(source: PredictSource, target: NetworkSize, settings: PriorS
     collate = PredictCollate(settings)
     loaders: list[DataLoader[PredictInput]] = []
     for dataset in source_datasets(source, target, keep_rgb, chunk=batch_size):
+        # workers ignore a SIGTERM to the whole job: this process stops the run (the tables written) and then them
+        workers: dict[str, Any] = {"num_workers": num_workers, "collate_fn": collate, "pin_memory": pin_memory,
+                                   "worker_init_fn": worker_init_fn(rank) if num_workers > 0 else None}
         if isinstance(dataset, VideoFramesDataset):
             dataset.rank, dataset.world_size = rank, world_size
-            loaders.append(DataLoader(dataset, batch_size=batch_size, num_workers=num_workers, collate_fn=collate,
-                                      pin_memory=pin_memory))
+            loaders.append(DataLoader(dataset, batch_size=batch_size, **workers))
         else:
             sampler = SizeBatchSampler(dataset.network_sizes(), batch_size, rank, world_size)
-            loaders.append(DataLoader(dataset, batch_sampler=sampler, num_workers=num_workers, collate_fn=collate,
-                                      pin_memory=pin_memory))
+            loaders.append(DataLoader(dataset, batch_sampler=sampler, **workers))
     return loaders
 
 

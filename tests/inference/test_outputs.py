@@ -386,6 +386,40 @@ def test_sigterm_mid_run_writes_the_tables_of_the_images_written_and_exits_143(c
     assert len(table) == len(cameras) == 3 and (out / "contact_sheet.png").is_file()
 
 
+@pytest.mark.slow
+def test_sigterm_to_the_whole_job_with_loader_workers_stops_cleanly(checkpoint, tmp_path):
+    """A scheduler's SIGTERM reaches the loader workers too (the process group): they leave the stop to the main
+    process, which writes the tables and exits 143 without a traceback (before: each worker died of it and the
+    loader's shutdown printed 'RuntimeError: DataLoader worker (pid N) is killed by signal: Terminated')."""
+    import sys
+    import time
+
+    images = tmp_path / "flight"
+    images.mkdir()
+    rng = np.random.default_rng(5)
+    for k in range(1500):
+        cv2.imwrite(str(images / f"im{k:04d}.png"), rng.integers(0, 255, (24, 32, 3), np.uint8))
+    out = tmp_path / "out"
+    process = subprocess.Popen(
+        [sys.executable, "-m", "dapm_lightning", "predict", str(images), "--ckpt_path", str(checkpoint), "--out",
+         str(out), "--device", "cpu", "--batch_size", "1", "--num_workers", "2", "--outputs", "camera"],
+        cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    deadline = time.monotonic() + 240
+    while len(list(out.glob("*_camera.json"))) < 5 and process.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert process.poll() is None, "the run ended before the signal"
+    os.killpg(process.pid, signal.SIGTERM)
+    try:
+        _, err = process.communicate(timeout=120)
+    except subprocess.TimeoutExpired:
+        os.killpg(process.pid, signal.SIGKILL)
+        pytest.fail(f"still running 120 s after SIGTERM:\n{process.communicate()[1][-3000:]}")
+    assert process.returncode == 143 and "Traceback" not in err, err[-3000:]
+    assert err.splitlines()[-1].startswith("stopped by SIGTERM: predicted "), err[-3000:]
+    table, cameras = table_describes_the_files(out)
+    assert 5 <= len(table) == len(cameras) < 1500
+
+
 def test_the_lightning_form_stops_at_sigterm_after_the_batch_with_the_tables_and_143(checkpoint, flight, tmp_path,
                                                                                    capsys, monkeypatch):
     """Lightning's predict loop notes SIGTERM and runs on (before: all 48 images, exit status 0, so a scheduler's
