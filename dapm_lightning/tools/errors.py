@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import os
 import re
-import signal
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -23,8 +22,6 @@ DEBUG_FLAG = "--debug"
 DEBUG_ENV = "DAPM_DEBUG"
 EXIT_ERROR = 1
 EXIT_INTERRUPTED = 130
-EXIT_SIGTERM = 128 + signal.SIGTERM
-"""Exit status of a run stopped by SIGTERM (143, as a process killed by it): a job script tells it from 0."""
 EXPORT_MODULES = ("onnx", "onnxscript", "onnxruntime")
 """The packages of the ``export`` extra (pyproject.toml): ONNX export, int8 and onnxruntime prediction."""
 _PATH_ERRORS = (FileNotFoundError, NotADirectoryError, IsADirectoryError, PermissionError)

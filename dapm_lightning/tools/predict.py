@@ -26,10 +26,11 @@ from dapm_lightning.options import (  # nothing heavy until the command line is 
     PRIOR_MODES,
     check_outputs,
 )
-from dapm_lightning.tools.errors import EXIT_SIGTERM
 
 LIGHTNING_OPTIONS = ("--config", "--data", "--trainer", "--model", "--print_config", "--seed_everything")
 """Options that select the Lightning form of ``predict``."""
+EXIT_SIGTERM = 128 + signal.SIGTERM
+"""Exit status of a run stopped by SIGTERM (143, as a process killed by it): a job script tells it from 0."""
 
 
 def _stop_on_sigterm(signum: int, frame: object) -> None:

@@ -14,7 +14,6 @@ from pathlib import Path
 from dapm_lightning.data.files import WriteError, check_folder_writable
 from dapm_lightning.data.synthetic import FAMILIES, SynthFolderError, generate_uapd, normalize_families, shard_range
 from dapm_lightning.geometry.constants import MAX_DEPTH_M, MIN_DEPTH_LIMIT_M
-from dapm_lightning.tools.errors import EXIT_SIGTERM
 from dapm_lightning.tools.progress import progress_bar
 
 
@@ -70,6 +69,8 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+EXIT_SIGTERM = 128 + signal.SIGTERM
+"""Exit status of a render stopped by SIGTERM (143, as a process killed by it): a job script tells it from 0."""
 
 
 def _stop_on_sigterm(signum: int, frame: object) -> None:

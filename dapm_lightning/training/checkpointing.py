@@ -31,7 +31,6 @@ from lightning.pytorch.utilities.exceptions import SIGTERMException
 from torch import Tensor
 
 from dapm_lightning.models.config import DAPMConfig
-from dapm_lightning.tools.errors import EXIT_SIGTERM as EXIT_SIGTERM  # a run stopped after saving last.ckpt
 from dapm_lightning.training.checkpoint_files import (  # the check of foreign files lives there: re-exported
     CheckpointReadError,
     NotADAPMCheckpointError,
@@ -45,6 +44,9 @@ from dapm_lightning.training.checkpoint_files import (  # the check of foreign f
 )
 from dapm_lightning.training.module import DAPMModule
 from dapm_lightning.training.signals import request_stop, validation_follows
+
+EXIT_SIGTERM = 128 + signal.SIGTERM
+"""Exit status of a run stopped by SIGTERM after saving ``last.ckpt`` (143: a job script can tell it from 0)."""
 
 EXIT_SIGINT = 128 + signal.SIGINT
 """Exit status of a run stopped by SIGINT (Ctrl-C) after saving ``last.ckpt`` (130, as a shell reports it)."""
