@@ -21,7 +21,7 @@ from dapm_lightning.data.samplers import EpochShuffleSampler
 from dapm_lightning.data.synthetic import generate_uapd, settings_changes
 from dapm_lightning.data.transforms import Augmentation, train_transform
 from dapm_lightning.data.uapd import UAPDDataset, read_depth_grey
-from dapm_lightning.data.workers import worker_init_fn
+from dapm_lightning.data.workers import loader_context, loader_workers
 from dapm_lightning.geometry.constants import MAX_DEPTH_M
 from dapm_lightning.geometry.depth_codec import check_depth_limit
 
@@ -48,6 +48,9 @@ class DAPMDataModule(L.LightningDataModule):
     Args:
         batch_size: per process (the global batch is ``batch_size x devices x nodes``).
         num_workers, pin_memory, persistent_workers: ``DataLoader`` settings.
+        worker_start_method: how loader workers start: ``forkserver`` (default: from a single-threaded server
+            process, immune to locks held by this process's threads), ``fork`` (PyTorch's default on Linux: data sets
+            that cannot be pickled) or ``spawn`` (:func:`~dapm_lightning.data.workers.loader_context`).
         augment: augment the training split (colour jitter, noise, pose-aware flip).
         augmentation: its strengths (:class:`~dapm_lightning.data.transforms.Augmentation`; the defaults are
             this project's light augmentation, the paper configs set the authors' stronger one).
@@ -62,7 +65,8 @@ class DAPMDataModule(L.LightningDataModule):
     def __init__(self, batch_size: int = 8, num_workers: int = 2, pin_memory: bool = False,
                  persistent_workers: bool = False, augment: bool = True,
                  image_dtype: Literal["float32", "uint8"] = "uint8", eval_batch_size: int | None = None,
-                 seed: int = 0, augmentation: Augmentation = Augmentation()) -> None:  # noqa: B008 (frozen)
+                 seed: int = 0, augmentation: Augmentation = Augmentation(),  # noqa: B008 (frozen)
+                 worker_start_method: Literal["forkserver", "fork", "spawn"] = "forkserver") -> None:
         super().__init__()
         counts = (("batch_size", batch_size, 1, 8), ("eval_batch_size", eval_batch_size, 1, 8),
                   ("num_workers", num_workers, 0, 2), ("seed", seed, 0, 0))  # seeds of numpy's SeedSequence: >= 0
@@ -76,6 +80,8 @@ class DAPMDataModule(L.LightningDataModule):
         self.augmentation = Augmentation(**augmentation) if isinstance(augmentation, dict) else augmentation
         self.eval_batch_size = eval_batch_size or batch_size
         self.seed = seed
+        loader_context(worker_start_method)  # refused here, not at the first loader
+        self.worker_start_method = worker_start_method
         self._resume_position: dict[str, int] | None = None
         self.resumed_at: tuple[int, int] | None = None
         """``(epoch, batches)``: the training loader resumes ``epoch`` after its first ``batches`` batches (of this
@@ -145,10 +151,10 @@ class DAPMDataModule(L.LightningDataModule):
         sampler = EpochShuffleSampler(len(dataset), self.seed, num_replicas=world_size, rank=rank,  # type: ignore[arg-type]
                                       shuffle=train, drop_last=train)
         batch_size = self.batch_size if train else self.eval_batch_size
-        loader = DataLoader(dataset, batch_size=batch_size, sampler=sampler, num_workers=self.num_workers,
+        loader = DataLoader(dataset, batch_size=batch_size, sampler=sampler,
                             pin_memory=self.pin_memory, persistent_workers=self.persistent_workers,
                             collate_fn=collate_samples, drop_last=train and len(sampler) > batch_size,
-                            worker_init_fn=worker_init_fn(rank) if self.num_workers > 0 else None,  # SIGTERM
+                            **loader_workers(self.num_workers, rank, self.worker_start_method),  # SIGTERM
                             generator=torch.Generator().manual_seed(self.seed))  # worker seeds: not the global RNG
         if train:
             self.resumed_at = None

@@ -1,4 +1,11 @@
-"""Loader workers and SIGTERM: a signal to the whole job reaches the training process, not the workers.
+"""Loader workers: how they start, and SIGTERM: a signal to the whole job reaches the training process, not them.
+
+Workers are started by a fork server (:func:`loader_context`), not forked from the training process: a process
+forked from one that runs threads (DDP's communication, a logger's writer, pytest-xdist's) inherits any lock one
+of those threads held at that moment, never to be released, and a worker then hung at its start, seen twice on
+the 2-core build machine under load. The server is a single-threaded process started once per training process,
+with PyTorch and the data code imported; a worker forked from it starts as fast as one forked from the training
+process. ``worker_start_method: fork`` gives PyTorch's default back (for data sets that cannot be pickled).
 
 SLURM sends SIGTERM to every process of a job step before it pre-empts or ends it (``timeout`` and a terminal
 signal the whole process group): to the data loader workers too. PyTorch's workers die of it, and the training
@@ -20,6 +27,12 @@ from typing import Any
 
 from lightning.fabric.utilities.seed import pl_worker_init_function
 
+WORKER_START_METHODS = ("forkserver", "fork", "spawn")
+"""How loader workers start (``multiprocessing`` start methods): the fork server is the default."""
+SERVER_PRELOAD = ["dapm_lightning.data.worker_server", "torch", "dapm_lightning.data.datamodules",
+                  "dapm_lightning.inference.inputs"]
+"""What the fork server imports before it forks workers (the first makes it ignore SIGTERM)."""
+
 _EXITING: list[Any] = []
 """One event per loader with workers, set when this process exits (:func:`_exiting`). Kept for the process's life
 (a few bytes each): a worker can outlive its loader's Python objects (one whose shutdown it ignored while it
@@ -33,7 +46,28 @@ def _exiting() -> None:
         event.set()
 
 
-def loader_worker_init(worker_id: int, rank: int = 0, exiting: Any = None) -> None:
+def loader_context(method: str = "forkserver") -> multiprocessing.context.BaseContext:
+    """The ``multiprocessing_context`` of a loader with workers: the fork server by default.
+
+    Args:
+        method: one of :data:`WORKER_START_METHODS`. A platform without a fork server (Windows) spawns instead.
+
+    Returns:
+        The context; for the fork server, with :data:`SERVER_PRELOAD` to import when it starts (the first loader
+        of this process starts it, once; a server already started by other code keeps its own imports).
+    """
+    if method not in WORKER_START_METHODS:
+        raise ValueError(f"worker_start_method: {method!r}, but it must be one of {', '.join(WORKER_START_METHODS)}."
+                         "\nFix: e.g. --data.init_args.worker_start_method forkserver")
+    if method != "spawn" and method not in multiprocessing.get_all_start_methods():
+        method = "spawn"
+    context = multiprocessing.get_context(method)
+    if method == "forkserver":
+        context.set_forkserver_preload(SERVER_PRELOAD)  # type: ignore[attr-defined]
+    return context
+
+
+def loader_worker_init(worker_id: int, rank: int = 0, exiting: Any = None, seed_workers: bool = False) -> None:
     """Start of every loader worker: SIGTERM from outside ignored; seeded as Lightning would when asked to.
 
     Args:
@@ -41,6 +75,8 @@ def loader_worker_init(worker_id: int, rank: int = 0, exiting: Any = None) -> No
         rank: the process's global rank.
         exiting: an event the training process sets when it exits (:func:`worker_init_fn`): a SIGTERM then
             ends the worker (``multiprocessing`` terminating it), before it is ignored.
+        seed_workers: seed as Lightning's ``seed_everything(workers=True)`` asks (read in the training process:
+            a fork server's environment is that of its start).
     """
 
     def on_sigterm(signum: int, frame: FrameType | None) -> None:
@@ -48,15 +84,16 @@ def loader_worker_init(worker_id: int, rank: int = 0, exiting: Any = None) -> No
             os._exit(0)
 
     signal.signal(signal.SIGTERM, on_sigterm)
-    if int(os.environ.get("PL_SEED_WORKERS", 0)):  # seed_everything(workers=True): Lightning adds its own
-        pl_worker_init_function(worker_id, rank)  # worker_init_fn only to loaders without one
+    if seed_workers:  # seed_everything(workers=True): Lightning adds its own worker_init_fn only to loaders without one
+        pl_worker_init_function(worker_id, rank)
 
 
-def worker_init_fn(rank: int = 0) -> partial[None]:
+def worker_init_fn(rank: int = 0, context: multiprocessing.context.BaseContext | None = None) -> partial[None]:
     """The ``worker_init_fn`` of a loader: :func:`loader_worker_init` with a fresh exit event of this process.
 
     Args:
         rank: the process's global rank (for Lightning's worker seeding).
+        context: the loader's ``multiprocessing_context`` (its workers must be able to open the event).
 
     Returns:
         The function a ``DataLoader`` calls at the start of each worker.
@@ -64,9 +101,27 @@ def worker_init_fn(rank: int = 0) -> partial[None]:
     if not _AT_EXIT:  # registered after multiprocessing's own exit handler (imported with torch): runs before it
         atexit.register(_exiting)
         _AT_EXIT.append(True)
-    exiting = multiprocessing.Event()
+    exiting = (context or multiprocessing).Event()
     _EXITING.append(exiting)
-    return partial(loader_worker_init, rank=rank, exiting=exiting)
+    return partial(loader_worker_init, rank=rank, exiting=exiting,
+                   seed_workers=bool(int(os.environ.get("PL_SEED_WORKERS", 0))))
 
 
-__all__ = ["loader_worker_init", "worker_init_fn"]
+def loader_workers(num_workers: int, rank: int = 0, method: str = "forkserver") -> dict[str, Any]:
+    """``DataLoader`` arguments of its workers: their number, how they start and their start function.
+
+    Args:
+        num_workers: loader worker processes (0: the loading runs in this process).
+        rank: the process's global rank.
+        method: how workers start (:func:`loader_context`).
+    """
+    if num_workers == 0:
+        loader_context(method)  # a wrong method fails alike with and without workers
+        return {"num_workers": 0}
+    context = loader_context(method)
+    return {"num_workers": num_workers, "multiprocessing_context": context,
+            "worker_init_fn": worker_init_fn(rank, context)}
+
+
+__all__ = ["SERVER_PRELOAD", "WORKER_START_METHODS", "loader_context", "loader_worker_init", "loader_workers",
+           "worker_init_fn"]

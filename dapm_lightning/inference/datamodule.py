@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import warnings
-from typing import Any
+from typing import Any, Literal
 
 from torch.utils.data import DataLoader
 
@@ -29,6 +29,7 @@ class PredictDataModule(DAPMDataModule):
             size (the same pixel count in each image's aspect; 512 x 512 for checkpoints that do not record it).
         batch_size: images per forward pass (images of one network size are batched together).
         num_workers: decoding processes.
+        worker_start_method: how they start (``forkserver``, ``fork`` or ``spawn``; as training's loaders).
         frame_step: videos: keep every frame_step-th frame.
         max_frames: videos: stop after this many kept frames.
         keep_rgb: ship the original pixels with each batch (point-cloud colours, the contact sheet).
@@ -58,8 +59,10 @@ class PredictDataModule(DAPMDataModule):
                  read_metadata: bool = True, sensor_width_mm: float | None = None,
                  telemetry_mode: PriorMode = "condition",
                  telemetry_sigma: tuple[float, float, float, float] = EXACT_SIGMA,
-                 strict_telemetry: bool = False, igd_bound: float | None = IGD_BOUND_MARGIN) -> None:
-        super().__init__(batch_size=batch_size, num_workers=num_workers, augment=False, pin_memory=pin_memory)
+                 strict_telemetry: bool = False, igd_bound: float | None = IGD_BOUND_MARGIN,
+                 worker_start_method: Literal["forkserver", "fork", "spawn"] = "forkserver") -> None:
+        super().__init__(batch_size=batch_size, num_workers=num_workers, augment=False, pin_memory=pin_memory,
+                         worker_start_method=worker_start_method)
         paths: Sources = source if isinstance(source, str) else tuple(source)
         self.source = PredictSource(paths, frame_step, max_frames, telemetry, read_metadata, sensor_width_mm,
                                     strict_telemetry)
@@ -90,5 +93,6 @@ class PredictDataModule(DAPMDataModule):
         world_size, rank = self._processes()
         loaders = predict_loaders(self.source, self.network_target(), self.prior_settings,
                                   batch_size=self.batch_size, num_workers=self.num_workers, keep_rgb=self.keep_rgb,
-                                  pin_memory=self.pin_memory, rank=rank, world_size=world_size)
+                                  pin_memory=self.pin_memory, rank=rank, world_size=world_size,
+                                  worker_start_method=self.worker_start_method)
         return loaders[0] if len(loaders) == 1 else loaders  # images, then each video: one after the other

@@ -23,7 +23,7 @@ from lightning.pytorch.utilities import rank_zero_info
 from torch.utils.data import DataLoader, Dataset, IterableDataset, Sampler, get_worker_info
 
 from dapm_lightning.data.unlabelled import PredictBatch, PredictCollate, PredictInput
-from dapm_lightning.data.workers import worker_init_fn
+from dapm_lightning.data.workers import loader_workers
 from dapm_lightning.inference import telemetry as flight
 from dapm_lightning.inference.pixels import DEFAULT_NETWORK_SIZE as DEFAULT_NETWORK_SIZE
 from dapm_lightning.inference.pixels import MAX_UPSCALE as MAX_UPSCALE
@@ -409,7 +409,8 @@ def expected_images(loader: DataLoader[PredictInput]) -> int | None:
 
 def predict_loaders(source: PredictSource, target: NetworkSize, settings: PriorSettings = PriorSettings(),  # noqa: B008
                     *, batch_size: int = DEFAULT_BATCH_SIZE, num_workers: int = 0, keep_rgb: bool = False,
-                    pin_memory: bool = False, rank: int = 0, world_size: int = 1) -> list[DataLoader[PredictInput]]:
+                    pin_memory: bool = False, rank: int = 0, world_size: int = 1,
+                    worker_start_method: str = "forkserver") -> list[DataLoader[PredictInput]]:
     """The loaders of prediction: :class:`PredictBatch` es of a source, images batched by network size.
 
     One for the images, then one per video. Every entry point uses them: the one-line command and the Python API
@@ -422,8 +423,8 @@ def predict_loaders(source: PredictSource, target: NetworkSize, settings: PriorS
     loaders: list[DataLoader[PredictInput]] = []
     for dataset in source_datasets(source, target, keep_rgb, chunk=batch_size):
         # workers ignore a SIGTERM to the whole job: this process stops the run (the tables written) and then them
-        workers: dict[str, Any] = {"num_workers": num_workers, "collate_fn": collate, "pin_memory": pin_memory,
-                                   "worker_init_fn": worker_init_fn(rank) if num_workers > 0 else None}
+        workers: dict[str, Any] = {"collate_fn": collate, "pin_memory": pin_memory,
+                                   **loader_workers(num_workers, rank, worker_start_method)}
         if isinstance(dataset, VideoFramesDataset):
             dataset.rank, dataset.world_size = rank, world_size
             loaders.append(DataLoader(dataset, batch_size=batch_size, **workers))

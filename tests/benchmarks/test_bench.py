@@ -6,7 +6,7 @@ import math
 import pytest
 import torch
 
-from benchmarks.bench import measure, print_table, print_train_compare, train_compare
+from benchmarks.bench import measure, print_table, print_train_compare, train_compare, worker_start
 
 
 def test_print_table_aligns_columns(capsys):
@@ -21,6 +21,12 @@ def test_measure_counts_the_paper_and_efficient_networks():
     assert paper["params_m"] > efficient["params_m"] > 0
     assert paper["gmac"] > efficient["gmac"] > paper["encoder_gmac"] == efficient["encoder_gmac"] > 0
     assert torch.is_grad_enabled()  # measured without switching autograd off for the caller
+
+
+@pytest.mark.parametrize("method", ["fork", "forkserver"])
+def test_worker_start_times_two_loaders_of_the_method(tiny_uapd, method):
+    row = worker_start(method, str(tiny_uapd))
+    assert row["method"] == method and row["first_s"] > 0 and row["next_s"] > 0
 
 
 @pytest.mark.slow

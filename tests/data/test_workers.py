@@ -1,10 +1,18 @@
-"""Loader workers ignore a SIGTERM sent to the whole job, yet never keep their process from exiting."""
+"""Loader workers start from a fork server and ignore a SIGTERM sent to the whole job, yet never keep their process
+from exiting."""
 
+import os
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
+from torch.utils.data import DataLoader, Dataset
+
+from dapm_lightning.data.datamodules import UAPDDataModule
+from dapm_lightning.data.workers import loader_workers
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -18,3 +26,50 @@ def test_a_process_whose_worker_failed_exits():
     result = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", test], cwd=REPO,
                             capture_output=True, text=True, timeout=120)
     assert result.returncode == 0 and "1 passed" in result.stdout, result.stdout[-2000:]
+
+
+class ParentPid(Dataset):
+    """Each item: the process id of the worker's parent (module level: a fork server's worker unpickles it)."""
+
+    def __len__(self) -> int:
+        return 2
+
+    def __getitem__(self, index: int) -> int:
+        return os.getppid()
+
+
+def parents(loader: DataLoader) -> set[int]:
+    return {int(pid) for batch in loader for pid in batch}
+
+
+def test_workers_start_from_a_fork_server_not_from_this_process():
+    """A worker forked from this process would inherit any lock its other threads hold (a start that hangs)."""
+    assert parents(DataLoader(ParentPid(), **loader_workers(1, method="fork"))) == {os.getpid()}
+    (server,) = parents(DataLoader(ParentPid(), **loader_workers(1)))
+    assert server != os.getpid()
+    assert parents(DataLoader(ParentPid(), **loader_workers(2))) == {server}  # one server for every loader
+
+
+def test_the_fork_server_outlives_a_sigterm_to_the_whole_job():
+    """A persistent worker follows its parent, the server: had the server died of a SIGTERM meant for the whole job,
+    the worker would stop serving and the run fail on its next batch instead of stopping after its step."""
+    loader = DataLoader(ParentPid(), persistent_workers=True, **loader_workers(1))
+    (server,) = parents(loader)
+    os.kill(server, signal.SIGTERM)
+    time.sleep(0.5)
+    os.kill(server, 0)  # still running (ProcessLookupError otherwise)
+    assert parents(loader) == {server}
+
+
+def test_a_worker_seeds_as_the_training_process_was_told_when_the_loader_was_made(monkeypatch):
+    """``seed_everything(workers=True)`` sets ``PL_SEED_WORKERS`` in this process, after a fork server may have
+    started with another environment: the loader takes it from here."""
+    monkeypatch.setenv("PL_SEED_WORKERS", "1")
+    assert loader_workers(1)["worker_init_fn"].keywords["seed_workers"] is True
+    monkeypatch.setenv("PL_SEED_WORKERS", "0")
+    assert loader_workers(1)["worker_init_fn"].keywords["seed_workers"] is False
+
+
+def test_an_unknown_start_method_is_refused_when_the_data_module_is_made(tmp_path):
+    with pytest.raises(ValueError, match="worker_start_method: 'thread'.*forkserver, fork, spawn"):
+        UAPDDataModule(root=str(tmp_path), worker_start_method="thread")  # type: ignore[arg-type]
