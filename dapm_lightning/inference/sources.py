@@ -10,6 +10,7 @@ macOS's ``._DJI_0001.JPG``) are left out.
 from __future__ import annotations
 
 import glob
+import re
 from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -20,6 +21,8 @@ from dapm_lightning.data.uapd import IMAGE_SUFFIXES
 
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg", ".wmv")
 LIST_SUFFIX = ".txt"
+FRAME_NAME = re.compile(r"(.+)_f\d{6,}")
+"""A video frame's output name: the video's name, ``_f`` and the frame number (6 digits at least)."""
 """A SOURCE with this extension is a list of paths, one a line (blank lines and ``#`` comments skipped)."""
 SourceKind = Literal["image", "video"]
 Sources = str | Path | Sequence[str | Path]
@@ -176,6 +179,12 @@ def _unique_names(found: list[tuple[Path, str]]) -> list[tuple[Path, str]]:
             raise ValueError(f"{path} and {seen[name]} would write the same output files (name {name!r}): "
                              "predict them in separate runs or rename one")
         seen[name] = path
+    videos = {name: path for name, path in seen.items() if file_kind(path) == "video"}
+    for name, path in seen.items():
+        frame = FRAME_NAME.fullmatch(name) if videos else None
+        if frame is not None and frame[1] in videos and file_kind(path) != "video":
+            raise ValueError(f"{path} and a frame of {videos[frame[1]]} would write the same output files (name "
+                             f"{name!r}): predict them in separate runs or rename one")
     return [(path, name) for (path, _), name in zip(found, names)]
 
 

@@ -159,3 +159,14 @@ def test_names_of_a_large_survey_are_made_unique_in_linear_time():
     named = _unique_names(found)
     assert time.perf_counter() - start < 5.0
     assert [name for _, name in named[-3:]] == ["DJI_59999", "day1_X", "day2_X"]
+
+
+def test_an_image_named_as_a_video_frame_is_refused_beside_that_video(tmp_path):
+    """``clip_f000000.png`` beside ``clip.mp4``: the image and the video's first frame wrote the same files."""
+    for name in ("clip.mp4", "clip_f000000.png", "clip_f12.png", "other_f000001.png"):
+        (tmp_path / name).touch()
+    sources = [str(tmp_path / n) for n in ("clip.mp4", "clip_f000000.png")]
+    with pytest.raises(ValueError, match=r"clip_f000000.png and a frame of .*clip.mp4 would write the same"):
+        resolve_sources(sources)
+    files, _ = resolve_sources([str(tmp_path / n) for n in ("clip.mp4", "clip_f12.png", "other_f000001.png")])
+    assert [f.name for f in files] == ["clip", "clip_f12", "other_f000001"]  # no frame of clip.mp4 has those names
