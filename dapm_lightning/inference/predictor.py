@@ -32,6 +32,7 @@ from dapm_lightning.inference.postprocess import Prediction, batch_predictions
 from dapm_lightning.inference.prior import prior_rows
 from dapm_lightning.inference.runtime import OnnxRuntime, Precision, Runtime, TorchRuntime
 from dapm_lightning.inference.sources import Sources
+from dapm_lightning.inference.telemetry.gather import images_telemetry
 from dapm_lightning.models.prior import EXACT_SIGMA, IGD_BOUND_MARGIN, PriorMode, PriorSettings
 from dapm_lightning.training.checkpointing import load_dapm_module
 
@@ -151,7 +152,8 @@ class DAPMPredictor:
             warnings.warn(note, stacklevel=3)
         return item
 
-    def __call__(self, images: Any, prior: Any = None) -> Prediction | list[Prediction]:
+    def __call__(self, images: Any, prior: Any = None, read_metadata: bool = True,
+                 sensor_width_mm: float | None = None) -> Prediction | list[Prediction]:
         """Predict one image or several.
 
         Args:
@@ -164,6 +166,10 @@ class DAPMPredictor:
                 ``PoseTelemetry``; for several, a list of those (None for an image without). Checked as a
                 telemetry CSV is: an impossible value (height <= 0, |pitch| > 180, FoV outside (0, 180), inf) is a
                 ``TelemetryError``.
+            read_metadata: an image given by its path also takes, for what ``prior`` leaves unknown, its own DJI
+                XMP and EXIF telemetry, as ``predict_source`` and the command line do (metadata that cannot be
+                read: the network's pose, with one warning).
+            sensor_width_mm: the sensor width for the EXIF focal length (as the command line's option).
 
         Returns:
             a :class:`Prediction` for one image, a list of them for several (in order), at each input's size.
@@ -176,6 +182,15 @@ class DAPMPredictor:
         if len(priors) != len(items):
             raise ValueError(f"{len(priors)} priors for {len(items)} images: give one per image (None: unknown)")
         rows, provenance = prior_rows(priors)
+        files = {k: Path(image).expanduser() for k, image in enumerate(items) if isinstance(image, (str, Path))}
+        files = {k: path for k, path in files.items() if path.is_file() and np.isnan(rows[k]).any()}
+        if read_metadata and files:  # one call: one warning for all images whose metadata cannot be read
+            metadata = images_telemetry(files.values(), sensor_width_mm=sensor_width_mm)[0]
+            for index, meta in zip(files, metadata):
+                known = np.asarray(meta.values(), dtype=np.float64)
+                fill = np.isnan(rows[index]) & np.isfinite(known)
+                rows[index][fill] = known[fill]
+                provenance[index] = tuple(m if f else p for p, m, f in zip(provenance[index], meta.provenance, fill))
         values = torch.from_numpy(rows).float()
         results: list[Prediction] = []
         pending: list[PredictInput] = []

@@ -203,6 +203,20 @@ def test_api_and_video_predictions_carry_provenance(checkpoint, tmp_path):
     assert sum("cover frames up to 3" in str(w.message) for w in caught) == 1
 
 
+def test_an_image_path_given_to_the_api_takes_its_own_metadata_under_the_given_prior(checkpoint, tmp_path):
+    """``predictor("DJI_0001.JPG")`` read the pixels only (the command line and ``predict_source`` read the XMP)."""
+    predictor = DAPMPredictor.from_checkpoint(checkpoint, image_width=32)
+    photo = dji_jpeg(tmp_path / "DJI_0001.JPG", RelativeAltitude="+41.20", GimbalPitchDegree="-35.5")
+    result = predictor(photo, prior={"height_m": 30.0})
+    assert result.pose["height"] == pytest.approx(30.0) and result.pose["pitch"] == pytest.approx(-35.5)
+    assert result.pose_provenance == {"height": "Python API prior",
+                                      "pitch": "DJI_0001.JPG XMP drone-dji:GimbalPitchDegree"}
+    assert predictor([str(photo)])[0].pose["height"] == pytest.approx(41.2)
+    assert predictor(photo, read_metadata=False).pose_provenance is None
+    _, caught = record(predictor, broken_jpeg(tmp_path / "broken.jpg"))  # unreadable: the network's pose, warned
+    assert len(caught) == 1 and "broken.jpg" in caught[0]
+
+
 def test_the_srt_coverage_warning_counts_the_frames_its_timing_covers(tmp_path):
     srt = tmp_path / "v.SRT"  # subtitle 2 lasts 2 frames at 10 fps: 3 subtitles cover frames 0-3
     srt.write_text("".join(f"{k}\n00:00:00,{a:03d} --> 00:00:00,{b:03d}\n[rel_alt: {20 + k}.000 abs_alt: 300.0]\n\n"
