@@ -42,6 +42,10 @@ unknown), which are known (bool), and their σ. No NaN enters the graph, so int8
 CHECK_DRAW = "draw"
 """Key of a check row: ``(k, n)``, the k-th of the n random inputs checked at that shape."""
 METADATA_NET = "dapm.net"
+METADATA_WEIGHTS = "dapm.weights_sha256"
+"""The SHA-256 of the exported network's weights (:func:`weights_digest`)."""
+METADATA_ON_FIRST_USE = "dapm.exported_on_first_use"
+"""Set in a file ``DAPMPredictor(onnx_path=...)`` exported itself: it may replace it when the weights change."""
 """The metadata key that marks a dapm-lightning export: the network's settings as JSON."""
 
 
@@ -145,10 +149,27 @@ def export_metadata(net: nn.Module, train_image_size: tuple[int, int] | None = N
               "dapm.inputs": "image [B, 3, H, W] float RGB in [0, 1], any H and W"
                              + ("; prior [B, 4] (height m, pitch, roll, fov deg), prior_known [B, 4] bool, "
                                 "prior_sigma [B, 4]" if config.use_pose else "")}
+    values[METADATA_WEIGHTS] = weights_digest(net)
     if source is not None:
         data = join_split_checkpoint(source) if is_split_checkpoint(source) else Path(source).read_bytes()
         values["dapm.source_sha256"] = hashlib.sha256(data).hexdigest()  # a split folder: of the joined file
     return values
+
+
+def weights_digest(net: nn.Module) -> str:
+    """SHA-256 of a network's weights and buffers (names, types, shapes and values, in name order)."""
+    digest = hashlib.sha256()
+    for name, tensor in sorted(net.state_dict().items()):
+        digest.update(f"{name} {tensor.dtype} {tuple(tensor.shape)}\n".encode())
+        digest.update(tensor.detach().cpu().contiguous().reshape(-1).view(torch.uint8).numpy().tobytes())
+    return digest.hexdigest()
+
+
+def read_metadata(path: str | Path) -> dict[str, str]:
+    """An ONNX file's metadata properties (its weights file is not read)."""
+    import onnx
+
+    return {p.key: p.value for p in onnx.load(str(path), load_external_data=False).metadata_props}
 
 
 def write_metadata(path: str | Path, metadata: Mapping[str, str]) -> None:
@@ -316,26 +337,40 @@ def move_exported(staged: Path, final: Path) -> None:
 
 
 def ensure_exported(module: nn.Module, path: Path) -> Path:
-    """``path``, exported from ``module`` (dynamic sizes, checked, with its metadata) when it does not exist.
+    """``path``, exported from ``module`` (dynamic sizes, checked, with its metadata) unless it holds its weights.
 
     Exported into a hidden folder beside ``path`` and moved there once checked: an export interrupted or refused
-    leaves no file that a later call would take as exported and checked.
+    leaves no file that a later call would take as exported and checked. A file there exported from other weights
+    (the model retrained since) is replaced when an earlier call wrote it, refused when it came from elsewhere
+    (``dapm-lightning export``, another tool), which this never overwrites.
+
+    Raises:
+        FileExistsError: ``path`` holds another model this did not export.
     """
-    if not path.is_file():
-        net = getattr(module, "net", module).eval()
-        trained = getattr(module, "train_image_size", None)
-        size = network_size(int(trained[0]), int(trained[1]), (int(trained[0]), int(trained[1]))) if trained \
-            else (64, 64)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        staging = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
-        try:  # the graph records its weights file's name: the staged file has the final name
-            failures = export_mismatches(export_onnx(net, staging / path.name, size, checks=1, dynamic=True,
-                                                     metadata=export_metadata(net, trained)))
-            if not failures:
-                move_exported(staging / path.name, path)
-        finally:
-            shutil.rmtree(staging, ignore_errors=True)
-        if failures:  # never run a model that disagrees with the network it came from
-            raise RuntimeError(f"{path}: the exported model disagrees with PyTorch ({'; '.join(failures)}); not "
-                               "written. Fix: predict with the PyTorch runtime, and report this as a bug of the export")
+    net = getattr(module, "net", module).eval()
+    if path.is_file():
+        recorded = read_metadata(path)
+        if recorded.get(METADATA_WEIGHTS) == weights_digest(net):
+            return path
+        if recorded.get(METADATA_ON_FIRST_USE) != "true":
+            raise FileExistsError(f"{path}: an exported model of other weights than this checkpoint's, not written "
+                                  "by onnx_path (dapm-lightning export or another tool), so it is not replaced.\n"
+                                  "Fix: give another onnx_path, delete that file, or run it on its own with "
+                                  "DAPMPredictor.from_checkpoint(its path)")
+    trained = getattr(module, "train_image_size", None)
+    size = network_size(int(trained[0]), int(trained[1]), (int(trained[0]), int(trained[1]))) if trained \
+        else (64, 64)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
+    try:  # the graph records its weights file's name: the staged file has the final name
+        failures = export_mismatches(export_onnx(net, staging / path.name, size, checks=1, dynamic=True,
+                                                 metadata={**export_metadata(net, trained),
+                                                           METADATA_ON_FIRST_USE: "true"}))
+        if not failures:
+            move_exported(staging / path.name, path)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    if failures:  # never run a model that disagrees with the network it came from
+        raise RuntimeError(f"{path}: the exported model disagrees with PyTorch ({'; '.join(failures)}); not "
+                           "written. Fix: predict with the PyTorch runtime, and report this as a bug of the export")
     return path

@@ -55,6 +55,32 @@ def test_the_api_export_is_moved_into_place_only_once_checked(tmp_path, monkeypa
     assert list(path.parent.iterdir()) == []  # nothing at the path, no staging folder left
 
 
+@pytest.mark.slow
+def test_the_api_export_follows_the_weights_and_never_replaces_another_tools_file(exported, tmp_path):
+    """``onnx_path`` kept running a file already there: after retraining, the old model, silently."""
+    from dapm_lightning.inference.onnx import METADATA_ON_FIRST_USE, read_metadata, write_metadata
+
+    module, first = exported
+    path = tmp_path / "m.onnx"
+    DAPMPredictor(module, onnx_path=path)
+    written = path.stat().st_mtime_ns
+    DAPMPredictor(module, onnx_path=path)  # the same weights: run as it is
+    assert path.stat().st_mtime_ns == written
+    retrained = DAPMModule(net=DAPMConfig(**TINY)).eval()
+    retrained.load_state_dict(module.state_dict())
+    retrained.train_image_size = module.train_image_size
+    with torch.no_grad():
+        for weights in retrained.parameters():
+            weights.mul_(1.5)  # depth 40x and pitch 23 degrees apart from the first model's
+    rgb = np.random.default_rng(0).integers(0, 255, (48, 80, 3), np.uint8)
+    got, eager = DAPMPredictor(retrained, onnx_path=path)(rgb), DAPMPredictor(retrained)(rgb)  # exported again
+    assert relative_depth_gap(got.depth_m, eager.depth_m) < 1e-3 and pose_gap(got.pose, eager.pose) < 0.05
+    write_metadata(path, {METADATA_ON_FIRST_USE: "false"})  # as from dapm-lightning export: never overwritten
+    with pytest.raises(FileExistsError, match="other weights than this checkpoint's"):
+        DAPMPredictor(module, onnx_path=path)
+    assert read_metadata(path)[METADATA_ON_FIRST_USE] == "false"
+
+
 def relative_depth_gap(got, expected):
     return float(np.median(np.abs(got - expected) / expected))
 
