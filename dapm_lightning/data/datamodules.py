@@ -51,6 +51,9 @@ class DAPMDataModule(L.LightningDataModule):
         worker_start_method: how loader workers start: ``forkserver`` (default: from a single-threaded server
             process, immune to locks held by this process's threads), ``fork`` (PyTorch's default on Linux: data sets
             that cannot be pickled) or ``spawn`` (:func:`~dapm_lightning.data.workers.loader_context`).
+        prepare_data_per_node: where the data is prepared (the synthetic set rendered, Potsdam's crops cut): true,
+            once on each node (Lightning's default: a root on each node's own disk); false, once in the whole job,
+            by its first process while the others wait (a root on a file system the nodes share).
         augment: augment the training split (colour jitter, noise, pose-aware flip).
         augmentation: its strengths (:class:`~dapm_lightning.data.transforms.Augmentation`; the defaults are
             this project's light augmentation, the paper configs set the authors' stronger one).
@@ -66,8 +69,10 @@ class DAPMDataModule(L.LightningDataModule):
                  persistent_workers: bool = False, augment: bool = True,
                  image_dtype: Literal["float32", "uint8"] = "uint8", eval_batch_size: int | None = None,
                  seed: int = 0, augmentation: Augmentation = Augmentation(),  # noqa: B008 (frozen)
-                 worker_start_method: Literal["forkserver", "fork", "spawn"] = "forkserver") -> None:
+                 worker_start_method: Literal["forkserver", "fork", "spawn"] = "forkserver",
+                 prepare_data_per_node: bool = True) -> None:
         super().__init__()
+        self.prepare_data_per_node = prepare_data_per_node  # read by Lightning
         counts = (("batch_size", batch_size, 1, 8), ("eval_batch_size", eval_batch_size, 1, 8),
                   ("num_workers", num_workers, 0, 2), ("seed", seed, 0, 0))  # seeds of numpy's SeedSequence: >= 0
         for name, value, least, example in counts:

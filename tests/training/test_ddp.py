@@ -248,7 +248,8 @@ def test_two_nodes_train_as_one_node_of_two_processes_and_resume(tmp_path, monke
     """``num_nodes 2`` x ``devices 1``: two torchrun launchers on this machine (static rendezvous), sharing the data
     and run folders as a cluster's nodes share a file system. Each node renders the synthetic set into the same root
     at once (where a render cut short left images), trains one epoch, is resumed on two nodes for a second, and ends
-    with the weights of one node of two processes trained without a stop."""
+    with the weights of one node of two processes trained without a stop. With ``prepare_data_per_node`` false the
+    first node alone renders a new set, the other waiting for it."""
     import socket
 
     import torch
@@ -309,3 +310,8 @@ def test_two_nodes_train_as_one_node_of_two_processes_and_resume(tmp_path, monke
                      for folder in ("nodes", "one_node"))
     assert sorted(nodes) == sorted(single)
     assert all(torch.equal(nodes[key], single[key]) for key in single)
+    shared = tmp_path / "shared"  # data.init_args.prepare_data_per_node false: one render for the whole job
+    once, logs = two_nodes("once", "--data.init_args.root", str(shared), "--data.init_args.prepare_data_per_node",
+                           "false", "--trainer.max_steps", "1", "--trainer.default_root_dir", str(tmp_path / "once"))
+    assert [f"{shared}: rendering 8 + 2 synthetic images" in log for log in logs] == [True, False]
+    assert once["global_step"] == 1
