@@ -20,7 +20,10 @@ from __future__ import annotations
 import atexit
 import multiprocessing
 import os
+import select
 import signal
+import threading
+import time
 from functools import partial
 from types import FrameType
 from typing import Any
@@ -67,7 +70,39 @@ def loader_context(method: str = "forkserver") -> multiprocessing.context.BaseCo
     return context
 
 
-def loader_worker_init(worker_id: int, rank: int = 0, exiting: Any = None, seed_workers: bool = False) -> None:
+def _follow_training_process(pid: int) -> None:
+    """End this worker when the training process ``pid`` ends, though that is not its parent.
+
+    PyTorch's worker watches its parent process only: a fork server's worker would then outlive a training process
+    killed without its exit handlers (SIGKILL, the OOM killer, a crash), and the server, which waits for every
+    worker to close its pipe, with it: for ever, each holding a copy of PyTorch and the data set.
+    """
+    try:
+        handle: int | None = os.pidfd_open(pid)  # readable once the process has ended
+    except ProcessLookupError:
+        os._exit(0)
+    except (AttributeError, OSError):  # no pidfd (Linux < 5.3, not Linux): poll
+        handle = None
+
+    def follow() -> None:
+        if handle is not None:
+            select.select([handle], [], [])
+        else:
+            while True:
+                time.sleep(1.0)
+                try:
+                    os.kill(pid, 0)
+                except ProcessLookupError:
+                    break
+                except PermissionError:
+                    pass
+        os._exit(0)
+
+    threading.Thread(target=follow, name="follow-training-process", daemon=True).start()
+
+
+def loader_worker_init(worker_id: int, rank: int = 0, exiting: Any = None, seed_workers: bool = False,
+                       training_pid: int | None = None) -> None:
     """Start of every loader worker: SIGTERM from outside ignored; seeded as Lightning would when asked to.
 
     Args:
@@ -77,6 +112,8 @@ def loader_worker_init(worker_id: int, rank: int = 0, exiting: Any = None, seed_
             ends the worker (``multiprocessing`` terminating it), before it is ignored.
         seed_workers: seed as Lightning's ``seed_everything(workers=True)`` asks (read in the training process:
             a fork server's environment is that of its start).
+        training_pid: the process whose loader this worker serves: a worker that is not its child (a fork
+            server's) ends when it ends (:func:`_follow_training_process`).
     """
 
     def on_sigterm(signum: int, frame: FrameType | None) -> None:
@@ -84,6 +121,8 @@ def loader_worker_init(worker_id: int, rank: int = 0, exiting: Any = None, seed_
             os._exit(0)
 
     signal.signal(signal.SIGTERM, on_sigterm)
+    if training_pid is not None and os.getppid() != training_pid:
+        _follow_training_process(training_pid)
     if seed_workers:  # seed_everything(workers=True): Lightning adds its own worker_init_fn only to loaders without one
         pl_worker_init_function(worker_id, rank)
 
@@ -104,7 +143,7 @@ def worker_init_fn(rank: int = 0, context: multiprocessing.context.BaseContext |
     exiting = (context or multiprocessing).Event()
     _EXITING.append(exiting)
     return partial(loader_worker_init, rank=rank, exiting=exiting,
-                   seed_workers=bool(int(os.environ.get("PL_SEED_WORKERS", 0))))
+                   seed_workers=bool(int(os.environ.get("PL_SEED_WORKERS", 0))), training_pid=os.getpid())
 
 
 def loader_workers(num_workers: int, rank: int = 0, method: str = "forkserver") -> dict[str, Any]:

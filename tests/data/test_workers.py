@@ -73,3 +73,55 @@ def test_a_worker_seeds_as_the_training_process_was_told_when_the_loader_was_mad
 def test_an_unknown_start_method_is_refused_when_the_data_module_is_made(tmp_path):
     with pytest.raises(ValueError, match="worker_start_method: 'thread'.*forkserver, fork, spawn"):
         UAPDDataModule(root=str(tmp_path), worker_start_method="thread")  # type: ignore[arg-type]
+
+
+KILLED = """
+import os, time
+from torch.utils.data import DataLoader, Dataset
+from dapm_lightning.data.workers import loader_workers
+
+class Pid(Dataset):
+    def __len__(self):
+        return 2
+
+    def __getitem__(self, index):
+        return os.getpid()
+
+if __name__ == "__main__":
+    loader = DataLoader(Pid(), persistent_workers=True, **loader_workers(2))
+    print(*sorted({int(pid) for batch in loader for pid in batch}), flush=True)
+    time.sleep(120)
+"""
+
+
+def test_workers_end_with_a_training_process_killed_without_its_exit_handlers(tmp_path):
+    """SIGKILL, the OOM killer or a crash: a fork server's worker is not the training process's child, and PyTorch's
+    worker follows its parent only. Before, the workers (and the server, which waits for them) ran for ever."""
+    script = tmp_path / "killed.py"
+    script.write_text(KILLED)
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    training = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True, env=env)
+    try:
+        workers = [int(pid) for pid in training.stdout.readline().split()]  # type: ignore[union-attr]
+        assert len(workers) == 2
+    finally:
+        training.kill()
+        training.wait()
+    alive = set(workers)
+    for _ in range(100):
+        alive = {pid for pid in alive if _running(pid)}
+        if not alive:
+            break
+        time.sleep(0.1)
+    for pid in alive:
+        os.kill(pid, signal.SIGKILL)
+    assert not alive, "loader workers outlived their training process"
+
+
+def _running(pid: int) -> bool:
+    """Whether ``pid`` runs (a zombie, ended but not yet reaped, has ended)."""
+    try:
+        with open(f"/proc/{pid}/stat") as stat:
+            return stat.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except FileNotFoundError:
+        return False
