@@ -1,6 +1,7 @@
 """Loader workers start from a fork server and ignore a SIGTERM sent to the whole job, yet never keep their process
 from exiting."""
 
+import multiprocessing
 import os
 import signal
 import subprocess
@@ -125,3 +126,18 @@ def _running(pid: int) -> bool:
             return stat.read().rsplit(")", 1)[1].split()[0] != "Z"
     except FileNotFoundError:
         return False
+
+
+def test_other_processes_of_the_fork_server_still_end_on_terminate():
+    """The server is multiprocessing's, shared with this process's other ``forkserver`` processes (a ``Pool``, Python
+    3.14's default): only loader workers keep its ignored SIGTERM. Before, ``terminate()`` left them running."""
+    list(DataLoader(ParentPid(), **loader_workers(1)))  # the server started with this project's preload
+    process = multiprocessing.get_context("forkserver").Process(target=time.sleep, args=(60,))
+    process.start()
+    time.sleep(1.0)
+    process.terminate()
+    process.join(10)
+    if process.is_alive():
+        process.kill()
+        process.join()
+    assert process.exitcode == -signal.SIGTERM
