@@ -24,6 +24,7 @@ import select
 import signal
 import threading
 import time
+import warnings
 from functools import partial
 from types import FrameType
 from typing import Any
@@ -41,6 +42,8 @@ _EXITING: list[Any] = []
 (a few bytes each): a worker can outlive its loader's Python objects (one whose shutdown it ignored while it
 was busy), and at exit it must still hear that this time SIGTERM is meant."""
 _AT_EXIT: list[bool] = []
+_OWN_SERVERS: set[int] = set()
+"""Process ids of the fork servers this process started with :data:`SERVER_PRELOAD` (:func:`_start_server`)."""
 
 
 def _exiting() -> None:
@@ -146,6 +149,27 @@ def worker_init_fn(rank: int = 0, context: multiprocessing.context.BaseContext |
                    seed_workers=bool(int(os.environ.get("PL_SEED_WORKERS", 0))), training_pid=os.getpid())
 
 
+def _start_server() -> None:
+    """Start the fork server now, with :data:`SERVER_PRELOAD`; warn if other code started it without.
+
+    ``multiprocessing`` has one fork server a process, started with the preload of its first use: one started by
+    other code (a ``forkserver`` ``Pool`` of the user's) does not ignore a SIGTERM to the whole job, and dies of it
+    with the loader's workers (the loader then fails instead of the run stopping after its step).
+    """
+    from multiprocessing import forkserver
+
+    server = forkserver._forkserver  # type: ignore[attr-defined]
+    running = server._forkserver_pid
+    if running is not None and running not in _OWN_SERVERS:
+        warnings.warn(f"Loader workers: the fork server (pid {running}) was started by other code before the first "
+                      "loader, without this project's preload: a SIGTERM to the whole job (SLURM, timeout) ends it, "
+                      "and its loader workers with it.\nFix: start no forkserver process before the first loader, "
+                      "or set data.init_args.worker_start_method to fork", RuntimeWarning, stacklevel=3)
+        return
+    forkserver.ensure_running()
+    _OWN_SERVERS.add(server._forkserver_pid)
+
+
 def loader_workers(num_workers: int, rank: int = 0, method: str = "forkserver") -> dict[str, Any]:
     """``DataLoader`` arguments of its workers: their number, how they start and their start function.
 
@@ -158,6 +182,8 @@ def loader_workers(num_workers: int, rank: int = 0, method: str = "forkserver") 
         loader_context(method)  # a wrong method fails alike with and without workers
         return {"num_workers": 0}
     context = loader_context(method)
+    if context.get_start_method() == "forkserver":
+        _start_server()
     return {"num_workers": num_workers, "multiprocessing_context": context,
             "worker_init_fn": worker_init_fn(rank, context)}
 

@@ -141,3 +141,37 @@ def test_other_processes_of_the_fork_server_still_end_on_terminate():
         process.kill()
         process.join()
     assert process.exitcode == -signal.SIGTERM
+
+
+FOREIGN_SERVER = """
+import multiprocessing, os, time, warnings
+from torch.utils.data import DataLoader, Dataset
+from dapm_lightning.data.workers import loader_workers
+
+class ParentPid(Dataset):
+    def __len__(self):
+        return 1
+
+    def __getitem__(self, index):
+        return os.getppid()
+
+if __name__ == "__main__":
+    process = multiprocessing.get_context("forkserver").Process(target=time.sleep, args=(0,))
+    process.start()  # the user's code starts multiprocessing's fork server first, without this project's preload
+    process.join()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        loader = DataLoader(ParentPid(), **loader_workers(1))
+    print(list(loader), [str(warning.message).split(":")[0] for warning in caught])
+"""
+
+
+def test_a_fork_server_started_by_other_code_is_reported(tmp_path):
+    """multiprocessing has one fork server a process: started by other code, it lacks the preload that makes it
+    ignore a SIGTERM to the whole job, and it dies of one with the loader's workers (the loader fails)."""
+    script = tmp_path / "foreign.py"
+    script.write_text(FOREIGN_SERVER)
+    result = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120,
+                            env={**os.environ, "PYTHONPATH": str(REPO)})
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert "['Loader workers']" in result.stdout, result.stdout
