@@ -22,6 +22,7 @@ import multiprocessing
 import os
 import select
 import signal
+import sys
 import threading
 import time
 import warnings
@@ -166,7 +167,17 @@ def _start_server() -> None:
                       "and its loader workers with it.\nFix: start no forkserver process before the first loader, "
                       "or set data.init_args.worker_start_method to fork", RuntimeWarning, stacklevel=3)
         return
-    forkserver.ensure_running()
+    # the server imports SERVER_PRELOAD from this process's sys.path (Python 3.11's ignores it: a sys.path
+    # changed here, a notebook's, had it import another copy of this package, an installed one, or none at all)
+    before = os.environ.get("PYTHONPATH")
+    os.environ["PYTHONPATH"] = os.pathsep.join(path or os.getcwd() for path in sys.path)
+    try:
+        forkserver.ensure_running()
+    finally:
+        if before is None:
+            del os.environ["PYTHONPATH"]
+        else:
+            os.environ["PYTHONPATH"] = before
     _OWN_SERVERS.add(server._forkserver_pid)
 
 

@@ -175,3 +175,36 @@ def test_a_fork_server_started_by_other_code_is_reported(tmp_path):
                             env={**os.environ, "PYTHONPATH": str(REPO)})
     assert result.returncode == 0, result.stderr[-2000:]
     assert "['Loader workers']" in result.stdout, result.stdout
+
+
+SYS_PATH = """
+import sys
+sys.path.insert(0, {repo!r})  # a notebook's way to use a checkout
+import os
+from torch.utils.data import DataLoader, Dataset
+from dapm_lightning.data.workers import loader_workers
+
+class Preloaded(Dataset):
+    def __len__(self):
+        return 1
+
+    def __getitem__(self, index):
+        import dapm_lightning
+        return dapm_lightning.__file__, "dapm_lightning.data.worker_server" in sys.modules
+
+if __name__ == "__main__":
+    print(repr(next(iter(DataLoader(Preloaded(), batch_size=None, **loader_workers(1))))))
+"""
+
+
+def test_the_fork_server_preloads_this_process_s_copy_of_the_package(tmp_path):
+    """The server imports :data:`SERVER_PRELOAD` with this process's ``sys.path``, not the one it starts with: a path
+    added in the process (a notebook's) had it import an installed copy instead, or nothing (no SIGTERM ignored)."""
+    script = tmp_path / "sys_path.py"
+    script.write_text(SYS_PATH.format(repo=str(REPO)))
+    env = {key: value for key, value in os.environ.items() if key != "PYTHONPATH"}
+    result = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120, cwd=tmp_path,
+                            env=env)
+    assert result.returncode == 0, result.stderr[-2000:]
+    path, preloaded = eval(result.stdout.strip().splitlines()[-1])
+    assert Path(path).resolve().is_relative_to(REPO) and preloaded, result.stdout
