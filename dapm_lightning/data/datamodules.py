@@ -159,7 +159,7 @@ class DAPMDataModule(L.LightningDataModule):
         loader = DataLoader(dataset, batch_size=batch_size, sampler=sampler,
                             pin_memory=self.pin_memory, persistent_workers=self.persistent_workers,
                             collate_fn=collate_samples, drop_last=train and len(sampler) > batch_size,
-                            **loader_workers(self.num_workers, rank, self.worker_start_method),  # SIGTERM
+                            **loader_workers(self.num_workers, rank, self.worker_start_method, dataset),  # SIGTERM
                             generator=torch.Generator().manual_seed(self.seed))  # worker seeds: not the global RNG
         if train:
             self.resumed_at = None

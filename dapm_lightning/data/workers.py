@@ -181,17 +181,42 @@ def _start_server() -> None:
     _OWN_SERVERS.add(server._forkserver_pid)
 
 
-def loader_workers(num_workers: int, rank: int = 0, method: str = "forkserver") -> dict[str, Any]:
+def _main_cannot_be_imported(dataset: Any) -> bool:
+    """Whether ``dataset``'s class is defined in a ``__main__`` a started (not forked) worker cannot import.
+
+    A notebook's cells, ``python -`` or ``-c``, a package's ``__main__.py`` (``python -m``): ``multiprocessing``
+    imports none of them again in a worker, which then cannot unpickle the data set (it died with "DataLoader
+    worker exited unexpectedly").
+    """
+    main = sys.modules.get("__main__")
+    if dataset is None or type(dataset).__module__ != "__main__" or main is None:
+        return False
+    name = getattr(getattr(main, "__spec__", None), "name", None)
+    if name is not None:
+        return name == "__main__" or name.endswith(".__main__")
+    path = getattr(main, "__file__", None)
+    return path is None or not os.path.isfile(path)
+
+
+def loader_workers(num_workers: int, rank: int = 0, method: str = "forkserver", dataset: Any = None) -> dict[str, Any]:
     """``DataLoader`` arguments of its workers: their number, how they start and their start function.
 
     Args:
         num_workers: loader worker processes (0: the loading runs in this process).
         rank: the process's global rank.
         method: how workers start (:func:`loader_context`).
+        dataset: the loader's data set: one whose class a started worker could not import (defined in a notebook,
+            :func:`_main_cannot_be_imported`) has its workers forked instead, with a warning.
     """
     if num_workers == 0:
         loader_context(method)  # a wrong method fails alike with and without workers
         return {"num_workers": 0}
+    if method != "fork" and _main_cannot_be_imported(dataset):
+        warnings.warn(f"Loader workers: {type(dataset).__name__} is defined in __main__ (a notebook, python -c), "
+                      f"which a worker started by {method} cannot import: its workers are forked instead.\nFix: "
+                      "define the data set in a module of its own, or set worker_start_method to fork",
+                      RuntimeWarning, stacklevel=3)
+        method = "fork"
     context = loader_context(method)
     if context.get_start_method() == "forkserver":
         _start_server()

@@ -208,3 +208,38 @@ def test_the_fork_server_preloads_this_process_s_copy_of_the_package(tmp_path):
     assert result.returncode == 0, result.stderr[-2000:]
     path, preloaded = eval(result.stdout.strip().splitlines()[-1])
     assert Path(path).resolve().is_relative_to(REPO) and preloaded, result.stdout
+
+
+NOTEBOOK = """
+import warnings
+import torch
+from torch.utils.data import Dataset
+from dapm_lightning.data.datamodules import DAPMDataModule
+
+class Mine(Dataset):  # a notebook's cell: a class of __main__, which has no file
+    def __len__(self):
+        return 2
+
+    def __getitem__(self, index):
+        return {"image": torch.zeros(3, 4, 4, dtype=torch.uint8), "name": str(index)}
+
+class MyData(DAPMDataModule):
+    def make_dataset(self, split, train):
+        return Mine()
+
+module = MyData(batch_size=1, num_workers=1)
+module.setup("fit")
+with warnings.catch_warnings(record=True) as caught:
+    warnings.simplefilter("always")
+    batch = next(iter(module.train_dataloader()))
+print(tuple(batch["image"].shape), [str(warning.message).split(":")[0] for warning in caught])
+"""
+
+
+def test_a_data_set_defined_in_a_notebook_is_loaded_by_forked_workers():
+    """A fork server's worker cannot import a ``__main__`` without a file (a notebook, ``python -``): its data set
+    could not be unpickled and the worker died ('DataLoader worker exited unexpectedly')."""
+    result = subprocess.run([sys.executable, "-"], input=NOTEBOOK, capture_output=True, text=True, timeout=120,
+                            cwd=REPO)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert "(1, 3, 4, 4) ['Loader workers']" in result.stdout, result.stdout
