@@ -18,6 +18,7 @@ its workers stop when it stops them. One SIGTERM still ends a worker: the one it
 from __future__ import annotations
 
 import atexit
+import contextlib
 import multiprocessing
 import os
 import select
@@ -160,7 +161,17 @@ def _start_server() -> None:
     from multiprocessing import forkserver
 
     server = forkserver._forkserver  # type: ignore[attr-defined]
-    running = server._forkserver_pid
+    running = getattr(server, "_forkserver_pid", None)  # multiprocessing's own record (not public)
+    if running is not None and not _own_child(running):
+        # the server of the process this one was forked from (Lightning's ddp_fork / ddp_notebook after a loader of
+        # the notebook's), whose status multiprocessing cannot ask (ChildProcessError), or a server that ended: this
+        # process starts its own, as multiprocessing would have started a new one in the second case
+        alive_fd = getattr(server, "_forkserver_alive_fd", None)
+        if alive_fd is not None:
+            with contextlib.suppress(OSError):
+                os.close(alive_fd)
+        server._forkserver_pid = server._forkserver_address = server._forkserver_alive_fd = None
+        running = None
     if running is not None and running not in _OWN_SERVERS:
         warnings.warn(f"Loader workers: the fork server (pid {running}) was started by other code before the first "
                       "loader, without this project's preload: a SIGTERM to the whole job (SLURM, timeout) ends it, "
@@ -178,7 +189,16 @@ def _start_server() -> None:
             del os.environ["PYTHONPATH"]
         else:
             os.environ["PYTHONPATH"] = before
-    _OWN_SERVERS.add(server._forkserver_pid)
+    if getattr(server, "_forkserver_pid", None) is not None:
+        _OWN_SERVERS.add(server._forkserver_pid)
+
+
+def _own_child(pid: int) -> bool:
+    """Whether ``pid`` is a running child process of this one (an ended one is reaped)."""
+    try:
+        return os.waitpid(pid, os.WNOHANG)[0] == 0
+    except ChildProcessError:
+        return False
 
 
 def _main_cannot_be_imported(dataset: Any) -> bool:

@@ -21,9 +21,9 @@ from dapm_lightning.data.uapd import IMAGE_SUFFIXES
 
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg", ".wmv")
 LIST_SUFFIX = ".txt"
+"""A SOURCE with this extension is a list of paths, one a line (blank lines and ``#`` comments skipped)."""
 FRAME_NAME = re.compile(r"(.+)_f\d{6,}")
 """A video frame's output name: the video's name, ``_f`` and the frame number (6 digits at least)."""
-"""A SOURCE with this extension is a list of paths, one a line (blank lines and ``#`` comments skipped)."""
 SourceKind = Literal["image", "video"]
 Sources = str | Path | Sequence[str | Path]
 """One SOURCE or several."""

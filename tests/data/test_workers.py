@@ -243,3 +243,40 @@ def test_a_data_set_defined_in_a_notebook_is_loaded_by_forked_workers():
                             cwd=REPO)
     assert result.returncode == 0, result.stderr[-2000:]
     assert "(1, 3, 4, 4) ['Loader workers']" in result.stdout, result.stdout
+
+
+FORKED = """
+import os
+from torch.utils.data import DataLoader, Dataset
+from dapm_lightning.data.workers import loader_workers
+
+class ParentPid(Dataset):
+    def __len__(self):
+        return 1
+
+    def __getitem__(self, index):
+        return os.getppid()
+
+if __name__ == "__main__":
+    first = list(DataLoader(ParentPid(), **loader_workers(1)))  # this process's fork server started
+    child = os.fork()  # as Lightning's ddp_fork / ddp_notebook start their processes
+    if child == 0:
+        try:
+            print("child", int(next(iter(DataLoader(ParentPid(), **loader_workers(1))))), flush=True)
+        finally:
+            os._exit(0)
+    os.waitpid(child, 0)
+    print("parent", int(first[0]), flush=True)
+"""
+
+
+def test_a_process_forked_after_a_loader_starts_its_own_fork_server(tmp_path):
+    """multiprocessing asks its fork server's status with ``waitpid``, which a forked process cannot do for its
+    parent's server: its first loader died with ``ChildProcessError: [Errno 10] No child processes``."""
+    script = tmp_path / "forked.py"
+    script.write_text(FORKED)
+    result = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120,
+                            env={**os.environ, "PYTHONPATH": str(REPO)})
+    assert result.returncode == 0, result.stderr[-2000:]
+    servers = dict(line.split() for line in result.stdout.splitlines() if line.startswith(("child", "parent")))
+    assert set(servers) == {"child", "parent"} and servers["child"] != servers["parent"], result.stdout + result.stderr
