@@ -33,6 +33,7 @@ from dapm_lightning.inference.prior import prior_rows
 from dapm_lightning.inference.runtime import OnnxRuntime, Precision, Runtime, TorchRuntime
 from dapm_lightning.inference.sources import Sources
 from dapm_lightning.inference.telemetry.gather import images_telemetry
+from dapm_lightning.inference.telemetry.pose import PoseTelemetry
 from dapm_lightning.models.prior import EXACT_SIGMA, IGD_BOUND_MARGIN, PriorMode, PriorSettings
 from dapm_lightning.training.checkpointing import load_dapm_module
 
@@ -185,12 +186,10 @@ class DAPMPredictor:
         files = {k: Path(image).expanduser() for k, image in enumerate(items) if isinstance(image, (str, Path))}
         files = {k: path for k, path in files.items() if path.is_file() and np.isnan(rows[k]).any()}
         if read_metadata and files:  # one call: one warning for all images whose metadata cannot be read
-            metadata = images_telemetry(files.values(), sensor_width_mm=sensor_width_mm)[0]
-            for index, meta in zip(files, metadata):
-                known = np.asarray(meta.values(), dtype=np.float64)
-                fill = np.isnan(rows[index]) & np.isfinite(known)
-                rows[index][fill] = known[fill]
-                provenance[index] = tuple(m if f else p for p, m, f in zip(provenance[index], meta.provenance, fill))
+            given = [PoseTelemetry.from_values(rows[k], "", provenance[k]) for k in files]  # the prior wins
+            found = images_telemetry(files.values(), sensor_width_mm=sensor_width_mm, priors=given)[0]
+            for index, telemetry in zip(files, found):
+                rows[index], provenance[index] = telemetry.values(), telemetry.provenance
         values = torch.from_numpy(rows).float()
         results: list[Prediction] = []
         pending: list[PredictInput] = []

@@ -217,6 +217,17 @@ def test_an_image_path_given_to_the_api_takes_its_own_metadata_under_the_given_p
     assert len(caught) == 1 and "broken.jpg" in caught[0]
 
 
+def test_the_api_warns_only_of_metadata_left_unknown_that_the_prior_does_not_give(checkpoint, tmp_path):
+    """A prior's height with an XMP height below 1 m warned 'height left unknown' (the prior's 30 m was used)."""
+    predictor = DAPMPredictor.from_checkpoint(checkpoint, image_width=32)
+    photo = dji_jpeg(tmp_path / "DJI_0001.JPG", RelativeAltitude="+0.20", GimbalPitchDegree="-35.5")
+    result, caught = record(predictor, photo, prior={"height_m": 30.0})
+    assert result.pose["height"] == pytest.approx(30.0) and result.pose["pitch"] == pytest.approx(-35.5)
+    assert caught == []
+    _, caught = record(predictor, photo)  # no prior: the height is left unknown, and said so
+    assert len(caught) == 1 and "height left unknown" in caught[0]
+
+
 def test_the_srt_coverage_warning_counts_the_frames_its_timing_covers(tmp_path):
     srt = tmp_path / "v.SRT"  # subtitle 2 lasts 2 frames at 10 fps: 3 subtitles cover frames 0-3
     srt.write_text("".join(f"{k}\n00:00:00,{a:03d} --> 00:00:00,{b:03d}\n[rel_alt: {20 + k}.000 abs_alt: 300.0]\n\n"

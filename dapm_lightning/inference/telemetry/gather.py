@@ -141,8 +141,12 @@ def fall_back(error: Exception, what: str, strict: bool) -> None:
 
 def images_telemetry(paths: Iterable[StrPath], csv_path: StrPath | TelemetryCsv | None = None, *,
                      read_metadata: bool = True, sensor_width_mm: float | None = None,
-                     strict: bool = False) -> tuple[list[PoseTelemetry], TelemetryReport]:
+                     strict: bool = False,
+                     priors: Sequence[PoseTelemetry] | None = None) -> tuple[list[PoseTelemetry], TelemetryReport]:
     """Per image its CSV row, each unknown component from the image's own metadata; and the run's report.
+
+    ``priors``: per image what is already known (the Python API's prior), winning over its CSV row and its
+    metadata; a note on a component it gives (an XMP height below 1 m left unknown) is not warned about.
 
     An image whose metadata cannot be read (a damaged XMP or EXIF block, an impossible DJI value) falls back to
     the network with one warning, or stops the run with ``strict``. CSV errors always stop it. CSV names that
@@ -150,13 +154,18 @@ def images_telemetry(paths: Iterable[StrPath], csv_path: StrPath | TelemetryCsv 
     share is only marked (its owner warns once, after the last input).
     """
     image_paths = [Path(p) for p in paths]
+    given = list(priors) if priors is not None else None
+    if given is not None and len(given) != len(image_paths):
+        raise ValueError(f"{len(given)} priors for {len(image_paths)} images")
     table, shared = _table(csv_path), isinstance(csv_path, TelemetryCsv)
     rows = table.rows if table is not None else {}
     report = TelemetryReport("image")
     out: list[PoseTelemetry] = []
     notes: dict[str, dict[str, str]] = {}
-    for p in image_paths:
+    for k, p in enumerate(image_paths):
         row = rows.get(p.stem, PoseTelemetry())
+        if given is not None:
+            row = given[k].merged(row)
         meta = PoseTelemetry()
         if read_metadata and not all(row.known()):
             try:
