@@ -42,11 +42,11 @@ unknown), which are known (bool), and their σ. No NaN enters the graph, so int8
 CHECK_DRAW = "draw"
 """Key of a check row: ``(k, n)``, the k-th of the n random inputs checked at that shape."""
 METADATA_NET = "dapm.net"
+"""The metadata key that marks a dapm-lightning export: the network's settings as JSON."""
 METADATA_WEIGHTS = "dapm.weights_sha256"
 """The SHA-256 of the exported network's weights (:func:`weights_digest`)."""
 METADATA_ON_FIRST_USE = "dapm.exported_on_first_use"
 """Set in a file ``DAPMPredictor(onnx_path=...)`` exported itself: it may replace it when the weights change."""
-"""The metadata key that marks a dapm-lightning export: the network's settings as JSON."""
 
 
 class ExportWrapper(nn.Module):
@@ -349,13 +349,24 @@ def ensure_exported(module: nn.Module, path: Path) -> Path:
     """
     net = getattr(module, "net", module).eval()
     if path.is_file():
-        recorded = read_metadata(path)
+        try:
+            recorded = read_metadata(path)
+        except Exception:  # protobuf's DecodeError: not an ONNX file, or one cut short
+            recorded = {}
         if recorded.get(METADATA_WEIGHTS) == weights_digest(net):
             return path
         if recorded.get(METADATA_ON_FIRST_USE) != "true":
-            raise FileExistsError(f"{path}: an exported model of other weights than this checkpoint's, not written "
-                                  "by onnx_path (dapm-lightning export or another tool), so it is not replaced.\n"
-                                  "Fix: give another onnx_path, delete that file, or run it on its own with "
+            if METADATA_NET not in recorded:
+                what = ("not a dapm-lightning export (not an ONNX model, one cut short, or another tool's), so it is "
+                        "not replaced")
+            elif METADATA_WEIGHTS not in recorded:
+                what = ("an export that records no weights digest (dapm.weights_sha256: exported by an older "
+                        "dapm-lightning), so whether it holds this checkpoint's weights is unknown; it is not replaced")
+            else:
+                what = ("an exported model of other weights than this checkpoint's, not written by onnx_path "
+                        "(dapm-lightning export or another tool), so it is not replaced")
+            raise FileExistsError(f"{path}: {what}.\nFix: give another onnx_path, delete that file (onnx_path then "
+                                  "exports this checkpoint there), or run it on its own with "
                                   "DAPMPredictor.from_checkpoint(its path)")
     trained = getattr(module, "train_image_size", None)
     size = network_size(int(trained[0]), int(trained[1]), (int(trained[0]), int(trained[1]))) if trained \

@@ -55,6 +55,32 @@ def test_the_api_export_is_moved_into_place_only_once_checked(tmp_path, monkeypa
     assert list(path.parent.iterdir()) == []  # nothing at the path, no staging folder left
 
 
+@pytest.mark.parametrize("content", ["cut short", "empty", "no digest"])
+def test_the_api_export_names_a_file_there_it_cannot_compare(tmp_path, content):
+    """A file at onnx_path that is not an ONNX model stopped with protobuf's bare DecodeError (no path, no fix); an
+    export that records no weights digest (an older version's) was called 'of other weights than this
+    checkpoint's', which nothing said."""
+    from dapm_lightning.inference.onnx import METADATA_NET, ensure_exported
+    from tests.inference.test_onnx import tiny_net
+
+    path = tmp_path / "m.onnx"
+    if content == "no digest":
+        graph = onnx.helper.make_graph([onnx.helper.make_node("Identity", ["x"], ["y"])], "g",
+                                       [onnx.helper.make_tensor_value_info("x", onnx.TensorProto.FLOAT, [1])],
+                                       [onnx.helper.make_tensor_value_info("y", onnx.TensorProto.FLOAT, [1])])
+        model = onnx.helper.make_model(graph)
+        model.metadata_props.add(key=METADATA_NET, value="{}")
+        onnx.save(model, str(path))
+    else:
+        path.write_bytes(b"" if content == "empty" else b"\x08\x07\x12\x07pytorch\x1a\xff\xff")
+    before = path.read_bytes()
+    expected = "records no weights digest" if content == "no digest" else "not a dapm-lightning export"
+    with pytest.raises(FileExistsError, match=expected) as caught:
+        ensure_exported(tiny_net(), path)
+    assert str(path) in str(caught.value) and "Fix:" in str(caught.value)
+    assert path.read_bytes() == before  # never overwritten
+
+
 @pytest.mark.slow
 def test_the_api_export_follows_the_weights_and_never_replaces_another_tools_file(exported, tmp_path):
     """``onnx_path`` kept running a file already there: after retraining, the old model, silently."""
