@@ -154,7 +154,8 @@ class DAPMPredictor:
         return item
 
     def __call__(self, images: Any, prior: Any = None, read_metadata: bool = True,
-                 sensor_width_mm: float | None = None) -> Prediction | list[Prediction]:
+                 sensor_width_mm: float | None = None,
+                 strict_telemetry: bool = False) -> Prediction | list[Prediction]:
         """Predict one image or several.
 
         Args:
@@ -171,6 +172,7 @@ class DAPMPredictor:
                 XMP and EXIF telemetry, as ``predict_source`` and the command line do (metadata that cannot be
                 read: the network's pose, with one warning).
             sensor_width_mm: the sensor width for the EXIF focal length (as the command line's option).
+            strict_telemetry: metadata that cannot be read is a ``TelemetryError`` instead of the warning.
 
         Returns:
             a :class:`Prediction` for one image, a list of them for several (in order), at each input's size.
@@ -187,7 +189,8 @@ class DAPMPredictor:
         files = {k: path for k, path in files.items() if path.is_file() and np.isnan(rows[k]).any()}
         if read_metadata and files:  # one call: one warning for all images whose metadata cannot be read
             given = [PoseTelemetry.from_values(rows[k], "", provenance[k]) for k in files]  # the prior wins
-            found = images_telemetry(files.values(), sensor_width_mm=sensor_width_mm, priors=given)[0]
+            found = images_telemetry(files.values(), sensor_width_mm=sensor_width_mm, strict=strict_telemetry,
+                                     priors=given)[0]
             for index, telemetry in zip(files, found):
                 rows[index], provenance[index] = telemetry.values(), telemetry.provenance
         values = torch.from_numpy(rows).float()

@@ -228,6 +228,19 @@ def test_the_api_warns_only_of_metadata_left_unknown_that_the_prior_does_not_giv
     assert len(caught) == 1 and "height left unknown" in caught[0]
 
 
+def test_the_api_call_takes_strict_telemetry_as_its_fall_back_warning_says(checkpoint, tmp_path):
+    """The warning for an image path's unreadable metadata says 'strict_telemetry=True in Python', which
+    ``predictor(path, ...)`` refused with a TypeError (only predict_source took it)."""
+    predictor = DAPMPredictor.from_checkpoint(checkpoint, image_width=32)
+    broken = broken_jpeg(tmp_path / "broken.jpg")
+    _, caught = record(predictor, broken)
+    assert len(caught) == 1 and "strict_telemetry=True in Python" in caught[0]
+    with pytest.raises(TelemetryError, match="broken.jpg"):
+        predictor(broken, strict_telemetry=True)
+    assert predictor(broken, prior=[40.0, -60.0, 0.0, 70.0], strict_telemetry=True).pose["height"] == \
+        pytest.approx(40.0)  # all known: the metadata is not read
+
+
 def test_the_srt_coverage_warning_counts_the_frames_its_timing_covers(tmp_path):
     srt = tmp_path / "v.SRT"  # subtitle 2 lasts 2 frames at 10 fps: 3 subtitles cover frames 0-3
     srt.write_text("".join(f"{k}\n00:00:00,{a:03d} --> 00:00:00,{b:03d}\n[rel_alt: {20 + k}.000 abs_alt: 300.0]\n\n"
