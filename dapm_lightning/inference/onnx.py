@@ -341,8 +341,8 @@ def ensure_exported(module: nn.Module, path: Path) -> Path:
 
     Exported into a hidden folder beside ``path`` and moved there once checked: an export interrupted or refused
     leaves no file that a later call would take as exported and checked. A file there exported from other weights
-    (the model retrained since) is replaced when an earlier call wrote it, refused when it came from elsewhere
-    (``dapm-lightning export``, another tool), which this never overwrites.
+    or settings (the model retrained since) is replaced when an earlier call wrote it, refused when it came from
+    elsewhere (``dapm-lightning export``, another tool), which this never overwrites.
 
     Raises:
         FileExistsError: ``path`` holds another model this did not export.
@@ -353,8 +353,10 @@ def ensure_exported(module: nn.Module, path: Path) -> Path:
             recorded = read_metadata(path)
         except Exception:  # protobuf's DecodeError: not an ONNX file, or one cut short
             recorded = {}
-        if recorded.get(METADATA_WEIGHTS) == weights_digest(net):
-            return path
+        config: DAPMConfig = getattr(net, "config")  # noqa: B009 (an nn.Module attribute)
+        if (recorded.get(METADATA_WEIGHTS) == weights_digest(net)
+                and recorded.get(METADATA_NET) == json.dumps(config.to_dict(), sort_keys=True)):
+            return path  # the same weights and settings (a changed max_depth alone changes what the file says)
         if recorded.get(METADATA_ON_FIRST_USE) != "true":
             if METADATA_NET not in recorded:
                 what = ("not a dapm-lightning export (not an ONNX model, one cut short, or another tool's), so it is "
@@ -363,8 +365,8 @@ def ensure_exported(module: nn.Module, path: Path) -> Path:
                 what = ("an export that records no weights digest (dapm.weights_sha256: exported by an older "
                         "dapm-lightning), so whether it holds this checkpoint's weights is unknown; it is not replaced")
             else:
-                what = ("an exported model of other weights than this checkpoint's, not written by onnx_path "
-                        "(dapm-lightning export or another tool), so it is not replaced")
+                what = ("an exported model of other weights or settings than this checkpoint's, not written by "
+                        "onnx_path (dapm-lightning export or another tool), so it is not replaced")
             raise FileExistsError(f"{path}: {what}.\nFix: give another onnx_path, delete that file (onnx_path then "
                                   "exports this checkpoint there), or run it on its own with "
                                   "DAPMPredictor.from_checkpoint(its path)")

@@ -83,8 +83,9 @@ class DAPMPredictor:
         if onnx_path is not None:
             if str(precision) != "32":
                 raise ValueError("an ONNX model runs in the precision it was exported in: use precision '32'")
+            onnx_path = Path(onnx_path).expanduser()
             if module is not None:
-                ensure_exported(module.eval(), Path(onnx_path))
+                ensure_exported(module.eval(), onnx_path)
             onnx_runtime = OnnxRuntime(onnx_path)
             runtime, trained = onnx_runtime, onnx_runtime.train_image_size
             config = onnx_runtime.config

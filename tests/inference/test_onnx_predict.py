@@ -84,7 +84,7 @@ def test_the_api_export_names_a_file_there_it_cannot_compare(tmp_path, content):
 @pytest.mark.slow
 def test_the_api_export_follows_the_weights_and_never_replaces_another_tools_file(exported, tmp_path):
     """``onnx_path`` kept running a file already there: after retraining, the old model, silently."""
-    from dapm_lightning.inference.onnx import METADATA_ON_FIRST_USE, read_metadata, write_metadata
+    from dapm_lightning.inference.onnx import METADATA_NET, METADATA_ON_FIRST_USE, read_metadata, write_metadata
 
     module, first = exported
     path = tmp_path / "m.onnx"
@@ -101,8 +101,13 @@ def test_the_api_export_follows_the_weights_and_never_replaces_another_tools_fil
     rgb = np.random.default_rng(0).integers(0, 255, (48, 80, 3), np.uint8)
     got, eager = DAPMPredictor(retrained, onnx_path=path)(rgb), DAPMPredictor(retrained)(rgb)  # exported again
     assert relative_depth_gap(got.depth_m, eager.depth_m) < 1e-3 and pose_gap(got.pose, eager.pose) < 0.05
+    settings = json.loads(read_metadata(path)[METADATA_NET])
+    other = {**settings, "igd": {**settings["igd"], "max_depth": 500.0}}  # as if exported with another depth limit
+    write_metadata(path, {METADATA_NET: json.dumps(other, sort_keys=True)})
+    DAPMPredictor(retrained, onnx_path=path)  # the same weights, other settings: exported again
+    assert json.loads(read_metadata(path)[METADATA_NET]) == settings
     write_metadata(path, {METADATA_ON_FIRST_USE: "false"})  # as from dapm-lightning export: never overwritten
-    with pytest.raises(FileExistsError, match="other weights than this checkpoint's"):
+    with pytest.raises(FileExistsError, match="other weights or settings than this checkpoint's"):
         DAPMPredictor(module, onnx_path=path)
     assert read_metadata(path)[METADATA_ON_FIRST_USE] == "false"
 
