@@ -95,6 +95,7 @@ if __name__ == "__main__":
 """
 
 
+@pytest.mark.slow  # a process of its own
 def test_workers_end_with_a_training_process_killed_without_its_exit_handlers(tmp_path):
     """SIGKILL, the OOM killer or a crash: a fork server's worker is not the training process's child, and PyTorch's
     worker follows its parent only. Before, the workers (and the server, which waits for them) ran for ever."""
@@ -166,6 +167,7 @@ if __name__ == "__main__":
 """
 
 
+@pytest.mark.slow  # a process of its own
 def test_a_fork_server_started_by_other_code_is_reported(tmp_path):
     """multiprocessing has one fork server a process: started by other code, it lacks the preload that makes it
     ignore a SIGTERM to the whole job, and it dies of one with the loader's workers (the loader fails)."""
@@ -197,6 +199,7 @@ if __name__ == "__main__":
 """
 
 
+@pytest.mark.slow  # a process of its own
 def test_the_fork_server_preloads_this_process_s_copy_of_the_package(tmp_path):
     """The server imports :data:`SERVER_PRELOAD` with this process's ``sys.path``, not the one it starts with: a path
     added in the process (a notebook's) had it import an installed copy instead, or nothing (no SIGTERM ignored)."""
@@ -236,6 +239,7 @@ print(tuple(batch["image"].shape), [str(warning.message).split(":")[0] for warni
 """
 
 
+@pytest.mark.slow  # a process of its own
 def test_a_data_set_defined_in_a_notebook_is_loaded_by_forked_workers():
     """A fork server's worker cannot import a ``__main__`` without a file (a notebook, ``python -``): its data set
     could not be unpickled and the worker died ('DataLoader worker exited unexpectedly')."""
@@ -270,6 +274,7 @@ if __name__ == "__main__":
 """
 
 
+@pytest.mark.slow  # a process of its own
 def test_a_process_forked_after_a_loader_starts_its_own_fork_server(tmp_path):
     """multiprocessing asks its fork server's status with ``waitpid``, which a forked process cannot do for its
     parent's server: its first loader died with ``ChildProcessError: [Errno 10] No child processes``."""
