@@ -39,6 +39,13 @@ class ParentPid(Dataset):
         return os.getppid()
 
 
+class Pid(ParentPid):
+    """Each item: the worker's own process id."""
+
+    def __getitem__(self, index: int) -> int:
+        return os.getpid()
+
+
 def parents(loader: DataLoader) -> set[int]:
     return {int(pid) for batch in loader for pid in batch}
 
@@ -77,16 +84,10 @@ def test_an_unknown_start_method_is_refused_when_the_data_module_is_made(tmp_pat
 
 
 KILLED = """
-import os, time
-from torch.utils.data import DataLoader, Dataset
+import time
+from torch.utils.data import DataLoader
 from dapm_lightning.data.workers import loader_workers
-
-class Pid(Dataset):
-    def __len__(self):
-        return 2
-
-    def __getitem__(self, index):
-        return os.getpid()
+from tests.data.test_workers import Pid
 
 if __name__ == "__main__":
     loader = DataLoader(Pid(), persistent_workers=True, **loader_workers(2))
@@ -145,16 +146,10 @@ def test_other_processes_of_the_fork_server_still_end_on_terminate():
 
 
 FOREIGN_SERVER = """
-import multiprocessing, os, time, warnings
-from torch.utils.data import DataLoader, Dataset
+import multiprocessing, time, warnings
+from torch.utils.data import DataLoader
 from dapm_lightning.data.workers import loader_workers
-
-class ParentPid(Dataset):
-    def __len__(self):
-        return 1
-
-    def __getitem__(self, index):
-        return os.getppid()
+from tests.data.test_workers import ParentPid
 
 if __name__ == "__main__":
     process = multiprocessing.get_context("forkserver").Process(target=time.sleep, args=(0,))
@@ -251,15 +246,9 @@ def test_a_data_set_defined_in_a_notebook_is_loaded_by_forked_workers():
 
 FORKED = """
 import os
-from torch.utils.data import DataLoader, Dataset
+from torch.utils.data import DataLoader
 from dapm_lightning.data.workers import loader_workers
-
-class ParentPid(Dataset):
-    def __len__(self):
-        return 1
-
-    def __getitem__(self, index):
-        return os.getppid()
+from tests.data.test_workers import ParentPid
 
 if __name__ == "__main__":
     first = list(DataLoader(ParentPid(), **loader_workers(1)))  # this process's fork server started
