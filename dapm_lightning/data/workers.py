@@ -106,6 +106,17 @@ def _follow_training_process(pid: int) -> None:
     threading.Thread(target=follow, name="follow-training-process", daemon=True).start()
 
 
+def _quiet_broken_pipe(previous: Any, kind: type[BaseException], value: BaseException, trace: Any) -> None:
+    """A worker's ``sys.excepthook``: a batch's file handle its training process no longer takes is no error.
+
+    ``multiprocessing``'s resource sharer hands each batch tensor's file descriptor to the training process from a
+    thread of the worker and reports its errors through ``sys.excepthook``: a training process stopping (SIGTERM,
+    the tables written, exit 143) made it print a ``BrokenPipeError`` traceback. Other errors are reported as before.
+    """
+    if not issubclass(kind, (BrokenPipeError, ConnectionResetError)):
+        previous(kind, value, trace)
+
+
 def loader_worker_init(worker_id: int, rank: int = 0, exiting: Any = None, seed_workers: bool = False,
                        training_pid: int | None = None) -> None:
     """Start of every loader worker: SIGTERM from outside ignored; seeded as Lightning would when asked to.
@@ -126,6 +137,7 @@ def loader_worker_init(worker_id: int, rank: int = 0, exiting: Any = None, seed_
             os._exit(0)
 
     signal.signal(signal.SIGTERM, on_sigterm)
+    sys.excepthook = partial(_quiet_broken_pipe, sys.excepthook)
     if training_pid is not None and os.getppid() != training_pid:
         _follow_training_process(training_pid)
     if seed_workers:  # seed_everything(workers=True): Lightning adds its own worker_init_fn only to loaders without one
