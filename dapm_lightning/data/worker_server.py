@@ -10,15 +10,26 @@ set their own handler (:func:`~dapm_lightning.data.workers.loader_worker_init`).
 The server is ``multiprocessing``'s, one a process, and starts every process of the ``forkserver`` start method,
 not only loader workers (a user's ``Pool``, ``ProcessPoolExecutor``...; Python 3.14's default start method):
 those get the default SIGTERM back as they start (:func:`_restore_sigterm`), so that ``terminate()`` ends them.
+
+The server's socket lies in a folder of the training process's (``/tmp/pymp-*``), which that process removes as it
+exits; one killed (SIGKILL, pre-emption, the OOM killer) leaves it behind, so the server, as it ends, waits for its
+workers to end (they remove their own sockets there: :func:`~dapm_lightning.data.workers.remove_shared_socket`),
+then removes its own socket, and the folder if nothing else is in it (:func:`_remove_socket_at_exit`).
 """
 
 from __future__ import annotations
 
+import atexit
+import contextlib
 import functools
 import multiprocessing
 import multiprocessing.util
+import os
 import signal
+import socket
+import stat
 import sys
+import time
 from typing import Any
 
 
@@ -41,6 +52,45 @@ def _restore_sigterm(_: object) -> None:
         signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
+def listening_socket_path() -> str | None:
+    """The path of this process's listening Unix socket, the server's; None where ``/proc`` lists no descriptors.
+
+    ``multiprocessing`` passes the server its socket's descriptor, not its name.
+    """
+    try:
+        descriptors = [int(name) for name in os.listdir("/proc/self/fd")]
+    except OSError:
+        return None
+    for fd in descriptors:
+        with contextlib.suppress(OSError):
+            if not stat.S_ISSOCK(os.fstat(fd).st_mode):
+                continue
+            with socket.fromfd(fd, socket.AF_UNIX, socket.SOCK_STREAM) as sock:  # a duplicate, closed here
+                name = sock.getsockname()
+                if isinstance(name, str) and name and sock.getsockopt(socket.SOL_SOCKET, socket.SO_ACCEPTCONN):
+                    return name
+    return None
+
+
+def _remove_socket_at_exit(path: str, wait_s: float = 5.0) -> None:
+    """At the server's exit (its training process has ended, or was killed): remove its socket and the folder.
+
+    First its workers end (or ``wait_s`` passes). The folder goes only if empty: a process forked from the training
+    one may keep a server of its own there.
+    """
+    deadline = time.monotonic() + wait_s
+    while time.monotonic() < deadline:
+        try:
+            if os.waitpid(-1, os.WNOHANG)[0] == 0:
+                time.sleep(0.05)
+        except ChildProcessError:  # no child left
+            break
+    with contextlib.suppress(OSError):
+        os.unlink(path)
+    with contextlib.suppress(OSError):
+        os.rmdir(os.path.dirname(path))
+
+
 class _Registration:
     """The object ``multiprocessing.util.register_after_fork`` keeps a weak reference to."""
 
@@ -50,3 +100,6 @@ _REGISTRATION = _Registration()
 if in_fork_server():
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     multiprocessing.util.register_after_fork(_REGISTRATION, _restore_sigterm)
+    _SOCKET = listening_socket_path()
+    if _SOCKET is not None and os.path.basename(os.path.dirname(_SOCKET)).startswith("pymp-"):
+        atexit.register(_remove_socket_at_exit, _SOCKET)  # forked workers leave with os._exit: never theirs

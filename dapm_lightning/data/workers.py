@@ -101,9 +101,25 @@ def _follow_training_process(pid: int) -> None:
                     break
                 except PermissionError:
                     pass
+        remove_shared_socket()
         os._exit(0)
 
     threading.Thread(target=follow, name="follow-training-process", daemon=True).start()
+
+
+def remove_shared_socket() -> None:
+    """Remove this process's socket for handing file descriptors (each batch tensor's) to the training process.
+
+    ``multiprocessing`` removes it as a worker exits normally; a worker that ends with ``os._exit`` (its training
+    process gone) must, or it stays in the training process's temporary folder, which that process, killed, no
+    longer removes.
+    """
+    from multiprocessing import resource_sharer
+
+    address = getattr(getattr(resource_sharer, "_resource_sharer", None), "_address", None)  # not public
+    if isinstance(address, str):
+        with contextlib.suppress(OSError):
+            os.unlink(address)
 
 
 def _quiet_broken_pipe(previous: Any, kind: type[BaseException], value: BaseException, trace: Any) -> None:

@@ -85,6 +85,7 @@ def test_an_unknown_start_method_is_refused_when_the_data_module_is_made(tmp_pat
 
 KILLED = """
 import time
+from multiprocessing import forkserver
 from torch.utils.data import DataLoader
 from dapm_lightning.data.workers import loader_workers
 from tests.data.test_workers import Pid
@@ -92,6 +93,7 @@ from tests.data.test_workers import Pid
 if __name__ == "__main__":
     loader = DataLoader(Pid(), persistent_workers=True, **loader_workers(2))
     print(*sorted({int(pid) for batch in loader for pid in batch}), flush=True)
+    print(forkserver._forkserver._forkserver_pid, forkserver._forkserver._forkserver_address, flush=True)
     time.sleep(120)
 """
 
@@ -99,18 +101,20 @@ if __name__ == "__main__":
 @pytest.mark.slow  # a process of its own
 def test_workers_end_with_a_training_process_killed_without_its_exit_handlers(tmp_path):
     """SIGKILL, the OOM killer or a crash: a fork server's worker is not the training process's child, and PyTorch's
-    worker follows its parent only. Before, the workers (and the server, which waits for them) ran for ever."""
+    worker follows its parent only. Before, the workers (and the server, which waits for them) ran for ever, and
+    then the server's socket and its folder (``/tmp/pymp-*``) stayed behind."""
     script = tmp_path / "killed.py"
     script.write_text(KILLED)
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     training = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True, env=env)
     try:
         workers = [int(pid) for pid in training.stdout.readline().split()]  # type: ignore[union-attr]
-        assert len(workers) == 2
+        server, address = training.stdout.readline().split()  # type: ignore[union-attr]
+        assert len(workers) == 2 and Path(address).is_socket()
     finally:
         training.kill()
         training.wait()
-    alive = set(workers)
+    alive = {*workers, int(server)}
     for _ in range(100):
         alive = {pid for pid in alive if _running(pid)}
         if not alive:
@@ -118,7 +122,8 @@ def test_workers_end_with_a_training_process_killed_without_its_exit_handlers(tm
         time.sleep(0.1)
     for pid in alive:
         os.kill(pid, signal.SIGKILL)
-    assert not alive, "loader workers outlived their training process"
+    assert not alive, "loader workers or their server outlived the training process"
+    assert not Path(address).exists() and not Path(address).parent.exists()
 
 
 def _running(pid: int) -> bool:
