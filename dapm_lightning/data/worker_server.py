@@ -12,9 +12,10 @@ not only loader workers (a user's ``Pool``, ``ProcessPoolExecutor``...; Python 3
 those get the default SIGTERM back as they start (:func:`_restore_sigterm`), so that ``terminate()`` ends them.
 
 The server's socket lies in a folder of the training process's (``/tmp/pymp-*``), which that process removes as it
-exits; one killed (SIGKILL, pre-emption, the OOM killer) leaves it behind, so the server, as it ends, waits for its
-workers to end (they remove their own sockets there: :func:`~dapm_lightning.data.workers.remove_shared_socket`),
-then removes its own socket, and the folder if nothing else is in it (:func:`_remove_socket_at_exit`).
+exits; one killed (SIGKILL, pre-emption, the OOM killer) leaves it behind, so the server, as it ends after it, reaps
+its workers (they remove their own sockets there: :func:`~dapm_lightning.data.workers.remove_shared_socket`),
+then removes its own socket, and the folder if nothing else is in it and the training process made it
+(:func:`_remove_socket_at_exit`).
 """
 
 from __future__ import annotations
@@ -72,12 +73,31 @@ def listening_socket_path() -> str | None:
     return None
 
 
-def _remove_socket_at_exit(path: str, wait_s: float = 5.0) -> None:
-    """At the server's exit (its training process has ended, or was killed): remove its socket and the folder.
+def _training_process_ended(parent: int, wait_s: float = 0.5) -> bool:
+    """Whether the server's parent, the training process ``parent``, has ended (this server was handed to another).
 
-    First its workers end (or ``wait_s`` passes). The folder goes only if empty: a process forked from the training
-    one may keep a server of its own there.
+    The server also ends while it still runs: ``multiprocessing``'s ``_stop()`` (which then removes the socket
+    itself) or a request the server failed on. Its parent's end closes the pipe the server waits on a moment before
+    the server is handed to another parent: that moment is waited for, ``wait_s`` at most.
     """
+    deadline = time.monotonic() + wait_s
+    while os.getppid() == parent:
+        if time.monotonic() >= deadline:
+            return False
+        time.sleep(0.01)
+    return True
+
+
+def _remove_socket_at_exit(path: str, server: int, parent: int, folder_owned: bool, wait_s: float = 5.0) -> None:
+    """At the server's exit, once its training process has ended (was killed): remove its socket and the folder.
+
+    First its workers end (or ``wait_s`` passes). The folder goes only if the training process made it (one
+    started by another process shares its parent's, which the parent removes) and it is empty: a process forked
+    from the training one may keep a server of its own there. Nothing happens in a process forked from the server
+    that exits without ``os._exit`` (it inherits this handler), nor while the training process still runs.
+    """
+    if os.getpid() != server or not _training_process_ended(parent):
+        return
     deadline = time.monotonic() + wait_s
     while time.monotonic() < deadline:
         try:
@@ -87,8 +107,9 @@ def _remove_socket_at_exit(path: str, wait_s: float = 5.0) -> None:
             break
     with contextlib.suppress(OSError):
         os.unlink(path)
-    with contextlib.suppress(OSError):
-        os.rmdir(os.path.dirname(path))
+    if folder_owned:  # not the folder of a process that still runs
+        with contextlib.suppress(OSError):
+            os.rmdir(os.path.dirname(path))
 
 
 class _Registration:
@@ -100,6 +121,7 @@ _REGISTRATION = _Registration()
 if in_fork_server():
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     multiprocessing.util.register_after_fork(_REGISTRATION, _restore_sigterm)
+    _FOLDER_OWNED = os.environ.pop("DAPM_FORKSERVER_FOLDER_OWNED", None) == "1"  # not for its workers
     _SOCKET = listening_socket_path()
     if _SOCKET is not None and os.path.basename(os.path.dirname(_SOCKET)).startswith("pymp-"):
-        atexit.register(_remove_socket_at_exit, _SOCKET)  # forked workers leave with os._exit: never theirs
+        atexit.register(_remove_socket_at_exit, _SOCKET, os.getpid(), os.getppid(), _FOLDER_OWNED)

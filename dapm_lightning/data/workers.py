@@ -38,6 +38,8 @@ WORKER_START_METHODS = ("forkserver", "fork", "spawn")
 SERVER_PRELOAD = ["dapm_lightning.data.worker_server", "torch", "dapm_lightning.data.datamodules",
                   "dapm_lightning.inference.inputs"]
 """What the fork server imports before it forks workers (the first makes it ignore SIGTERM)."""
+FOLDER_OWNED = "DAPM_FORKSERVER_FOLDER_OWNED"
+"""Set for the fork server where the training process's ``/tmp/pymp-*`` folder is its own (:func:`_start_server`)."""
 
 _EXITING: list[Any] = []
 """One event per loader with workers, set when this process exits (:func:`_exiting`). Kept for the process's life
@@ -208,17 +210,34 @@ def _start_server() -> None:
         return
     # the server imports SERVER_PRELOAD from this process's sys.path (Python 3.11's ignores it: a sys.path
     # changed here, a notebook's, had it import another copy of this package, an installed one, or none at all)
-    before = os.environ.get("PYTHONPATH")
+    before = {name: os.environ.get(name) for name in ("PYTHONPATH", FOLDER_OWNED)}
     os.environ["PYTHONPATH"] = os.pathsep.join(path or os.getcwd() for path in sys.path)
+    os.environ[FOLDER_OWNED] = "1" if _owns_temp_folder() else "0"  # "1": the server may remove it (worker_server)
     try:
         forkserver.ensure_running()
     finally:
-        if before is None:
-            del os.environ["PYTHONPATH"]
-        else:
-            os.environ["PYTHONPATH"] = before
+        for name, value in before.items():
+            if value is None:
+                os.environ.pop(name, None)
+            else:
+                os.environ[name] = value
     if getattr(server, "_forkserver_pid", None) is not None:
         _OWN_SERVERS.add(server._forkserver_pid)
+
+
+def _owns_temp_folder() -> bool:
+    """Whether this process's ``multiprocessing`` folder (``/tmp/pymp-*``) is its own, to remove as it exits.
+
+    A process started by another (``spawn``, ``forkserver``, ``fork``) inherits its parent's, which the parent
+    removes; it is made here otherwise (the server's socket is the first thing in it).
+    """
+    from multiprocessing import util
+
+    folder = multiprocessing.current_process()._config.get("tempdir")  # type: ignore[attr-defined]
+    return folder is None or any(
+        getattr(finalizer, "_callback", None) is util._remove_temp_dir  # type: ignore[attr-defined]
+        and tuple(getattr(finalizer, "_args", ()))[1:] == (folder,)
+        for finalizer in list(util._finalizer_registry.values()))  # type: ignore[attr-defined]
 
 
 def _own_child(pid: int) -> bool:
