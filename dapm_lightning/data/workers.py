@@ -73,7 +73,7 @@ def loader_context(method: str = "forkserver") -> multiprocessing.context.BaseCo
         method = "spawn"
     context = multiprocessing.get_context(method)
     if method == "forkserver":
-        context.set_forkserver_preload(SERVER_PRELOAD)  # type: ignore[attr-defined]
+        context.set_forkserver_preload(SERVER_PRELOAD)
     return context
 
 
@@ -190,7 +190,7 @@ def _start_server() -> None:
     """
     from multiprocessing import forkserver
 
-    server = forkserver._forkserver  # type: ignore[attr-defined]
+    server: Any = forkserver._forkserver  # multiprocessing's own (not public)
     running = getattr(server, "_forkserver_pid", None)  # multiprocessing's own record (not public)
     if running is not None and not _own_child(running):
         # the server of the process this one was forked from (Lightning's ddp_fork / ddp_notebook after a loader of
@@ -260,7 +260,7 @@ def _main_cannot_be_imported(dataset: Any) -> bool:
         return False
     name = getattr(getattr(main, "__spec__", None), "name", None)
     if name is not None:
-        return name == "__main__" or name.endswith(".__main__")
+        return str(name) == "__main__" or str(name).endswith(".__main__")
     path = getattr(main, "__file__", None)
     return path is None or not os.path.isfile(path)
 
