@@ -11,6 +11,10 @@ The server is ``multiprocessing``'s, one a process, and starts every process of 
 not only loader workers (a user's ``Pool``, ``ProcessPoolExecutor``...; Python 3.14's default start method):
 those get the default SIGTERM back as they start (:func:`_restore_sigterm`), so that ``terminate()`` ends them.
 
+A scheduler's warning signal reaches the whole job too (SLURM's ``--signal``: ``SIGUSR1`` for Lightning's
+auto-requeue): meant for the training process, it would end the server and its workers (the default action), so
+both ignore :data:`JOB_WARNING_SIGNALS` as well.
+
 The server's socket lies in a folder of the training process's (``/tmp/pymp-*``), which that process removes as it
 exits; one killed (SIGKILL, pre-emption, the OOM killer) leaves it behind, so the server, as it ends after it, reaps
 its workers (they remove their own sockets there: :func:`~dapm_lightning.data.workers.remove_shared_socket`),
@@ -33,6 +37,10 @@ import sys
 import time
 from typing import Any
 
+JOB_WARNING_SIGNALS = (signal.SIGUSR1, signal.SIGUSR2)
+"""Signals a scheduler sends the whole job as a warning (SLURM's ``--signal``), meant for the training process:
+ignored by loader workers and their server."""
+
 
 def in_fork_server() -> bool:
     """Whether this process is multiprocessing's fork server (started as ``python -c 'from multiprocessing...'``)."""
@@ -48,9 +56,11 @@ def _is_loader_worker(process: Any) -> bool:
 
 
 def _restore_sigterm(_: object) -> None:
-    """In a process the server forked, as it starts: the default SIGTERM back, unless it is a loader worker."""
+    """In a process the server forked, as it starts: the default SIGTERM and warning signals back, but in loaders'."""
     if not _is_loader_worker(multiprocessing.current_process()):
-        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        for number in (signal.SIGTERM, *JOB_WARNING_SIGNALS):
+            signal.signal(number, signal.SIG_DFL)
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, JOB_WARNING_SIGNALS)  # blocked as the server started
 
 
 def listening_socket_path() -> str | None:
@@ -119,7 +129,8 @@ class _Registration:
 _REGISTRATION = _Registration()
 
 if in_fork_server():
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    for _number in (signal.SIGTERM, *JOB_WARNING_SIGNALS):
+        signal.signal(_number, signal.SIG_IGN)
     multiprocessing.util.register_after_fork(_REGISTRATION, _restore_sigterm)
     _FOLDER_OWNED = os.environ.pop("DAPM_FORKSERVER_FOLDER_OWNED", None) == "1"  # not for its workers
     _SOCKET = listening_socket_path()

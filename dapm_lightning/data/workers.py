@@ -10,8 +10,9 @@ process. ``worker_start_method: fork`` gives PyTorch's default back (for data se
 SLURM sends SIGTERM to every process of a job step before it pre-empts or ends it (``timeout`` and a terminal
 signal the whole process group): to the data loader workers too. PyTorch's workers die of it, and the training
 process then stops with a DataLoader error (status 1) instead of saving ``last.ckpt`` and exiting with 143.
-:func:`loader_worker_init` makes every worker ignore a SIGTERM from outside; the training process decides, and
-its workers stop when it stops them. One SIGTERM still ends a worker: the one its process sends it while it exits
+:func:`loader_worker_init` makes every worker ignore a SIGTERM from outside, and the warning signals SLURM's
+``--signal`` sends (``SIGUSR1``, Lightning's auto-requeue); the training process decides, and its workers stop when
+it stops them. One SIGTERM still ends a worker: the one its process sends it while it exits
 (``multiprocessing`` terminates its daemonic children, then joins them).
 """
 
@@ -32,6 +33,8 @@ from types import FrameType
 from typing import Any
 
 from lightning.fabric.utilities.seed import pl_worker_init_function
+
+from dapm_lightning.data.worker_server import JOB_WARNING_SIGNALS
 
 WORKER_START_METHODS = ("forkserver", "fork", "spawn")
 """How loader workers start (``multiprocessing`` start methods): the fork server is the default."""
@@ -137,7 +140,7 @@ def _quiet_broken_pipe(previous: Any, kind: type[BaseException], value: BaseExce
 
 def loader_worker_init(worker_id: int, rank: int = 0, exiting: Any = None, seed_workers: bool = False,
                        training_pid: int | None = None) -> None:
-    """Start of every loader worker: SIGTERM from outside ignored; seeded as Lightning would when asked to.
+    """Start of every loader worker: SIGTERM and SLURM's warning signals from outside ignored; seeded as asked.
 
     Args:
         worker_id: the worker's number in its loader.
@@ -155,6 +158,8 @@ def loader_worker_init(worker_id: int, rank: int = 0, exiting: Any = None, seed_
             os._exit(0)
 
     signal.signal(signal.SIGTERM, on_sigterm)
+    for number in JOB_WARNING_SIGNALS:  # SLURM's --signal (USR1: Lightning's auto-requeue), for the training process
+        signal.signal(number, signal.SIG_IGN)
     sys.excepthook = partial(_quiet_broken_pipe, sys.excepthook)
     if training_pid is not None and os.getppid() != training_pid:
         _follow_training_process(training_pid)
@@ -213,9 +218,14 @@ def _start_server() -> None:
     before = {name: os.environ.get(name) for name in ("PYTHONPATH", FOLDER_OWNED)}
     os.environ["PYTHONPATH"] = os.pathsep.join(path or os.getcwd() for path in sys.path)
     os.environ[FOLDER_OWNED] = "1" if _owns_temp_folder() else "0"  # "1": the server may remove it (worker_server)
+    # SLURM's warning signals blocked while the server and multiprocessing's resource tracker start (both inherit
+    # the mask): the tracker, a process of the job too, died of them and was started again with a warning
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, JOB_WARNING_SIGNALS) if hasattr(signal, "pthread_sigmask") else None
     try:
         forkserver.ensure_running()
     finally:
+        if mask is not None:
+            signal.pthread_sigmask(signal.SIG_SETMASK, mask)
         for name, value in before.items():
             if value is None:
                 os.environ.pop(name, None)

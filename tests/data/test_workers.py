@@ -69,6 +69,24 @@ def test_the_fork_server_outlives_a_sigterm_to_the_whole_job():
     assert parents(loader) == {server}
 
 
+@pytest.mark.parametrize("method", ["forkserver", "fork"])
+def test_workers_and_their_server_outlive_slurm_s_warning_signal(method):
+    """SLURM's ``--signal=USR1@90`` (Lightning's auto-requeue) reaches every process of the step: meant for the
+    training process. Before, it ended the fork server and the workers (the default action), and the run failed with
+    ``EOFError``; a forked worker ran the training process's handler."""
+    persistent = {"persistent_workers": True, **loader_workers(1, method=method)}
+    workers, servers = DataLoader(Pid(), **persistent), DataLoader(ParentPid(), **persistent)
+    (worker,), (parent,) = parents(workers), parents(servers)
+    targets = {worker} if method == "fork" else {worker, parent}
+    for number in (signal.SIGUSR1, signal.SIGUSR2):
+        for pid in targets:
+            os.kill(pid, number)
+    time.sleep(0.5)
+    for pid in targets:
+        os.kill(pid, 0)  # still running (ProcessLookupError otherwise)
+    assert parents(workers) == {worker} and parents(servers) == {parent}
+
+
 def test_a_worker_seeds_as_the_training_process_was_told_when_the_loader_was_made(monkeypatch):
     """``seed_everything(workers=True)`` sets ``PL_SEED_WORKERS`` in this process, after a fork server may have
     started with another environment: the loader takes it from here."""

@@ -786,3 +786,54 @@ def test_limit_train_batches_resumed_on_another_number_of_processes_ends_the_epo
     assert one[0] == [two[0][2], two[1][2]] and len(set(one[1])) == 6, one  # images 4 and 5 of the order: step 2's
     epoch0 = names("one_b")[0] + names("two_b")[0]
     assert len(epoch0) == len(set(epoch0)) == 12 and len(set(names("two_b")[1])) == 12
+
+
+class WaitAtStep(L.Callback):
+    """After training step ``step``: writes ``marker`` and waits (60 s at most) for the file ``go`` to appear."""
+
+    def __init__(self, step: int, marker: str, go: str) -> None:
+        self.step, self.marker, self.go = step, Path(marker), Path(go)
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
+        if trainer.global_step == self.step:
+            self.marker.write_text(str(self.step))
+            deadline = time.time() + 60
+            while not self.go.exists() and time.time() < deadline:
+                time.sleep(0.05)
+
+
+@pytest.mark.slow
+def test_lightning_s_slurm_requeue_signal_to_the_whole_step_leaves_the_loader_workers_serving(data8, tmp_path):
+    """``#SBATCH --signal=USR1@90`` (Lightning's auto-requeue) reaches every process of the step: the loader workers,
+    their fork server and multiprocessing's resource tracker too. Before, the workers and the server died of it and
+    the run failed (``EOFError``, status 1); the tracker died and was started again with a warning."""
+    scontrol = tmp_path / "bin" / "scontrol"
+    scontrol.parent.mkdir()
+    scontrol.write_text(f"#!/bin/sh\necho \"$@\" >> {tmp_path / 'scontrol.calls'}\n")
+    scontrol.chmod(0o755)
+    marker, go = tmp_path / "at_step", tmp_path / "go"
+    config = job_config(tmp_path, "run")
+    job = yaml.safe_load((tmp_path / "run.yaml").read_text())
+    job["trainer"]["callbacks"].append({"class_path": f"{__name__}.WaitAtStep",
+                                        "init_args": {"step": 3, "marker": str(marker), "go": str(go)}})
+    (tmp_path / "run.yaml").write_text(yaml.safe_dump(job))
+    slurm = {"SLURM_NTASKS": "1", "SLURM_NTASKS_PER_NODE": "1", "SLURM_NNODES": "1", "SLURM_PROCID": "0",
+             "SLURM_LOCALID": "0", "SLURM_NODEID": "0", "SLURM_JOB_ID": "4242", "SLURM_JOB_NAME": "dapm",
+             "SLURM_NODELIST": "127.0.0.1"}
+    env = {**os.environ, **slurm, "PATH": f"{scontrol.parent}{os.pathsep}{os.environ['PATH']}",
+           "PYTHONPATH": str(HERE.parents[1])}
+    cmd = [sys.executable, "-m", "dapm_lightning", "fit", *config, "--data.class_path",
+           "dapm_lightning.data.datamodules.UAPDDataModule",
+           "--data.init_args.root", str(data8), *TINY, "--data.init_args.num_workers", "1",
+           "--data.init_args.persistent_workers", "true", "--trainer.default_root_dir", str(tmp_path)]
+    process = subprocess.Popen(cmd, cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                               start_new_session=True)
+    wait_for(marker, process)
+    os.killpg(process.pid, signal.SIGUSR1)
+    time.sleep(1.0)
+    go.touch()
+    status, out = finish(process)
+    assert status == 0, out[-3000:]
+    assert "Requeued SLURM job: 4242" in out and (tmp_path / "scontrol.calls").read_text().split() == ["requeue", "4242"]
+    assert "resource_tracker" not in out and "Error" not in out, out[-3000:]
+    assert weights(tmp_path / "run" / "last.ckpt")["global_step"] == 8
