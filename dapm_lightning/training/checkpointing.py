@@ -252,7 +252,7 @@ class LastCheckpoint(ModelCheckpoint):
             return
         if self._last_global_step_saved != trainer.global_step:  # the final step fell between two saves
             self.best_model_path = self.format_checkpoint_name({})
-            trainer.save_checkpoint(self.best_model_path)
+            trainer.save_checkpoint(self.best_model_path, weights_only=False)  # the full state, said (no log line)
             self._last_global_step_saved = trainer.global_step
 
 
@@ -430,6 +430,6 @@ class CheckpointOnSigterm(L.Callback):
         checkpoint = last[0] if last else trainer.checkpoint_callback
         folder = getattr(checkpoint, "dirpath", None) or Path(trainer.default_root_dir) / "checkpoints"
         path = Path(folder) / "last.ckpt"
-        trainer.save_checkpoint(path)
+        trainer.save_checkpoint(path, weights_only=False)  # the full state, said (no log line)
         if checkpoint is not None and hasattr(checkpoint, "last_model_path"):
             checkpoint.last_model_path = str(path)

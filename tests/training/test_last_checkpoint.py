@@ -65,6 +65,26 @@ def test_sigterm_saves_last_in_training_only_and_exits_143(tmp_path):
     assert info.value.code == 143 and not (tmp_path / "val").exists()  # no training state to save
 
 
+def test_the_project_s_saves_say_they_keep_the_full_state(tmp_path, monkeypatch):
+    """Lightning logs "`weights_only` was not set, defaulting to `False`" at every save that does not say: the last
+    step's save between two intervals and the SIGTERM save said nothing, and printed it at each."""
+    from lightning.pytorch.trainer.connectors import checkpoint_connector
+
+    logged: list[str] = []
+    monkeypatch.setattr(checkpoint_connector.log, "info", lambda message, *args, **kwargs: logged.append(message))
+    loader = torch.utils.data.DataLoader(torch.utils.data.TensorDataset(torch.randn(12, 2)), batch_size=2)
+    kwargs = dict(logger=False, enable_progress_bar=False, enable_model_summary=False, default_root_dir=tmp_path)
+    last = LastCheckpoint(dirpath=tmp_path / "fit", every_n_train_steps=2)
+    L.Trainer(max_steps=3, callbacks=[last], **kwargs).fit(Linear(), loader)
+    assert torch.load(tmp_path / "fit" / "last.ckpt", weights_only=True)["global_step"] == 3
+    trainer = L.Trainer(max_steps=5, callbacks=[CheckpointOnSigterm(), LastCheckpoint(dirpath=tmp_path / "term")],
+                        **kwargs)
+    with pytest.raises(SystemExit):
+        trainer.fit(TermedAt(train_step=2), loader)
+    assert (tmp_path / "term" / "last.ckpt").is_file()
+    assert not [message for message in logged if "weights_only" in message]
+
+
 class InterruptedAt(Linear):
     """Presses Ctrl-C (SIGINT to its own process) ``times`` times at a training step, or when fit starts."""
 
