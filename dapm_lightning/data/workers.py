@@ -67,17 +67,61 @@ def loader_context(method: str = "forkserver") -> multiprocessing.context.BaseCo
 
     Returns:
         The context; for the fork server, with :data:`SERVER_PRELOAD` to import when it starts (the first loader
-        of this process starts it, once; a server already started by other code keeps its own imports).
+        of this process starts it, once; a server already started by other code keeps its own imports). Its
+        processes start with SLURM's warning signals blocked (:func:`_warning_signals_blocked`).
     """
     if method not in WORKER_START_METHODS:
         raise ValueError(f"worker_start_method: {method!r}, but it must be one of {', '.join(WORKER_START_METHODS)}."
                          "\nFix: e.g. --data.init_args.worker_start_method forkserver")
     if method != "spawn" and method not in multiprocessing.get_all_start_methods():
         method = "spawn"
-    context = multiprocessing.get_context(method)
+    context = _CONTEXTS.get(method) or multiprocessing.get_context(method)
     if method == "forkserver":
         context.set_forkserver_preload(SERVER_PRELOAD)
     return context
+
+
+@contextlib.contextmanager
+def _warning_signals_blocked() -> Any:
+    """:data:`JOB_WARNING_SIGNALS` blocked in this thread meanwhile (a process started then inherits the mask).
+
+    One arriving meanwhile waits and is then delivered here (Lightning's handler); a process started then (a
+    loader worker, the fork server, ``multiprocessing``'s resource tracker) keeps them blocked, across ``exec``
+    too, until it ignores them (:func:`loader_worker_init`): a forked worker would otherwise run the training
+    process's handler (Lightning's auto-requeue: a save and ``scontrol requeue``) before its ``worker_init_fn``,
+    and a spawned one, or the tracker, die of the signal while Python starts (seconds).
+    """
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, JOB_WARNING_SIGNALS) if hasattr(signal, "pthread_sigmask") else None
+    try:
+        yield
+    finally:
+        if mask is not None:
+            signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+
+
+def _loader_process(base: type) -> type:
+    """A subclass of the start method's process class that starts with the warning signals blocked."""
+
+    def start(self: Any) -> None:
+        with _warning_signals_blocked():
+            base.start(self)
+
+    return type(f"Loader{base.__name__}", (base,), {"start": start, "__module__": __name__,
+                                                    "__qualname__": f"Loader{base.__name__}"})
+
+
+def _make_loader_contexts() -> dict[str, multiprocessing.context.BaseContext]:
+    """One context per start method, its ``Process`` a :func:`_loader_process` (module attributes: picklable)."""
+    contexts = {}
+    for method in multiprocessing.get_all_start_methods():
+        context = multiprocessing.get_context(method)
+        process = _loader_process(context.Process)
+        globals()[process.__name__] = process  # a spawned or fork server's worker unpickles it by name
+        contexts[method] = type(f"Loader{type(context).__name__}", (type(context),), {"Process": process})()
+    return contexts
+
+
+_CONTEXTS = _make_loader_contexts()
 
 
 def _follow_training_process(pid: int) -> None:
@@ -159,7 +203,9 @@ def loader_worker_init(worker_id: int, rank: int = 0, exiting: Any = None, seed_
 
     signal.signal(signal.SIGTERM, on_sigterm)
     for number in JOB_WARNING_SIGNALS:  # SLURM's --signal (USR1: Lightning's auto-requeue), for the training process
-        signal.signal(number, signal.SIG_IGN)
+        signal.signal(number, signal.SIG_IGN)  # one pending since the worker started (blocked) is dropped
+    if hasattr(signal, "pthread_sigmask"):  # blocked as it started (_warning_signals_blocked): its children get
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, JOB_WARNING_SIGNALS)  # them ignored, not blocked
     sys.excepthook = partial(_quiet_broken_pipe, sys.excepthook)
     if training_pid is not None and os.getppid() != training_pid:
         _follow_training_process(training_pid)
@@ -220,12 +266,10 @@ def _start_server() -> None:
     os.environ[FOLDER_OWNED] = "1" if _owns_temp_folder() else "0"  # "1": the server may remove it (worker_server)
     # SLURM's warning signals blocked while the server and multiprocessing's resource tracker start (both inherit
     # the mask): the tracker, a process of the job too, died of them and was started again with a warning
-    mask = signal.pthread_sigmask(signal.SIG_BLOCK, JOB_WARNING_SIGNALS) if hasattr(signal, "pthread_sigmask") else None
     try:
-        forkserver.ensure_running()
+        with _warning_signals_blocked():
+            forkserver.ensure_running()
     finally:
-        if mask is not None:
-            signal.pthread_sigmask(signal.SIG_SETMASK, mask)
         for name, value in before.items():
             if value is None:
                 os.environ.pop(name, None)
@@ -297,6 +341,11 @@ def loader_workers(num_workers: int, rank: int = 0, method: str = "forkserver", 
     context = loader_context(method)
     if context.get_start_method() == "forkserver":
         _start_server()
+    elif context.get_start_method() == "spawn":  # its loader's queues start the tracker: started here, protected
+        from multiprocessing import resource_tracker
+
+        with _warning_signals_blocked():
+            resource_tracker.ensure_running()
     return {"num_workers": num_workers, "multiprocessing_context": context,
             "worker_init_fn": worker_init_fn(rank, context)}
 

@@ -87,6 +87,41 @@ def test_workers_and_their_server_outlive_slurm_s_warning_signal(method):
     assert parents(workers) == {worker} and parents(servers) == {parent}
 
 
+def test_a_forked_worker_never_runs_the_training_process_s_warning_signal_handler(tmp_path, monkeypatch):
+    """A forked worker inherits the training process's handlers (Lightning's auto-requeue on SIGUSR1: a save and
+    ``scontrol requeue``) until its ``worker_init_fn``: a USR1 arriving before (here, as torch sets the worker's own
+    handlers) ran it in the worker. Now the worker starts with the signal blocked, and ignores it from its start."""
+    from torch.utils.data._utils import signal_handling
+
+    def handler(signum, frame):
+        (tmp_path / f"handled_in_{os.getpid()}").touch()
+
+    set_handlers = signal_handling._set_worker_signal_handlers
+
+    def warned_as_it_starts(*args):
+        os.kill(os.getpid(), signal.SIGUSR1)
+        time.sleep(0.1)
+        set_handlers(*args)
+
+    previous = signal.signal(signal.SIGUSR1, handler)
+    try:
+        monkeypatch.setattr(signal_handling, "_set_worker_signal_handlers", warned_as_it_starts)
+        (worker,) = parents(DataLoader(Pid(), **loader_workers(1, method="fork")))
+    finally:
+        signal.signal(signal.SIGUSR1, previous)
+    assert worker != os.getpid() and not list(tmp_path.iterdir())
+
+
+@pytest.mark.slow
+def test_a_spawned_worker_outlives_slurm_s_warning_signal_while_it_starts():
+    """A spawned worker starts Python and imports torch (seconds) before its ``worker_init_fn`` ignores SIGUSR1:
+    a USR1 to the whole step then killed it ("DataLoader worker ... is killed by signal: User defined signal 1")."""
+    iterator = iter(DataLoader(Pid(), persistent_workers=True, **loader_workers(1, method="spawn")))
+    (worker,) = [process.pid for process in iterator._workers]
+    os.kill(worker, signal.SIGUSR1)
+    assert {int(pid) for batch in iterator for pid in batch} == {worker}
+
+
 def test_a_worker_seeds_as_the_training_process_was_told_when_the_loader_was_made(monkeypatch):
     """``seed_everything(workers=True)`` sets ``PL_SEED_WORKERS`` in this process, after a fork server may have
     started with another environment: the loader takes it from here."""
