@@ -104,7 +104,7 @@ def _loader_process(base: type) -> type:
 
     def start(self: Any) -> None:
         with _warning_signals_blocked():
-            base.start(self)
+            base.start(self)  # type: ignore[attr-defined]
 
     return type(f"Loader{base.__name__}", (base,), {"start": start, "__module__": __name__,
                                                     "__qualname__": f"Loader{base.__name__}"})
@@ -115,7 +115,7 @@ def _make_loader_contexts() -> dict[str, multiprocessing.context.BaseContext]:
     contexts = {}
     for method in multiprocessing.get_all_start_methods():
         context = multiprocessing.get_context(method)
-        process = _loader_process(context.Process)
+        process = _loader_process(context.Process)  # type: ignore[attr-defined]
         globals()[process.__name__] = process  # a spawned or fork server's worker unpickles it by name
         contexts[method] = type(f"Loader{type(context).__name__}", (type(context),), {"Process": process})()
     return contexts
