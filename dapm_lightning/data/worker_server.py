@@ -42,16 +42,21 @@ JOB_WARNING_SIGNALS = (signal.SIGUSR1, signal.SIGUSR2)
 ignored by loader workers and their server."""
 
 
+_WORKERS_MODULE = "dapm_lightning.data.workers"
+
+
 def in_fork_server() -> bool:
     """Whether this process is multiprocessing's fork server (started as ``python -c 'from multiprocessing...'``)."""
     return sys.argv[:1] == ["-c"] and "multiprocessing.forkserver" in sys.modules
 
 
 def _is_loader_worker(process: Any) -> bool:
-    """Whether ``process`` is a worker of this project's loaders (its ``worker_init_fn`` sets its SIGTERM handler)."""
-    from dapm_lightning.data.workers import loader_worker_init
+    """Whether ``process`` is a worker of this project's loaders (its ``worker_init_fn`` sets its SIGTERM handler).
 
-    return any(isinstance(arg, functools.partial) and arg.func is loader_worker_init
+    Named, not imported: :mod:`dapm_lightning.data.workers` imports this module.
+    """
+    return any(isinstance(arg, functools.partial) and getattr(arg.func, "__module__", None) == _WORKERS_MODULE
+               and getattr(arg.func, "__qualname__", None) == "loader_worker_init"
                for arg in getattr(process, "_args", ()))
 
 

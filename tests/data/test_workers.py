@@ -122,6 +122,18 @@ def test_a_spawned_worker_outlives_slurm_s_warning_signal_while_it_starts():
     assert {int(pid) for batch in iterator for pid in batch} == {worker}
 
 
+def test_the_fork_server_knows_a_loader_worker_by_its_start_function():
+    """The server keeps SIGTERM and the warning signals ignored in loader workers only: it names their start
+    function (``data.workers`` imports the server's module, not the other way round), so a rename must reach it."""
+    from types import SimpleNamespace
+
+    from dapm_lightning.data.worker_server import _is_loader_worker
+
+    start = loader_workers(1, method="fork")["worker_init_fn"]
+    assert _is_loader_worker(SimpleNamespace(_args=(None, start)))
+    assert not _is_loader_worker(SimpleNamespace(_args=(None, print))) and not _is_loader_worker(object())
+
+
 def test_a_worker_seeds_as_the_training_process_was_told_when_the_loader_was_made(monkeypatch):
     """``seed_everything(workers=True)`` sets ``PL_SEED_WORKERS`` in this process, after a fork server may have
     started with another environment: the loader takes it from here."""
