@@ -128,12 +128,18 @@ def shard_range(count: int, shard: tuple[int, int]) -> range:
 def _stop_workers(pool: ProcessPoolExecutor) -> None:
     """Cancel the images not started and end the worker processes now (``shutdown`` would let them finish)."""
     processes = list((getattr(pool, "_processes", None) or {}).values())
+    # the pool's manager thread closes its wake-up pipe as it ends; Python's exit handler writes to that pipe
+    # unlocked (CPython 3.11), and a close in between printed an OSError traceback (Bad file descriptor) at exit:
+    # waited for below (shutdown forgets it)
+    manager = getattr(pool, "_executor_manager_thread", None)  # not public
     pool.shutdown(wait=False, cancel_futures=True)
     for process in processes:
         if process.is_alive():
             process.terminate()
     for process in processes:
         process.join(timeout=5)
+    if manager is not None:
+        manager.join(timeout=5)
 
 
 class SynthFolderError(ValueError):
