@@ -43,6 +43,8 @@ ignored by loader workers and their server."""
 
 
 _WORKERS_MODULE = "dapm_lightning.data.workers"
+FOLDER_OWNED = "DAPM_FORKSERVER_FOLDER_OWNED"
+"""Set for the fork server where the training process's ``/tmp/pymp-*`` folder is its own (``data.workers``)."""
 
 
 def in_fork_server() -> bool:
@@ -137,7 +139,7 @@ if in_fork_server():
     for _number in (signal.SIGTERM, *JOB_WARNING_SIGNALS):
         signal.signal(_number, signal.SIG_IGN)
     multiprocessing.util.register_after_fork(_REGISTRATION, _restore_sigterm)
-    _FOLDER_OWNED = os.environ.pop("DAPM_FORKSERVER_FOLDER_OWNED", None) == "1"  # not for its workers
+    _FOLDER_OWNED = os.environ.pop(FOLDER_OWNED, None) == "1"  # not for its workers
     _SOCKET = listening_socket_path()
     if _SOCKET is not None and os.path.basename(os.path.dirname(_SOCKET)).startswith("pymp-"):
         atexit.register(_remove_socket_at_exit, _SOCKET, os.getpid(), os.getppid(), _FOLDER_OWNED)

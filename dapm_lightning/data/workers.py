@@ -34,15 +34,13 @@ from typing import Any
 
 from lightning.fabric.utilities.seed import pl_worker_init_function
 
-from dapm_lightning.data.worker_server import JOB_WARNING_SIGNALS
+from dapm_lightning.data.worker_server import FOLDER_OWNED, JOB_WARNING_SIGNALS
 
 WORKER_START_METHODS = ("forkserver", "fork", "spawn")
 """How loader workers start (``multiprocessing`` start methods): the fork server is the default."""
 SERVER_PRELOAD = ["dapm_lightning.data.worker_server", "torch", "dapm_lightning.data.datamodules",
                   "dapm_lightning.inference.inputs"]
 """What the fork server imports before it forks workers (the first makes it ignore SIGTERM)."""
-FOLDER_OWNED = "DAPM_FORKSERVER_FOLDER_OWNED"
-"""Set for the fork server where the training process's ``/tmp/pymp-*`` folder is its own (:func:`_start_server`)."""
 
 _EXITING: list[Any] = []
 """One event per loader with workers, set when this process exits (:func:`_exiting`). Kept for the process's life
