@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 import re
 import warnings
@@ -240,6 +241,19 @@ def check_pair(name: str, rgb_path: Path, depth_path: Path) -> tuple[dict[str, A
     return parsed, DEPTH_CONTAINERS[infos[1].color_type]
 
 
+SYNTH_SETTINGS = "synth.json"
+"""The file in which ``dapm-lightning synth`` records a rendered set's settings, its depth limit among them."""
+
+
+def recorded_depth_limit(root: str | Path) -> float | None:
+    """The depth limit (metres of grey 255) ``ROOT/synth.json`` records; None without a readable one."""
+    try:
+        settings = json.loads((Path(root) / SYNTH_SETTINGS).read_text())
+        return float(settings["max_depth"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
 class UAPDDataset(SkipsBadFiles, torch.utils.data.Dataset[Sample]):
     """UAPD-format pairs ``ROOT/SPLIT/rgb/NAME.png`` + ``ROOT/SPLIT/depth/NAME.png``, pose in NAME.
 
@@ -302,6 +316,14 @@ class UAPDDataset(SkipsBadFiles, torch.utils.data.Dataset[Sample]):
             raise DatasetError(self.root, [f"{self.root}: {what}"], fix=(
                 f"Fix: give data.init_args.root the folder of a UAPD-format set ({layout}; relative paths start "
                 "from the current directory); `dapm-lightning synth --out ROOT` renders a synthetic one."))
+        recorded = recorded_depth_limit(self.root)
+        if recorded is not None and recorded != self.max_depth:
+            raise DatasetError(self.root, [
+                f"{self.root / SYNTH_SETTINGS}: the set was rendered with a depth limit of {recorded:g} m (grey 255), "
+                f"but it would be read with {self.max_depth:g} m: every depth would be wrong"], fix=(
+                f"Fix: --data.init_args.max_depth {recorded:g} --model.net.igd.max_depth {recorded:g} (the data's "
+                "and the model's limit), or render the set again with `dapm-lightning synth --max_depth "
+                f"{self.max_depth:g}`."))
         for folder in (split_dir, rgb_dir, depth_dir):
             if not folder.is_dir():
                 found = sorted(p.name + "/" for p in folder.parent.iterdir() if p.is_dir())

@@ -129,6 +129,15 @@ class DAPMArgumentParser(LightningArgumentParser):
         super().validate(*args, **kwargs)
 
 
+LIGHTNING_CHECKPOINT_WORDS = ("best", "last", "hpc", "registry")
+"""``--ckpt_path`` values Lightning resolves itself (``registry:NAME:VERSION`` too); any other is a path."""
+
+
+def is_lightning_checkpoint_word(ckpt_path: str) -> bool:
+    """Whether ``ckpt_path`` is one of Lightning's own values (:data:`LIGHTNING_CHECKPOINT_WORDS`), not a path."""
+    return ckpt_path in LIGHTNING_CHECKPOINT_WORDS or ckpt_path.startswith("registry:")
+
+
 def unreadable_yaml(paths: Sequence[str]) -> str | None:
     """``FILE: not valid YAML (line L, column C): PROBLEM`` and the fix, for the first of ``paths`` that is not."""
     for path in paths:
@@ -353,7 +362,9 @@ class DAPMCLI(LightningCLI):
                 if (problem := config_file_problem(config)) is not None:
                     parser.error(problem)
             folder = stacked_run_folder(configs, words, parser.requested_subcommand)
-            if folder is not None:
+            if folder is not None and args is None:  # LightningCLI reads sys.argv (and warns when given both)
+                sys.argv = [sys.argv[0], *words, "--trainer.default_root_dir", folder]
+            elif folder is not None:
                 args = [*words, "--trainer.default_root_dir", folder]
         super().parse_arguments(parser, args)
 
@@ -418,8 +429,8 @@ class DAPMCLI(LightningCLI):
                 f"given, and an untrained network's {UNTRAINED_OUTPUT[subcommand]} would mean nothing.\nFix: "
                 "--ckpt_path CKPT (a checkpoint written by `dapm-lightning fit`, or a shipped model such as "
                 f"models/dapm-synthetic-r18-256){last}.")
-        if not ckpt_path or not Path(ckpt_path).is_file():
-            return  # Lightning's own values (best, hpc...) and its error for a missing file
+        if not ckpt_path or (not Path(ckpt_path).is_file() and is_lightning_checkpoint_word(str(ckpt_path))):
+            return  # Lightning's own values (best, hpc, registry...)
         config["ckpt_path"] = str(ckpt_path)
         if checkpoint is None:
             try:
@@ -611,9 +622,10 @@ class DAPMCLI(LightningCLI):
 
         The folders: ``trainer.default_root_dir``, every logger's ``save_dir`` and every callback's ``dirpath``
         (:func:`~dapm_lightning.training.checkpointing.resolve_last_checkpoint`: a damaged ``last.ckpt`` is
-        skipped with a warning). For ``fit``, with none there, ``"last"`` stays as it is: Lightning warns and starts
-        from scratch (the first submission of a job that is always launched with ``--ckpt_path last``); with only
-        damaged ones, the run starts from scratch too. ``validate``, ``test`` and ``predict`` are refused instead
+        skipped with a warning). For ``fit``, with none there, ``"last"`` stays as it is (so that Lightning reads
+        no SLURM ``hpc_ckpt`` either) and the run starts from scratch, saying so (the first submission of a job
+        that is always launched with ``--ckpt_path last``); with only damaged ones, the run starts from scratch
+        too. ``validate``, ``test`` and ``predict`` are refused instead
         (:class:`NoWeightsError`, naming the folders searched): they would run an untrained network.
         """
         roots, folders = cls._run_folders(config)
@@ -632,6 +644,9 @@ class DAPMCLI(LightningCLI):
                     "file (or a shipped model such as models/dapm-synthetic-r18-256).")
             if damaged:  # every checkpoint damaged (warned): from scratch, without
                 config["ckpt_path"] = None  # Lightning's own lookup of "last" reading a damaged file
+            else:  # Lightning's own note on it (quiet.FOREIGN_WARNINGS) suggests a setting the project has
+                rank_zero_info(f"--ckpt_path last: no checkpoint of this run yet under "
+                               f"{', '.join(map(str, dict.fromkeys(roots)))}: training starts from scratch")
             return None
         path, checkpoint = found
         rank_zero_info(f"--ckpt_path last: resuming from {path}")

@@ -2,7 +2,8 @@
 
 :func:`quiet_lightning` drops its advertising tips ("💡 Tip: ... litlogger"), its note on callbacks a checkpoint
 was trained with ("Please add the following callbacks"), a deprecation warning Lightning raises inside itself, and
-its warning that a mid-epoch resume is unreliable (the data modules resume exactly).
+its warning that a mid-epoch resume is unreliable (the data modules resume exactly), and its hint on a
+``--ckpt_path last`` that finds nothing (the CLI says the run starts from scratch).
 """
 
 from __future__ import annotations
@@ -16,6 +17,9 @@ FOREIGN_WARNINGS = (
     # mid-epoch resumes are exact: the data modules save the position and their sampler skips to it
     # (docs/long_jobs.md); Lightning asks the DataLoader itself for a state, which it does not need
     r"(?s).*your dataloader is not resumable",
+    # `--ckpt_path last` with nothing to resume: its hint (`save_last=True`) names a setting LastCheckpoint replaces;
+    # the CLI says instead that the run starts from scratch
+    r"(?s).*there is no last checkpoint available",
 )
 """Warnings raised inside Lightning that a user can do nothing about (regular expressions)."""
 RANK_ZERO_LOGGER = "lightning.pytorch.utilities.rank_zero"

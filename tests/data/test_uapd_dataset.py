@@ -147,3 +147,15 @@ def test_skip_mode_lists_and_keeps_the_rest(uapd_copy):
         ds = UAPDDataset(uapd_copy, "train", on_bad_file="skip")
     assert len(ds) == 3 and name not in ds.names
     assert len(ds.skipped) == 1 and name in ds.skipped[0]
+
+
+def test_a_set_rendered_with_another_depth_limit_is_refused_naming_the_limit_to_read_it_with(uapd_copy):
+    """`synth --max_depth 500` records its limit in synth.json; read with 1000 m every depth would be wrong."""
+    (uapd_copy / "synth.json").write_text('{"max_depth": 500.0, "size": 32}')
+    with pytest.raises(DatasetError, match="rendered with a depth limit of 500 m") as refused:
+        UAPDDataset(uapd_copy, "train")
+    assert "--data.init_args.max_depth 500 --model.net.igd.max_depth 500" in refused.value.fix
+    depth = UAPDDataset(uapd_copy, "train", max_depth=500.0)[0]["depth"]  # read with its own limit
+    assert float(depth.max()) <= 500.0
+    (uapd_copy / "synth.json").write_text('{"size": 32}')  # no limit recorded: the given one is used
+    assert len(UAPDDataset(uapd_copy, "train")) > 0

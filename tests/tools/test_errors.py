@@ -99,6 +99,20 @@ def test_missing_and_damaged_checkpoints_and_sources(checkpoint, tmp_path, capsy
     assert code == 1 and f"{tmp_path / 'photos'}: no such file or folder" in err
 
 
+def test_a_wrong_ckpt_path_stops_fit_and_test_before_their_log_folders_are_made(tiny_uapd, tmp_path, capsys,
+                                                                                 monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "runs" / "checkpoints").mkdir(parents=True)
+    data = ["--data.class_path", "dapm_lightning.data.datamodules.UAPDDataModule", "--data.init_args.root",
+            str(tiny_uapd), "--trainer.default_root_dir", str(tmp_path / "run")]
+    for subcommand in ("fit", "test"):
+        code, err = run_main([subcommand, "--config", str(QUICKSTART), *data, "--ckpt_path", "nope.ckpt"], capsys)
+        assert code == 1 and "nope.ckpt: no such checkpoint file" in err and "Fix: check the path" in err, err
+        code, err = run_main([subcommand, "--config", str(QUICKSTART), *data, "--ckpt_path", "runs"], capsys)
+        assert code == 1 and "runs: a folder, not a checkpoint file" in err, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["runs"]  # no run folder, no logger's version_N
+
+
 def test_bad_setting_and_debug_flag(capsys, monkeypatch, tmp_path):
     monkeypatch.chdir(tmp_path)
     args = ["fit", "--config", str(QUICKSTART), "--model.net.head_stride", "3", "--trainer.logger", "false"]

@@ -211,3 +211,7 @@ def test_each_stack_of_configs_runs_in_a_folder_of_its_own(tmp_path):
     cli = parse(["--config", paper, "--config", t9])  # through the real parser: the loggers follow
     assert cli.trainer.default_root_dir == "outputs/uapd_dapm+t9_pqb_only"
     assert {logger.save_dir for logger in cli.trainer.loggers} == {"outputs/uapd_dapm+t9_pqb_only"}
+    shown = subprocess.run([sys.executable, "-m", "dapm_lightning", "fit", "--config", paper, "--config", t9,
+                            "--print_config"], capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert shown.returncode == 0 and "default_root_dir: outputs/uapd_dapm+t9_pqb_only" in shown.stdout
+    assert "args parameter" not in shown.stderr, shown.stderr  # LightningCLI's note on args given beside sys.argv

@@ -1,9 +1,11 @@
 """The command line's user errors and defaults: foreign checkpoints, unknown options, unknown backbones,
 no logger, GPU configs on a CPU machine, logs under default_root_dir."""
 
+import logging
 import re
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import lightning as L
@@ -281,6 +283,19 @@ def small_fit(tiny_uapd, root, *extra):
             "--trainer.limit_val_batches", "0", "--trainer.max_steps", "1", "--trainer.default_root_dir", str(root),
             "--model.net.backbone", "mobilenetv3_small_050", "--model.net.decoder_channels", "16",
             "--model.net.head_channels", "8", "--model.net.pose_hidden", "32", *extra]
+
+
+def test_a_first_fit_with_ckpt_path_last_says_it_starts_from_scratch(tiny_uapd, tmp_path, caplog, monkeypatch):
+    """A job always launched with ``--ckpt_path last``: its first run says it starts from scratch, without Lightning's
+    hint to set ``ModelCheckpoint(save_last=True)`` (the project's LastCheckpoint writes last.ckpt)."""
+    monkeypatch.chdir(tmp_path)
+    with warnings.catch_warnings(record=True) as warned, caplog.at_level(logging.INFO):
+        warnings.simplefilter("always")
+        cli = run_lightning_cli(small_fit(tiny_uapd, tmp_path / "run", "--ckpt_path", "last"))
+    assert cli.trainer.global_step == 1
+    assert f"--ckpt_path last: no checkpoint of this run yet under {tmp_path / 'run'}: training starts from " \
+           "scratch" in caplog.text
+    assert not [w for w in warned if "no last checkpoint" in str(w.message) or "save_last" in str(w.message)]
 
 
 def test_a_second_fit_without_a_logger_does_not_write_over_the_first(tiny_uapd, tmp_path, capsys, monkeypatch):
