@@ -119,7 +119,7 @@ class DAPMArgumentParser(LightningArgumentParser):
         subcommand = getattr(parser, "subcommand", None) or self.requested_subcommand
         if "Problems parsing config" in message and (broken := unreadable_yaml(self.config_files)):
             message = broken
-        print(short_parse_error(message, option_strings(parser), subcommand), file=sys.stderr)
+        print(short_parse_error(message, option_strings(parser), subcommand, self.config_files), file=sys.stderr)
         sys.exit(EXIT_USAGE)
 
     def validate(self, *args: Any, **kwargs: Any) -> None:
@@ -227,8 +227,29 @@ def closest(option: str, options: Sequence[str], count: int = 3) -> list[str]:
     return [o for ratio, o in scored[:count] if ratio >= max(0.6, best - 0.05)]
 
 
-def short_parse_error(message: str, options: Sequence[str], subcommand: str | None) -> str:
-    """``error: ...``, the closest valid options when one is unknown, and the ``--help`` to run."""
+def files_setting(key: str, config_files: Sequence[str]) -> list[str]:
+    """The config files among ``config_files`` that set the dotted ``key`` (``trainer.max_stpes``)."""
+    found = []
+    for path in config_files:
+        try:
+            node: Any = yaml.safe_load(Path(path).read_text())
+        except (OSError, ValueError, yaml.YAMLError):
+            continue
+        for part in key.split("."):
+            if not isinstance(node, dict) or part not in node:
+                break
+            node = node[part]
+        else:
+            found.append(path)
+    return found
+
+
+def short_parse_error(message: str, options: Sequence[str], subcommand: str | None,
+                      config_files: Sequence[str] = ()) -> str:
+    """``error: ...``, the closest valid options when one is unknown, and the ``--help`` to run.
+
+    An unknown setting names the config file(s) of ``config_files`` that set it.
+    """
     unknown: list[str] = []
     options = list(options)
     if match := _UNKNOWN.search(message):
@@ -238,12 +259,16 @@ def short_parse_error(message: str, options: Sequence[str], subcommand: str | No
     elif match := _GROUP_OPTION.search(message):
         prefix = "" if message.startswith("Subcommand") else match.group("group") + "."
         unknown = [f"--{prefix}{match.group('key')}"]
-        message = f"unknown setting {unknown[0][2:]} (in a config file or on the command line)"
+        holders = files_setting(unknown[0][2:], config_files)
+        where = f"set in {', '.join(holders)}" if holders else "in a config file or on the command line"
+        message = f"unknown setting {unknown[0][2:]} ({where})"
     elif match := _INIT_ARG.search(message):
         key, class_path, name = match.group("key"), match.group("class_path"), match.group("name")
         unknown = [f"--{key}.init_args.{name}"]
         options = _init_options(class_path, key)
-        message = f"{key}: {class_path.rpartition('.')[2]} has no setting {name!r} ({unknown[0]})"
+        holders = files_setting(f"{key}.init_args.{name}", config_files)
+        where = f", set in {', '.join(holders)}" if holders else ""
+        message = f"{key}: {class_path.rpartition('.')[2]} has no setting {name!r} ({unknown[0]}{where})"
     elif match := _INIT_VALUE.search(message):  # a value of the wrong type under a class_path (data: the union)
         problem = re.sub(r"Expected a <class '(\w+)'>", r"expected \1", match.group("problem").strip())
         message = f"--{match.group('key')}.init_args.{match.group('name')}: {problem}"

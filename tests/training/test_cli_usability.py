@@ -142,6 +142,10 @@ def test_unknown_options_are_a_few_lines_with_the_closest(capsys, tmp_path, monk
     typo.write_text("trainer:\n  max_stpes: 3\n")
     code, err = run_main(["fit", "--config", str(QUICKSTART), "--config", str(typo)], capsys)
     assert code == 2 and "trainer.max_stpes" in err and "did you mean --trainer.max_steps?" in err, err
+    assert f"unknown setting trainer.max_stpes (set in {typo})" in err, err  # the file that holds it
+    typo.write_text("data:\n  init_args:\n    batchsize: 3\n")
+    code, err = run_main(["fit", "--config", str(QUICKSTART), "--config", str(typo)], capsys)
+    assert code == 2 and f"(--data.init_args.batchsize, set in {typo})" in err, err
 
 
 @pytest.mark.parametrize(("option", "value", "expected"), [
