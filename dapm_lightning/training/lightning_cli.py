@@ -89,6 +89,8 @@ _GROUP_OPTION = re.compile(r"(?:Group|Subcommand) '(?P<group>[\w.]+)' does not a
 _IN_CLASS = r"Parser key \"(?P<key>[\w.]+)\":(?:.|\n)*?Problem with given class_path '(?P<class_path>[\w.]+)':"
 """jsonargparse's report on a setting under a ``class_path`` (``data.init_args.NAME``)."""
 _INIT_ARG = re.compile(_IN_CLASS + r"\s*(?:Option|Key) '(?P<name>\w+)' is not (?:accepted|expected)")
+_KEY_VALUE = re.compile(r"Parser key \"(?P<key>[\w.]+)\":\s*Expected a <class '(?P<type>\w+)'>\. "
+                        r"Got value: (?P<value>[^\n]*)")
 _INIT_VALUE = re.compile(_IN_CLASS + r"\s*Parser key \"(?P<name>\w+)\":\s*(?P<problem>[^\n]+)")
 
 
@@ -272,6 +274,10 @@ def short_parse_error(message: str, options: Sequence[str], subcommand: str | No
     elif match := _INIT_VALUE.search(message):  # a value of the wrong type under a class_path (data: the union)
         problem = re.sub(r"Expected a <class '(\w+)'>", r"expected \1", match.group("problem").strip())
         message = f"--{match.group('key')}.init_args.{match.group('name')}: {problem}"
+    elif match := _KEY_VALUE.search(message):  # a value of the wrong type: one line, as the data module's
+        message = f"--{match.group('key')}: expected {match.group('type')}. Got value: {match.group('value')}"
+    if re.search(r"expected float\. Got value: [+-]?(inf(inity)?|nan)\s*$", message, re.IGNORECASE):
+        message = message.replace("expected float.", "expected a finite number.")
     lines = [f"error: {message.strip()}"]
     for option in unknown:
         found = closest(option, options)

@@ -163,6 +163,19 @@ def test_a_data_setting_of_the_wrong_type_is_one_line_naming_it(option, value, e
         assert code == 2 and expected in err and len(err.splitlines()) <= 3 and "Union" not in err, err
 
 
+@pytest.mark.parametrize(("option", "value", "expected"), [
+    ("--trainer.max_steps", "two", "error: --trainer.max_steps: expected int. Got value: two"),
+    ("--model.net.igd.max_depth", "nan", "error: --model.net.igd.max_depth: expected a finite number. Got value: nan"),
+    ("--data.init_args.max_depth", "inf",
+     "error: --data.init_args.max_depth: expected a finite number. Got value: inf"),
+])
+def test_a_value_of_the_wrong_type_is_one_line_naming_its_setting(option, value, expected, capsys, tmp_path,
+                                                                  monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    code, err = run_main(["fit", "--config", str(QUICKSTART), option, value], capsys)
+    assert code == 2 and expected in err and len(err.splitlines()) <= 2, err
+
+
 @pytest.mark.parametrize(("option", "value"), [("batch_size", "-2"), ("eval_batch_size", "0"), ("num_workers", "-1"),
                                                ("seed", "-1")])
 def test_a_data_setting_out_of_range_is_refused_before_anything_is_rendered(option, value, capsys, tmp_path,
