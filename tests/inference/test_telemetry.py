@@ -274,13 +274,35 @@ def test_csv_names_with_and_without_extension_empty_cells_and_missing_column(tmp
                                                   "sub/dir/frame.001.png,12,-20,0\n"
                                                   "frame.002,,,\n")
     rows = read_telemetry_csv(csv_path)
-    assert set(rows) == {"DJI_0001", "DJI_0002", "frame.001", "frame.002"}
+    assert set(rows) == {"DJI_0001", "DJI_0002", "sub/dir/frame.001", "frame.002"}  # folders kept: they tell apart
     assert_pose(rows["DJI_0001"], [45.2, -90.0, NAN, NAN])  # no fov column: unknown
     assert_pose(rows["DJI_0002"], [30.0, NAN, 1.5, NAN])
-    assert_pose(rows["frame.001"], [12.0, -20.0, 0.0, NAN])
+    assert_pose(rows["sub/dir/frame.001"], [12.0, -20.0, 0.0, NAN])
     assert rows["frame.002"] == PoseTelemetry(source="flight.csv line 6")
     assert rows["DJI_0001"].source == "flight.csv line 2"
     assert rows["DJI_0002"].source == "flight.csv line 4"  # file line numbers, header = line 1
+
+
+def test_csv_rows_named_by_folder_tell_apart_images_of_one_name(tmp_path):
+    """A DJI card holds DCIM/100MEDIA/DJI_0001.JPG and DCIM/101MEDIA/DJI_0001.JPG, two photos: rows named by folder
+    give each its own; a row of the bare name serving both is warned about; rows that cannot be told apart stop."""
+    first = write_jpeg((tmp_path / "DCIM" / "100MEDIA").mkdir(parents=True) or tmp_path / "DCIM/100MEDIA/DJI_0001.JPG")
+    second = write_jpeg((tmp_path / "DCIM" / "101MEDIA").mkdir() or tmp_path / "DCIM/101MEDIA/DJI_0001.JPG")
+    by_folder = write_csv(tmp_path / "by_folder.csv", "name,height_m\n100MEDIA/DJI_0001.JPG,33\n"
+                                                      "D:\\card\\DCIM\\101MEDIA\\DJI_0001.JPG,77\n")
+    out, caught = record(telemetry_for_images, [first, second], by_folder, read_metadata=False)
+    assert [t.height_m for t in out] == [33.0, 77.0] and not caught
+    assert out[1].source == "by_folder.csv line 3"
+    bare = write_csv(tmp_path / "bare.csv", "name,height_m\nDJI_0001,50\n")
+    out, caught = record(telemetry_for_images, [first, second], bare, read_metadata=False)
+    assert [t.height_m for t in out] == [50.0, 50.0]
+    assert len(caught) == 1 and "1 row(s) serve several images of one name in different folders, e.g. `DJI_0001` " \
+        "(bare.csv line 2)" in str(caught[0].message) and "100MEDIA/DJI_0001.JPG" in str(caught[0].message)
+    third = write_jpeg((tmp_path / "other").mkdir() or tmp_path / "other" / "DJI_0001.JPG")
+    with pytest.raises(TelemetryError, match=r"other/DJI_0001.JPG: the telemetry CSV has rows of different values "
+                                             r"for an image of this name \(`100MEDIA/DJI_0001` \(by_folder.csv line 2"
+                                             r"\), `D:/card/DCIM/101MEDIA/DJI_0001` .*\(other/DJI_0001.JPG\)"):
+        telemetry_for_images([third], by_folder, read_metadata=False)
 
 
 def test_an_srt_given_as_the_images_csv_says_it_goes_with_a_video(tmp_path):

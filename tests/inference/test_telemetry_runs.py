@@ -264,13 +264,13 @@ def test_a_csv_shared_by_several_inputs_is_read_once_and_warns_once_about_rows_n
                       "fov_deg)",
                       f"{table}: 2 of 4 name(s) match no frame of a.avi or b.avi (frames are named as their outputs: "
                       "a_f000012): c, stray; names are matched by file name with or without extension "
-                      "(case-sensitive), those rows are unused"]
+                      "(case-sensitive; folders in a name must be the image's), those rows are unused"]
     (images, video), caught = record(source_datasets, PredictSource([str(image), str(b)], telemetry=table), 32)
     assert images.priors[0][0] == 30.0 and video.priors[0][0] == 90.0
     assert [m for m in caught if "match no" in m] == [
         f"{table}: 2 of 4 name(s) match no image or frame of b.avi (frames are named as their outputs: b_f000012): "
-        "a_f000000, stray; names are matched by file name with or without extension (case-sensitive), those rows "
-        "are unused"]
+        "a_f000000, stray; names are matched by file name with or without extension (case-sensitive; folders in a "
+        "name must be the image's), those rows are unused"]
 
 
 def test_an_srt_given_with_images_serves_its_video_and_the_images_keep_their_metadata(checkpoint, tmp_path):

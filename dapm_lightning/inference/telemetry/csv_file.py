@@ -7,6 +7,7 @@ import csv
 import io
 import math
 import warnings
+from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
@@ -37,10 +38,58 @@ _CSV_FIX = {
 
 
 def _csv_key(name: str) -> str:
-    """The image stem a CSV ``name`` refers to: directories dropped, a known image extension stripped."""
-    base = name.replace("\\", "/").rsplit("/", 1)[-1]
-    stem, dot, suffix = base.rpartition(".")
-    return stem if dot and stem and f".{suffix.lower()}" in CSV_NAME_SUFFIXES else base
+    """The image a CSV ``name`` refers to: its ``/``-separated path, a known image extension stripped.
+
+    ``DJI_0001.JPG`` -> ``DJI_0001``; ``100MEDIA/DJI_0001.JPG`` (Windows separators alike) -> ``100MEDIA/DJI_0001``
+    (the folders tell apart images of one name in several folders: :func:`row_for_image`).
+    """
+    parts = [part for part in name.replace("\\", "/").split("/") if part not in ("", ".")] or [name]
+    stem, dot, suffix = parts[-1].rpartition(".")
+    if dot and stem and f".{suffix.lower()}" in CSV_NAME_SUFFIXES:
+        parts[-1] = stem
+    return "/".join(parts)
+
+
+def rows_by_stem(rows: Mapping[str, PoseTelemetry]) -> dict[str, list[str]]:
+    """The keys of :func:`read_telemetry_csv`'s rows grouped by the image stem they end in."""
+    grouped: dict[str, list[str]] = {}
+    for key in rows:
+        grouped.setdefault(key.rsplit("/", 1)[-1], []).append(key)
+    return grouped
+
+
+def row_for_image(path: Path, rows: Mapping[str, PoseTelemetry], by_stem: Mapping[str, list[str]]) -> str | None:
+    """The key of the row naming the image ``path``, None when no row does.
+
+    A row names an image by its stem, and its folders, where it has any, tell apart images of one name: of the rows
+    ending in the image's stem, the one that shares the most trailing folders with the image's path
+    (``flight1/DJI_0001`` for ``/data/flight1/DJI_0001.JPG``, not ``flight2/DJI_0001``).
+
+    Raises:
+        TelemetryError: two rows of different values share the most folders with it, so the CSV does not say
+            which is the image's (naming both).
+    """
+    keys = by_stem.get(path.stem, [])
+    if len(keys) <= 1:
+        return keys[0] if keys else None
+    folders = path.absolute().parent.parts[::-1]
+
+    def shared(key: str) -> int:
+        count = 0
+        for mine, theirs in zip(folders, key.split("/")[-2::-1]):
+            if mine != theirs:
+                break
+            count += 1
+        return count
+
+    best = max(map(shared, keys))
+    chosen = [key for key in keys if shared(key) == best]
+    if any(not np.array_equal(rows[chosen[0]].values(), rows[key].values(), equal_nan=True) for key in chosen[1:]):
+        lines = ", ".join(f"`{key}` ({rows[key].source})" for key in chosen)
+        raise TelemetryError(f"{path}: the telemetry CSV has rows of different values for an image of this name "
+                             f"({lines}) and none names its folder; name the rows by folder and file "
+                             f"({path.parent.name}/{path.name})")
+    return chosen[0]
 
 
 def _show(t: PoseTelemetry) -> str:
@@ -64,8 +113,9 @@ def _csv_text(path: Path) -> str:
 def read_telemetry_csv(path: StrPath) -> dict[str, PoseTelemetry]:
     """Per-image telemetry from a CSV with header ``name,height_m,pitch_deg,roll_deg,fov_deg``, keyed by stem.
 
-    ``name`` is the image's file name with or without its extension (``DJI_0001.JPG`` or ``DJI_0001``; a
-    directory part is ignored). A missing value column or an empty cell means unknown. Columns may come in any
+    ``name`` is the image's file name with or without its extension (``DJI_0001.JPG`` or ``DJI_0001``), and may
+    name its folders (``101MEDIA/DJI_0001.JPG``, keyed ``101MEDIA/DJI_0001``), which tell apart images of one name
+    (:func:`row_for_image`). A missing value column or an empty cell means unknown. Columns may come in any
     order; other columns are ignored with a warning. Blank lines are skipped. Columns are comma-separated, or
     tab-separated when the header holds tabs and no comma (a spreadsheet's "Unicode text" or "Text (Tab delimited)").
 

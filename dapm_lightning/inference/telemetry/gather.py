@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from dapm_lightning.geometry.constants import POSE_KEYS
-from dapm_lightning.inference.telemetry.csv_file import read_telemetry_csv
+from dapm_lightning.inference.telemetry.csv_file import read_telemetry_csv, row_for_image, rows_by_stem
 from dapm_lightning.inference.telemetry.image_metadata import SHOW_NAMES, image_telemetry, warn_notes
 from dapm_lightning.inference.telemetry.pose import PoseTelemetry, StrPath, TelemetryError, TelemetryWarning
 from dapm_lightning.inference.telemetry.srt import read_srt
@@ -84,16 +84,23 @@ class TelemetryCsv:
     images: bool = False
     videos: list[Path] = field(default_factory=list)
     frame_prefixes: list[str] = field(default_factory=list)
+    _by_stem: dict[str, list[str]] | None = field(default=None, repr=False)
 
     @classmethod
     def read(cls, path: StrPath) -> TelemetryCsv:
         """The CSV's rows (:func:`read_telemetry_csv`, whose errors it raises)."""
         return cls(Path(path), read_telemetry_csv(path))
 
-    def match_images(self, stems: Iterable[str]) -> None:
-        """Images with these stems are predicted: their rows are used."""
+    def row_for_image(self, path: Path) -> str | None:
+        """The key of the row naming image ``path`` (:func:`~.csv_file.row_for_image`, whose errors it raises)."""
+        if self._by_stem is None:
+            self._by_stem = rows_by_stem(self.rows)
+        return row_for_image(path, self.rows, self._by_stem)
+
+    def match_images(self, keys: Iterable[str]) -> None:
+        """Images are predicted: the rows of these keys are used."""
         self.images = True
-        self.matched.update(stem for stem in stems if stem in self.rows)
+        self.matched.update(key for key in keys if key in self.rows)
 
     def match_video(self, video: Path, frame_name: re.Pattern[str], prefix: str | None = None) -> None:
         """A video is predicted: the rows naming any of its frames (``frame_name``, ``PREFIX_f000012``) are its."""
@@ -112,7 +119,8 @@ class TelemetryCsv:
                         f"outputs: {self.frame_prefixes[0]}_f000012)")
         warnings.warn(f"{self.path}: {len(unmatched)} of {len(self.rows)} name(s) match no {' or '.join(what)}: "
                       f"{first_few(unmatched)}; names are matched by file name with or without extension "
-                      "(case-sensitive), those rows are unused", TelemetryWarning, stacklevel=3)
+                      "(case-sensitive; folders in a name must be the image's), those rows are unused",
+                      TelemetryWarning, stacklevel=3)
 
 
 def _table(csv: StrPath | TelemetryCsv | None) -> TelemetryCsv | None:
@@ -158,12 +166,15 @@ def images_telemetry(paths: Iterable[StrPath], csv_path: StrPath | TelemetryCsv 
     if given is not None and len(given) != len(image_paths):
         raise ValueError(f"{len(given)} priors for {len(image_paths)} images")
     table, shared = _table(csv_path), isinstance(csv_path, TelemetryCsv)
-    rows = table.rows if table is not None else {}
     report = TelemetryReport("image")
     out: list[PoseTelemetry] = []
     notes: dict[str, dict[str, str]] = {}
+    served: dict[str, set[Path]] = {}  # row key -> the images it serves
     for k, p in enumerate(image_paths):
-        row = rows.get(p.stem, PoseTelemetry())
+        key = table.row_for_image(p) if table is not None else None
+        row = table.rows[key] if table is not None and key is not None else PoseTelemetry()
+        if key is not None:
+            served.setdefault(key, set()).add(p.absolute())
         if given is not None:
             row = given[k].merged(row)
         meta = PoseTelemetry()
@@ -180,9 +191,15 @@ def images_telemetry(paths: Iterable[StrPath], csv_path: StrPath | TelemetryCsv 
         out.append(row.merged(meta))
         report.add(out[-1])
     if table is not None:
-        table.match_images(p.stem for p in image_paths)
+        table.match_images(served)
         if not shared:
             table.warn_unmatched()
+        if shared_rows := {key: images for key, images in served.items() if len(images) > 1}:
+            key, images = next(iter(shared_rows.items()))
+            warnings.warn(f"{table.path}: {len(shared_rows)} row(s) serve several images of one name in different "
+                          f"folders, e.g. `{key}` ({table.rows[key].source}) for {first_few(sorted(map(str, images)))}"
+                          "; name each row by folder and file (100MEDIA/DJI_0001.JPG) to give each its own",
+                          TelemetryWarning, stacklevel=2)
     warn_notes(notes, stacklevel=2)
     return out, report
 
