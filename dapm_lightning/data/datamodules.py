@@ -261,7 +261,7 @@ class UAPDDataModule(DAPMDataModule):
         if stage in (None, "fit") and isinstance(train, UAPDDataset) and self._processes()[1] == 0:  # one reader
             folder = train.root / train.split / train.depth_dir
             problem = sampled_mismatch(lambda index: read_depth_grey(folder / train.names[index]), train.poses,
-                                       self.depth_kind)
+                                       self.depth_kind, max_depth=self.max_depth)
             if problem:
                 warnings.warn(f"{folder}: {problem}", stacklevel=2)
 

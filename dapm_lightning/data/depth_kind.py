@@ -64,13 +64,14 @@ def flat_ground_of_pose(depth_grey: np.ndarray, pose: np.ndarray, depth_kind: De
     return on_flat_ground(depth_grey, depth_to_grey(igd, max_depth).astype(np.int16))
 
 
-def flat_ground_agreement(depth_grey: np.ndarray, pose: np.ndarray, depth_kind: DepthKind) -> float:
+def flat_ground_agreement(depth_grey: np.ndarray, pose: np.ndarray, depth_kind: DepthKind,
+                          max_depth: float = MAX_DEPTH_M) -> float:
     """Share of the non-sky pixels of ``depth_grey`` that lie on the flat ground of ``pose``; 0 when all is sky.
 
-    ``depth_grey``: ``[H, W]`` uint8; a pixel counts within :data:`AGREE_LEVELS` grey levels of the ``depth_kind`` IGD
-    of ``pose`` (height, pitch, roll, fov).
+    ``depth_grey``: ``[H, W]`` uint8, grey 255 at ``max_depth`` metres; a pixel counts within :data:`AGREE_LEVELS`
+    grey levels of the ``depth_kind`` IGD of ``pose`` (height, pitch, roll, fov).
     """
-    agree = flat_ground_of_pose(depth_grey, np.asarray(pose, np.float64), depth_kind)
+    agree = flat_ground_of_pose(depth_grey, np.asarray(pose, np.float64), depth_kind, max_depth)
     return float(agree.sum() / max(int((depth_grey < SKY_GREY).sum()), 1))
 
 
@@ -90,12 +91,13 @@ def depth_kind_mismatch(depth_kind: DepthKind, agreement: float, agreement_other
 
 
 def sampled_mismatch(read_grey: Callable[[int], np.ndarray], poses: np.ndarray, depth_kind: DepthKind,
-                     count: int = 32) -> str | None:
+                     count: int = 32, max_depth: float = MAX_DEPTH_M) -> str | None:
     """:func:`depth_kind_mismatch` over ``count`` files spread evenly over a set.
 
     Args:
         read_grey: ``index -> [H, W] uint8`` depth grey of sample ``index`` (an unreadable file raises: it is skipped).
         poses: ``[N, 4]`` the set's poses.
+        max_depth: the metres grey 255 means.
     """
     agreements: list[tuple[float, float]] = []
     for index in np.unique(np.linspace(0, len(poses) - 1, min(count, len(poses))).round().astype(int)):
@@ -103,8 +105,8 @@ def sampled_mismatch(read_grey: Callable[[int], np.ndarray], poses: np.ndarray, 
             grey = at_check_width(read_grey(int(index)))
         except (OSError, ValueError):
             continue
-        agreements.append((flat_ground_agreement(grey, poses[index], depth_kind),
-                           flat_ground_agreement(grey, poses[index], other_kind(depth_kind))))
+        agreements.append((flat_ground_agreement(grey, poses[index], depth_kind, max_depth),
+                           flat_ground_agreement(grey, poses[index], other_kind(depth_kind), max_depth)))
     if not agreements:
         return None
     own, other = np.median(np.array(agreements), axis=0)

@@ -9,11 +9,13 @@ as flat ground without being contradicted more by depth beyond its ground. Exit 
 problem is found, 1 when a file is broken or a sample is flagged, 2 when ROOT is not a data set (or
 on a usage error). The report is printed, and written as JSON only where asked (--json FILE; nothing
 is written into the data set). Settings can come from a YAML file (--config FILE; --print_config
-shows one).
+shows one). Grey 255 of the depth files means --max_depth metres: by default the max_depth that ROOT/synth.json
+records (a set from `dapm-lightning synth --max_depth`), else UAPD's 1000.
 """
 
 from __future__ import annotations
 
+import json as json_module
 import math
 import os
 import sys
@@ -39,7 +41,7 @@ from dapm_lightning.data.errors import DatasetError
 from dapm_lightning.data.files import write_error, write_text
 from dapm_lightning.data.uapd import UAPDDataset, read_depth_grey, read_rgb
 from dapm_lightning.geometry.constants import MAX_DEPTH_M, POSE_KEYS, POSE_RANGES, SKY_GREY
-from dapm_lightning.geometry.depth_codec import depth_to_grey, grey_to_depth
+from dapm_lightning.geometry.depth_codec import check_depth_limit, depth_to_grey, grey_to_depth
 from dapm_lightning.geometry.igd import DepthKind, ideal_ground_depth
 from dapm_lightning.tools.progress import progress_bar
 
@@ -101,28 +103,31 @@ def crop_fov(fov: np.ndarray | float, width: int, crop_width: int) -> np.ndarray
     return np.degrees(2.0 * np.arctan(np.tan(np.radians(fov) / 2.0) * crop_width / width))
 
 
-def ground_evidence(depth_grey: np.ndarray, igd: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def ground_evidence(depth_grey: np.ndarray, igd: np.ndarray,
+                    max_depth: float = MAX_DEPTH_M) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per pose, the grey level of its IGD, the pixels that agree with that ground, those that lie beyond it.
 
     Args:
-        depth_grey: ``[H, W]`` uint8, the data set's encoding. igd: ``[K, H, W]`` metres, the IGD of K poses.
+        depth_grey: ``[H, W]`` uint8, the data set's encoding (grey 255 at ``max_depth`` metres).
+        igd: ``[K, H, W]`` metres, the IGD of K poses.
 
     Returns:
         ``(igd_grey [K, H, W] int16, agree [K, H, W] bool, beyond [K, H, W] bool)``: ``agree`` counts non-sky
-        pixels only; ``beyond`` includes sky (seen where the pose has ground nearer than MAX_DEPTH_M).
+        pixels only; ``beyond`` includes sky (seen where the pose has ground nearer than ``max_depth``).
     """
-    igd_grey = depth_to_grey(igd).astype(np.int16)
+    igd_grey = depth_to_grey(igd, max_depth).astype(np.int16)
     above = depth_grey.astype(np.int16)[None] - igd_grey  # > 0: deeper than the ground of the pose
     agree = on_flat_ground(depth_grey, igd_grey)
-    beyond = (above > BEYOND_LEVELS) & (igd_grey < SKY_GREY)  # where the pose has ground nearer than MAX_DEPTH_M
+    beyond = (above > BEYOND_LEVELS) & (igd_grey < SKY_GREY)  # where the pose has ground nearer than max_depth
     return igd_grey, agree, beyond
 
 
 def compare_poses(depth_grey: np.ndarray, poses: np.ndarray, depth_kind: DepthKind, *,
-                  contradicted: bool = False) -> dict[str, Any]:
+                  contradicted: bool = False, max_depth: float = MAX_DEPTH_M) -> dict[str, Any]:
     """The annotated pose ``poses[0]`` against each alternative ``poses[1:]`` on one depth map.
 
     Args:
+        max_depth: the metres grey 255 of ``depth_grey`` means.
         contradicted: prefer an alternative only where the depth contradicts the annotated pose more than the
             alternative (more pixels lie beyond its ground), as for the FoV: see :func:`check_sample`.
 
@@ -131,8 +136,9 @@ def compare_poses(depth_grey: np.ndarray, poses: np.ndarray, depth_kind: DepthKi
         (``[K]`` pixel counts), ``evidence`` and ``preferred`` (``[K - 1]``: for each alternative, see
         :func:`check_sample`).
     """
-    igd = ideal_ground_depth(torch.from_numpy(poses).double(), depth_grey.shape, depth_kind=depth_kind)[:, 0].numpy()
-    igd_grey, agree, beyond = ground_evidence(depth_grey, igd)
+    igd = ideal_ground_depth(torch.from_numpy(poses).double(), depth_grey.shape, depth_kind=depth_kind,
+                             max_depth=max_depth)[:, 0].numpy()
+    igd_grey, agree, beyond = ground_evidence(depth_grey, igd, max_depth)
     seen = max(int((depth_grey < SKY_GREY).sum()), 1)
     n_agree, n_beyond = agree.sum((1, 2)), beyond.sum((1, 2))
     apart = np.abs(igd_grey[1:] - igd_grey[:1]) > AGREE_LEVELS  # where the data can tell the two grounds apart
@@ -145,15 +151,18 @@ def compare_poses(depth_grey: np.ndarray, poses: np.ndarray, depth_kind: DepthKi
             "evidence": evidence, "preferred": preferred}
 
 
-def lower_median_ratio(depth_m: np.ndarray, igd: np.ndarray) -> float:
-    """Median depth/IGD ratio on the pixels of the lower half of the image where both are below MAX_DEPTH_M."""
-    usable = (depth_m < MAX_DEPTH_M) & (igd < MAX_DEPTH_M)
+def lower_median_ratio(depth_m: np.ndarray, igd: np.ndarray, max_depth: float = MAX_DEPTH_M) -> float:
+    """Median depth/IGD ratio on the pixels of the lower half of the image where both are below ``max_depth``."""
+    usable = (depth_m < max_depth) & (igd < max_depth)
     usable[: depth_m.shape[0] // 2] = False
     return float(np.median(depth_m[usable] / np.maximum(igd[usable], 1e-6))) if usable.any() else math.nan
 
 
-def check_sample(depth_grey: np.ndarray, pose: np.ndarray, depth_kind: DepthKind) -> dict[str, Any]:
+def check_sample(depth_grey: np.ndarray, pose: np.ndarray, depth_kind: DepthKind,
+                 max_depth: float = MAX_DEPTH_M) -> dict[str, Any]:
     """Agreement of one sample with its pose and with each alternative; the flag and why.
+
+    ``max_depth``: the metres grey 255 of ``depth_grey`` means (the limit the set was written with).
 
     An alternative is preferred, and the sample flagged, when (1) it explains at least MIN_GROUND_PIXELS more
     pixels as flat ground, and its evidence (:data:`FLAG_MARGIN`) reaches ``max(FLAG_MARGIN * non-sky pixels,
@@ -170,12 +179,12 @@ def check_sample(depth_grey: np.ndarray, pose: np.ndarray, depth_kind: DepthKind
     depth_grey = at_check_width(depth_grey)
     height, width = depth_grey.shape
     alts, fov_alts = alternatives(pose), fov_alternatives(pose)
-    whole = compare_poses(depth_grey, np.stack([pose, *alts.values()]), depth_kind)
+    whole = compare_poses(depth_grey, np.stack([pose, *alts.values()]), depth_kind, max_depth=max_depth)
     top, left = round(height * (1 - FOV_CROP) / 2), round(width * (1 - FOV_CROP) / 2)
     centre_grey = depth_grey[top:height - top, left:width - left]  # centred: the principal point stays
     centre_poses = np.stack([pose, *fov_alts.values()])
     centre_poses[:, 3] = crop_fov(centre_poses[:, 3], width, centre_grey.shape[1])
-    centre = compare_poses(centre_grey, centre_poses, depth_kind, contradicted=True)
+    centre = compare_poses(centre_grey, centre_poses, depth_kind, contradicted=True, max_depth=max_depth)
     candidates = [(whole["evidence"][k] / whole["seen"], name, whole, k) for k, name in enumerate(alts)
                   if whole["preferred"][k]]
     candidates += [(centre["evidence"][k] / centre["seen"], name, centre, k) for k, name in enumerate(fov_alts)
@@ -188,12 +197,13 @@ def check_sample(depth_grey: np.ndarray, pose: np.ndarray, depth_kind: DepthKind
                   f"{on['agree'][0] / on['seen']:.2f} of the non-sky pixels{where} agree; "
                   f"{on['beyond'][k + 1] / on['pixels']:.2f} vs {on['beyond'][0] / on['pixels']:.2f} of all pixels"
                   f"{where} lie beyond the ground)")
-    depth = grey_to_depth(depth_grey).astype(np.float64)
+    depth = grey_to_depth(depth_grey, max_depth).astype(np.float64)
     visible = any(c["agree"].max() >= max(MIN_AGREEMENT * c["seen"], MIN_GROUND_PIXELS) for c in (whole, centre))
     return {"agreement": float(whole["agree"][0] / whole["seen"]),
-            "agreement_other_kind": flat_ground_agreement(depth_grey, pose, other_kind(depth_kind)),
+            "agreement_other_kind": flat_ground_agreement(depth_grey, pose, other_kind(depth_kind), max_depth),
             "beyond": float(whole["beyond"][0] / whole["pixels"]),
-            "lower_median_ratio": lower_median_ratio(depth, whole["igd"]), "flag": reason, "unchecked": not visible}
+            "lower_median_ratio": lower_median_ratio(depth, whole["igd"], max_depth), "flag": reason,
+            "unchecked": not visible}
 
 
 @contextmanager
@@ -207,12 +217,13 @@ def one_torch_thread() -> Iterator[None]:
         torch.set_num_threads(threads)
 
 
-def diagnose_split(root: Path, split: str, depth_kind: DepthKind, quiet: bool = True) -> dict[str, Any]:
-    """The report of one split (with a progress bar on a terminal unless ``quiet``)."""
+def diagnose_split(root: Path, split: str, depth_kind: DepthKind, quiet: bool = True,
+                   max_depth: float = MAX_DEPTH_M) -> dict[str, Any]:
+    """The report of one split (with a progress bar on a terminal unless ``quiet``); grey 255 is ``max_depth`` m."""
     try:
         with warnings.catch_warnings():  # the files skipped are listed as errors below
             warnings.simplefilter("ignore")
-            dataset = UAPDDataset(root, split, on_bad_file="skip")
+            dataset = UAPDDataset(root, split, on_bad_file="skip", max_depth=max_depth)
     except DatasetError as error:
         return {"split": split, "count": 0, "errors": error.problems, "flagged": []}
     errors = list(dataset.skipped)
@@ -245,9 +256,9 @@ def diagnose_split(root: Path, split: str, depth_kind: DepthKind, quiet: bool = 
             sky = grey == SKY_GREY
             sky_fractions.append(float(sky.mean()))
             if (~sky).any():
-                seen = grey_to_depth(grey[~sky])
+                seen = grey_to_depth(grey[~sky], max_depth)
                 depth_min, depth_max = min(depth_min, float(seen.min())), max(depth_max, float(seen.max()))
-            result = check_sample(grey, poses[index], depth_kind)
+            result = check_sample(grey, poses[index], depth_kind, max_depth)
             agreements.append(result["agreement"])
             agreements_other.append(result["agreement_other_kind"])
             ratios.append(result["lower_median_ratio"])
@@ -265,7 +276,7 @@ def diagnose_split(root: Path, split: str, depth_kind: DepthKind, quiet: bool = 
             "ground_agreement": {"median": float(np.median(agreements)) if agreements else None,
                                  "median_other_kind": float(np.median(agreements_other)) if agreements else None,
                                  "lower_half_median_ratio": float(np.nanmedian(ratios)) if ratios else None},
-            "depth_kind": depth_kind,
+            "depth_kind": depth_kind, "max_depth": max_depth,
             "depth_container": containers,
             "depth_containers": {kind: n for kind in sorted(set(containers.values()))
                                  if (n := sum(c == kind for c in containers.values()))}}
@@ -307,8 +318,32 @@ def format_report(reports: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
+def depth_limit(root: Path, max_depth: float | None) -> tuple[float, str]:
+    """The metres grey 255 means, and where that comes from: ``max_depth``, else ROOT/synth.json's, else UAPD's.
+
+    Raises:
+        ValueError: a limit that is not finite or too small (:func:`check_depth_limit`), naming where it came from.
+    """
+    if max_depth is not None:
+        return check_depth_limit(max_depth, "max_depth"), "given by --max_depth"
+    record = root / "synth.json"
+    try:
+        recorded = json_module.loads(record.read_text()).get("max_depth")
+    except (OSError, ValueError, AttributeError):  # none, unreadable, or not an object: not a synth set's record
+        recorded = None
+    if recorded is None:
+        return MAX_DEPTH_M, f"UAPD's, the default: no {record.name} records another"
+    if isinstance(recorded, bool) or not isinstance(recorded, (int, float)):
+        raise ValueError(f"{record}: max_depth {recorded!r} is not a number of metres.\nFix: --max_depth METRES, the "
+                         "limit the set was written with (`dapm-lightning synth --max_depth`; UAPD: 1000)")
+    try:
+        return check_depth_limit(recorded, "max_depth"), f"recorded in {record}"
+    except ValueError as error:
+        raise ValueError(f"{record}: {error}") from None
+
+
 def doctor(root: Path, splits: list[str] | None = None, depth_kind: DepthKind = "range",
-           json: Path | None = None, quiet: bool = False) -> int:
+           max_depth: float | None = None, json: Path | None = None, quiet: bool = False) -> int:
     """Check a UAPD-format data set (ROOT/SPLIT/rgb, ROOT/SPLIT/depth) and print a report per split.
 
     Args:
@@ -316,14 +351,16 @@ def doctor(root: Path, splits: list[str] | None = None, depth_kind: DepthKind = 
         splits: splits to check (default: every sub-folder with rgb/ and depth/).
         depth_kind: what the depth maps hold: range (lens to point) or planar (along the optical axis;
             CARLA's depth camera).
+        max_depth: the metres grey 255 of the depth files means (METRES). Default: the ``max_depth`` recorded in
+            ROOT/synth.json (a set rendered with ``dapm-lightning synth --max_depth``), else UAPD's 1000.
         json: also write the report as JSON to this file (nothing is written otherwise).
         quiet: no progress bar (there is none off a terminal).
 
     Returns:
         the exit status: 0 clean, 1 a broken file or a flagged sample, 2 no data set at ROOT (ROOT is not a
-        folder, holds no split folder, or a split asked for has neither rgb/ nor depth/) or a ``json`` path that
-        cannot be written (checked before the scan; a write that fails after it, e.g. on a full disk, leaves no
-        partial file); the reason is then printed to stderr.
+        folder, holds no split folder, or a split asked for has neither rgb/ nor depth/), a depth limit that is
+        not finite or too small, or a ``json`` path that cannot be written (checked before the scan; a write that
+        fails after it, e.g. on a full disk, leaves no partial file); the reason is then printed to stderr.
     """
     root = Path(root)
     problem = None
@@ -339,12 +376,20 @@ def doctor(root: Path, splits: list[str] | None = None, depth_kind: DepthKind = 
         elif missing:
             problem = (f"{root}: no split {', '.join(missing)} (a folder with rgb/ and depth/); "
                        f"splits found: {', '.join(found) or 'none'}")
+    limit, limit_from = MAX_DEPTH_M, ""
+    if problem is None:
+        try:
+            limit, limit_from = depth_limit(root, max_depth)
+        except ValueError as error:
+            problem = str(error)
     if problem is None and json is not None:
         problem = _unwritable_report(Path(json))
     if problem is not None:
         print(f"error: {problem}", file=sys.stderr)
         return EXIT_NOT_A_DATA_SET
-    reports = [diagnose_split(root, split, depth_kind, quiet) for split in splits]
+    print(f"depth limit: grey 255 = {limit:g} m, {limit_from}" + ("" if max_depth is not None else
+                                                                   " (--max_depth METRES sets another)"))
+    reports = [diagnose_split(root, split, depth_kind, quiet, limit) for split in splits]
     print(format_report(reports))
     if "train" in splits and "val" not in splits and not (root / "val").exists():
         print(f"note: {root} has no val/ split: `dapm-lightning fit` validates on ROOT/val and refuses to start "

@@ -356,3 +356,26 @@ def test_a_report_the_disk_cannot_hold_is_not_left_half_written(synthetic, tmp_p
     assert "Traceback" not in done.stderr
     assert json.loads(report.read_text()) == {"earlier": True}
     assert [p.name for p in tmp_path.iterdir()] == ["report.json"]
+
+
+def test_a_set_rendered_with_another_depth_limit_is_checked_with_it(tmp_path, capsys):
+    """A 500 m synth set: the doctor reads its limit from synth.json and finds it as healthy as a 1000 m set (before:
+    grey read as 1000 m everywhere, agreement 0.003, a false 'pitch and roll swapped', exit 1); with 1000 m forced
+    the same set is flagged, and a limit that cannot be one is refused with the fix."""
+    near = generate_uapd(tmp_path / "s500", train=6, val=3, size=32, max_depth=500, workers=1)
+    usual = generate_uapd(tmp_path / "s1000", train=6, val=3, size=32, workers=1)
+    assert doctor_main([str(usual), "--quiet", "--json", str(tmp_path / "usual.json")]) == 0
+    assert doctor_main([str(near), "--quiet", "--json", str(tmp_path / "near.json")]) == 0
+    assert f"grey 255 = 500 m, recorded in {near / 'synth.json'}" in capsys.readouterr().out
+    medians = [[r["ground_agreement"]["median"] for r in json.loads((tmp_path / f"{n}.json").read_text())]
+               for n in ("usual", "near")]
+    assert min(medians[1]) > 0.5 and np.allclose(medians[0], medians[1], atol=0.15)
+    assert all(r["max_depth"] == 500 for r in json.loads((tmp_path / "near.json").read_text()))
+    assert doctor_main([str(near), "--quiet", "--max_depth", "1000"]) == 1
+    out = capsys.readouterr().out
+    assert "grey 255 = 1000 m, given by --max_depth" in out and "FLAGGED" in out
+    for bad in ("0", ".nan", ".inf"):
+        assert doctor_main([str(near), "--quiet", "--max_depth", bad]) == 2
+        err = capsys.readouterr().err
+        assert "max_depth: " in err and "but a depth limit must be a number of metres above 1" in err
+        assert "Fix: --max_depth 1000" in err
