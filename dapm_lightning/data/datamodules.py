@@ -313,8 +313,8 @@ class PotsdamDataModule(DAPMDataModule):
     ``1_DSM_normalisation/`` (``product: ndsm``, the default) or ``1_DSM/`` (``product: dsm``); the older
     ``rgb/`` + ``height/`` layout also works. Tiles are cut into ``crop_size`` crops on first use and
     split 8:2 with a fixed seed. ``ndsm_scale``: how the 8-bit nDSM becomes metres
-    (:class:`~dapm_lightning.data.potsdam.PotsdamCrops`). ``on_bad_file``: ``"raise"`` lists every broken crop at
-    start-up; ``"skip"`` leaves them out (and, later, any crop whose file fails).
+    (:class:`~dapm_lightning.data.potsdam.PotsdamCrops`). ``on_bad_file``: ``"raise"`` lists every broken tile and crop
+    at start-up; ``"skip"`` leaves them out (and, later, any crop whose file fails).
     """
 
     def __init__(self, root: str = "data/potsdam", crop_size: int = 512, val_fraction: float = 0.2,
@@ -325,7 +325,8 @@ class PotsdamDataModule(DAPMDataModule):
         self.product, self.ndsm_scale, self.on_bad_file = product, ndsm_scale, on_bad_file
 
     def prepare_data(self) -> None:
-        PotsdamCrops(self.root, crop_size=self.crop_size, product=self.product, ndsm_scale=self.ndsm_scale).prepare()
+        PotsdamCrops(self.root, crop_size=self.crop_size, product=self.product, ndsm_scale=self.ndsm_scale,
+                     on_bad_file=self.on_bad_file).prepare()
 
     def make_dataset(self, split: str, train: bool) -> Dataset[Sample]:
         return PotsdamDataset(self.root, "train" if split == "train" else "val",

@@ -31,6 +31,18 @@ float TIFF, metres above datum)."""
 
 ISPRS_RGB_DIR = "2_Ortho_RGB"
 ISPRS_PRODUCT_DIRS: dict[str, str] = {"ndsm": "1_DSM_normalisation", "dsm": "1_DSM"}
+ROOT_FIX = ("Fix: give data.init_args.root the unpacked ISPRS Potsdam download (2_Ortho_RGB/ beside "
+            "1_DSM_normalisation/ or 1_DSM/), or a folder of rgb/ and height/ tiles (relative paths start from the "
+            "current directory; docs/data.md).")
+TILE_FIX = ("Fix: correct the tiles listed, or move each one and its twin (RGB and height) out of their folders, or "
+            "leave them out with --data.init_args.on_bad_file skip (`dapm-lightning doctor ROOT` checks every tile).")
+"""The fix for bad tiles (an unpaired, undecodable or mismatched one): removing one file of a pair leaves its twin
+unpaired."""
+
+
+def is_potsdam_root(root: Path) -> bool:
+    """Whether ``root`` holds Potsdam tiles: the ISPRS download (``2_Ortho_RGB/``) or flat ``rgb/`` + ``height/``."""
+    return (root / ISPRS_RGB_DIR).is_dir() or ((root / "rgb").is_dir() and (root / "height").is_dir())
 
 
 class PotsdamCrops:
@@ -60,10 +72,14 @@ class PotsdamCrops:
     }
 
     def __init__(self, root: str | Path, *, rgb_dir: str | None = None, height_dir: str | None = None,
-                 crop_size: int = 512, product: Product = "ndsm", ndsm_scale: float | None = None) -> None:
+                 crop_size: int = 512, product: Product = "ndsm", ndsm_scale: float | None = None,
+                 on_bad_file: Literal["raise", "skip"] = "raise") -> None:
         if product not in ISPRS_PRODUCT_DIRS:
             raise ValueError(f"product must be one of {sorted(ISPRS_PRODUCT_DIRS)}, got {product!r}")
+        if on_bad_file not in ("raise", "skip"):
+            raise ValueError(f"on_bad_file must be 'raise' or 'skip', got {on_bad_file!r}")
         self.root, self.crop_size, self.product, self.ndsm_scale = Path(root), crop_size, product, ndsm_scale
+        self.on_bad_file = on_bad_file
         self.isprs = rgb_dir is None and (self.root / ISPRS_RGB_DIR).is_dir()
         if self.isprs:
             self.rgb_dir, self.height_dir = self.root / ISPRS_RGB_DIR, self.root / ISPRS_PRODUCT_DIRS[product]
@@ -75,24 +91,51 @@ class PotsdamCrops:
             self.kind = "legacy"
             self.out = self.root / f"crops_{crop_size}"
 
-    def pairs(self) -> list[tuple[Path, Path]]:
-        """``(rgb tile, height tile)`` pairs; a :class:`DatasetError` lists every unpaired tile."""
+    def pairs(self) -> tuple[list[tuple[Path, Path]], list[str]]:
+        """``(rgb tile, height tile)`` pairs, and every unpaired tile as a problem.
+
+        Raises:
+            DatasetError: no root, no tile folder, or no RGB tile at all (nothing to leave out: the fix is the root).
+        """
+        if not self.root.is_dir():
+            what = "a file, not a folder" if self.root.exists() else "no such folder"
+            raise DatasetError(self.root, [f"{self.root}: {what}"], fix=ROOT_FIX)
         for folder in (self.rgb_dir, self.height_dir):
             if not folder.is_dir():
                 hint = (f" (the ISPRS download's folder for product {self.product!r}; set product to the one "
                         "you unpacked)" if self.isprs and folder == self.height_dir else "")
-                raise DatasetError(self.root, [f"{folder}: missing folder{hint}"], fix=(
-                    "Fix: give data.init_args.root the unpacked ISPRS Potsdam download (2_Ortho_RGB/ beside "
-                    "1_DSM_normalisation/ or 1_DSM/), or a folder of rgb/ and height/ tiles (docs/data.md)."))
+                raise DatasetError(self.root, [f"{folder}: missing folder{hint}"], fix=ROOT_FIX)
         pattern = self.height_patterns[self.kind]
         rgb = {_tile_id(m): p for p in sorted(self.rgb_dir.iterdir()) if (m := self.rgb_pattern.search(p.name))}
         height = {_tile_id(m): p for p in sorted(self.height_dir.iterdir())
                   if (m := pattern.search(p.name)) and "RGB" not in p.name}
+        if not rgb:
+            raise DatasetError(self.root, [f"{self.rgb_dir}: no top_potsdam_*_RGB.tif tiles"], fix=ROOT_FIX)
         problems = [f"{rgb[k]}: no height tile for id {k}" for k in sorted(rgb.keys() - height.keys())]
         problems += [f"{height[k]}: no RGB tile for id {k}" for k in sorted(height.keys() - rgb.keys())]
-        if problems or not rgb:
-            raise DatasetError(self.root, problems or [f"{self.rgb_dir}: no top_potsdam_*_RGB.tif tiles"])
-        return [(rgb[k], height[k]) for k in sorted(rgb)]
+        return [(rgb[k], height[k]) for k in sorted(rgb.keys() & height.keys())], problems
+
+    def read_pair(self, rgb_path: Path, height_path: Path) -> tuple[np.ndarray, np.ndarray] | list[str]:
+        """A tile pair decoded, ``(rgb [H, W, 3] BGR uint8, height [H, W] float32 metres)``, or its problems."""
+        rgb = cv2.imread(str(rgb_path), cv2.IMREAD_COLOR)
+        height = self.read_height(height_path)
+        if rgb is None or height is None:  # both are decoded: each one that fails is listed
+            return [str(unreadable(path, "cannot be decoded")) for path, image in
+                    ((rgb_path, rgb), (height_path, height)) if image is None]
+        if height.ndim != 2:
+            return [f"{height_path}: height must be single-channel, got {height.shape}"]
+        if height.shape != rgb.shape[:2]:
+            return [f"{height_path}: size {height.shape[::-1]} differs from {rgb_path.name} {rgb.shape[1::-1]}"]
+        return rgb, height
+
+    def check_tiles(self) -> tuple[int, list[str]]:
+        """``(tile pairs, problems)``: every tile paired, decoded and of its twin's size (nothing is written)."""
+        pairs, problems = self.pairs()
+        for rgb_path, height_path in pairs:
+            result = self.read_pair(rgb_path, height_path)
+            if isinstance(result, list):
+                problems += result
+        return len(pairs), problems
 
     def read_height(self, path: Path) -> np.ndarray | None:
         """A height tile as float32 metres (see the class notes), or None when it cannot be decoded."""
@@ -109,30 +152,35 @@ class PotsdamCrops:
         return raw.astype(np.float32)
 
     def prepare(self) -> Path:
-        """Write the crops (once; skipped when ``crops.json`` is there) and return their folder."""
+        """Write the crops (once; skipped when ``crops.json`` is there) and return their folder.
+
+        Every tile problem (unpaired, undecodable, a size differing from its twin's) is collected: with
+        ``on_bad_file="raise"`` one :class:`DatasetError` lists them all; with ``"skip"`` those tiles are left out
+        with one warning naming them, recorded in ``crops.json`` (crops cut so are reused without them, with the
+        warning again, and refused with ``"raise"``).
+        """
         index = self.out / "crops.json"
         if index.is_file():
+            skipped = json.loads(index.read_text()).get("skipped", [])
+            if skipped and self.on_bad_file != "skip":
+                raise DatasetError(self.root, skipped, fix=(
+                    f"Fix: delete {self.out} (its crops were cut with on_bad_file skip, without the tiles listed) "
+                    "to cut them again once the tiles are corrected, or leave them out with "
+                    "--data.init_args.on_bad_file skip."))
+            self._warn_skipped(skipped)
             return self.out
+        pairs, problems = self.pairs()  # first: a root that is not there is not made
         (self.out / "rgb").mkdir(parents=True, exist_ok=True)
         (self.out / "height").mkdir(parents=True, exist_ok=True)
         names: list[str] = []
-        problems: list[str] = []
-        for rgb_path, height_path in self.pairs():
-            rgb = cv2.imread(str(rgb_path), cv2.IMREAD_COLOR)
-            height = self.read_height(height_path)
-            if rgb is None or height is None:  # every tile is decoded: each one that fails is listed
-                problems += [str(unreadable(path, "cannot be decoded")) for path, image in
-                             ((rgb_path, rgb), (height_path, height)) if image is None]
+        for rgb_path, height_path in pairs:
+            result = self.read_pair(rgb_path, height_path)  # every tile is decoded: each one that fails is listed
+            if isinstance(result, list):
+                problems += result
                 continue
-            if height.ndim != 2:
-                problems.append(f"{height_path}: height must be single-channel, got {height.shape}")
+            if problems and self.on_bad_file != "skip":  # the crops will not be used: only the checks matter
                 continue
-            if height.shape != rgb.shape[:2]:
-                problems.append(f"{height_path}: size {height.shape[::-1]} differs from {rgb_path.name} "
-                                f"{rgb.shape[1::-1]}")
-                continue
-            if problems:  # the crops will not be used: only the remaining tiles' checks matter
-                continue
+            rgb, height = result
             s = self.crop_size
             for top in range(0, rgb.shape[0] - s + 1, s):
                 for left in range(0, rgb.shape[1] - s + 1, s):
@@ -141,11 +189,21 @@ class PotsdamCrops:
                     np.save(self.out / "height" / f"{name}.npy",
                             height[top:top + s, left:left + s].astype(np.float32))
                     names.append(name)
-        if problems:
-            raise DatasetError(self.root, problems)
+        if problems and self.on_bad_file != "skip":
+            raise DatasetError(self.root, problems, fix=TILE_FIX)
+        if not names:  # every tile bad: on_bad_file skip left out all of them
+            raise DatasetError(self.root, problems, fix=EVERY_FILE_SKIPPED_FIX)
         index.write_text(json.dumps({"crop_size": self.crop_size, "layout": self.kind, "ndsm_scale": self.ndsm_scale,
-                                     "names": names}) + "\n")
+                                     "names": names, "skipped": problems}) + "\n")
+        self._warn_skipped(problems)
         return self.out
+
+    def _warn_skipped(self, skipped: list[str]) -> None:
+        """One warning naming the tiles left out (the same text from one line: Python shows it once a process)."""
+        if skipped:
+            warnings.warn(f"{self.root}: leaving out {len(skipped)} bad tile(s) (on_bad_file: skip); the crops in "
+                          f"{self.out} are cut without them (delete that folder to cut them again once corrected):"
+                          "\n  " + "\n  ".join(skipped[:50]), stacklevel=1)
 
 
 class PotsdamDataset(SkipsBadFiles, torch.utils.data.Dataset[Sample]):
@@ -174,7 +232,8 @@ class PotsdamDataset(SkipsBadFiles, torch.utils.data.Dataset[Sample]):
                  on_bad_file: Literal["raise", "skip"] = "raise") -> None:
         if on_bad_file not in ("raise", "skip"):
             raise ValueError(f"on_bad_file must be 'raise' or 'skip', got {on_bad_file!r}")
-        crops = PotsdamCrops(root, crop_size=crop_size, product=product, ndsm_scale=ndsm_scale).prepare()
+        crops = PotsdamCrops(root, crop_size=crop_size, product=product, ndsm_scale=ndsm_scale,
+                             on_bad_file=on_bad_file).prepare()
         names: list[str] = json.loads((crops / "crops.json").read_text())["names"]
         order = torch.randperm(len(names), generator=torch.Generator().manual_seed(seed)).tolist()
         n_val = max(1, round(len(names) * val_fraction)) if len(names) > 1 else 0

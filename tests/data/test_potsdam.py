@@ -81,3 +81,46 @@ def test_isprs_unpaired_and_missing_product_are_named(tmp_path):
     shutil.rmtree(root / "1_DSM")
     with pytest.raises(DatasetError, match="1_DSM: missing folder"):
         PotsdamDataset(root, "train", crop_size=32, product="dsm")
+
+
+def test_bad_tiles_are_listed_together_or_skipped_with_one_warning(tmp_path):
+    """A tile without its height tile, an undecodable one and a pair of mismatched sizes: raise lists all three with a
+    fix that works; skip leaves them out with one warning naming each and cuts the good tile (before: skip still
+    stopped at the first unpaired tile, telling the user to skip)."""
+    import warnings
+
+    from dapm_lightning.data.potsdam import TILE_FIX
+    from dapm_lightning.tools.errors import describe
+
+    root = isprs_download(tmp_path / "isprs", product_tiles=((2, 10), (4, 12), (5, 13)),
+                          rgb_tiles=((2, 10), (3, 11), (4, 12), (5, 13)))
+    damaged = root / "2_Ortho_RGB" / "top_potsdam_4_12_RGB.tif"
+    damaged.write_bytes(b"not a tiff")
+    resized = root / "1_DSM_normalisation" / "dsm_potsdam_05_13_normalized_lastools.jpg"
+    cv2.imwrite(str(resized), np.zeros((64, 80), np.uint8))
+    expected = [f"{root / '2_Ortho_RGB' / 'top_potsdam_3_11_RGB.tif'}: no height tile for id (3, 11)",
+                f"{damaged}: cannot be decoded",
+                f"{resized}: size (80, 64) differs from top_potsdam_5_13_RGB.tif (96, 64)"]
+    with pytest.raises(DatasetError) as info:
+        PotsdamDataset(root, "train", crop_size=32)
+    assert info.value.problems == expected and info.value.fix == TILE_FIX
+    assert "--data.init_args.on_bad_file skip" in describe(info.value)[0]
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        train = PotsdamDataset(root, "train", crop_size=32, on_bad_file="skip")
+    told = [str(w.message) for w in caught if "bad tile" in str(w.message)]
+    assert len(told) == 1 and "leaving out 3 bad tile(s)" in told[0] and all(p in told[0] for p in expected)
+    with pytest.warns(UserWarning, match="leaving out 3 bad tile"):  # the crops cut without them, reused
+        val = PotsdamDataset(root, "val", crop_size=32, on_bad_file="skip")
+    assert len(train) + len(val) == 6 and all(n.startswith("top_potsdam_2_10_RGB") for n in train.names + val.names)
+    with pytest.raises(DatasetError) as info:  # raise refuses crops cut so, naming the folder to delete
+        PotsdamDataset(root, "train", crop_size=32)
+    assert info.value.problems == expected and f"Fix: delete {train.crops} (its crops were cut" in info.value.fix
+
+
+def test_a_missing_root_is_named_as_such(tmp_path):
+    with pytest.raises(DatasetError) as info:
+        PotsdamDataset(tmp_path / "nowhere", "train", crop_size=32)
+    assert info.value.problems == [f"{tmp_path / 'nowhere'}: no such folder"]
+    assert info.value.fix.startswith("Fix: give data.init_args.root the unpacked ISPRS Potsdam download")
+    assert not (tmp_path / "nowhere").exists()
