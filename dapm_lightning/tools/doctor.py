@@ -1,4 +1,4 @@
-"""dapm-lightning doctor ROOT: check a UAPD-format data set and report per split.
+"""dapm-lightning doctor ROOT: check a UAPD-format data set and report per split (or a Potsdam root's tiles).
 
 Counts, pose distribution against the UAPD ranges, depth range and sky fraction, every unreadable
 (each RGB and depth file is decoded) or unpaired file, and the agreement of each file's depth with
@@ -39,6 +39,7 @@ from dapm_lightning.data.depth_kind import (
 )
 from dapm_lightning.data.errors import DatasetError
 from dapm_lightning.data.files import write_error, write_text
+from dapm_lightning.data.potsdam import ISPRS_PRODUCT_DIRS, ISPRS_RGB_DIR, PotsdamCrops, is_potsdam_root
 from dapm_lightning.data.uapd import UAPDDataset, read_depth_grey, read_rgb
 from dapm_lightning.geometry.constants import MAX_DEPTH_M, POSE_KEYS, POSE_RANGES, SKY_GREY
 from dapm_lightning.geometry.depth_codec import check_depth_limit, depth_to_grey, grey_to_depth
@@ -342,6 +343,25 @@ def depth_limit(root: Path, max_depth: float | None) -> tuple[float, str]:
         raise ValueError(f"{record}: {error}") from None
 
 
+def check_potsdam(root: Path) -> list[dict[str, Any]]:
+    """Per height product found (one for the flat rgb/ + height/ layout): the tile pairs and every tile problem.
+
+    A tile is checked as the crops are cut: paired, RGB and height decodable, of one size (nothing is written).
+    """
+    isprs = (root / ISPRS_RGB_DIR).is_dir()
+    products = [p for p, folder in ISPRS_PRODUCT_DIRS.items() if (root / folder).is_dir()] if isprs else ["ndsm"]
+    reports = []
+    for product in products or ["ndsm"]:  # no product folder: the missing folder is the problem reported
+        tiles = PotsdamCrops(root, product=product)  # type: ignore[arg-type]
+        try:
+            count, problems = tiles.check_tiles()
+        except DatasetError as error:
+            count, problems = 0, error.problems
+        reports.append({"layout": "isprs" if isprs else "flat", "product": product if isprs else None,
+                        "height_dir": str(tiles.height_dir), "pairs": count, "errors": problems})
+    return reports
+
+
 def doctor(root: Path, splits: list[str] | None = None, depth_kind: DepthKind = "range",
            max_depth: float | None = None, json: Path | None = None, quiet: bool = False) -> int:
     """Check a UAPD-format data set (ROOT/SPLIT/rgb, ROOT/SPLIT/depth) and print a report per split.
@@ -367,6 +387,8 @@ def doctor(root: Path, splits: list[str] | None = None, depth_kind: DepthKind = 
     if not root.is_dir():
         what = "a file, not a folder" if root.exists() else "no such folder"
         problem = f"{root}: {what} (give the data set's root, which holds train/ and val/)"
+    elif is_potsdam_root(root):
+        return _doctor_potsdam(root, json)
     else:
         found = sorted(p.name for p in root.iterdir() if (p / "rgb").is_dir() or (p / "depth").is_dir())
         missing = [split for split in splits or [] if split not in found]
@@ -398,6 +420,32 @@ def doctor(root: Path, splits: list[str] | None = None, depth_kind: DepthKind = 
     where = ""
     if json is not None:
         try:  # atomically: a full disk leaves no half report, and an earlier one whole
+            Path(json).parent.mkdir(parents=True, exist_ok=True)
+            write_text(json, dumps(reports, indent=2) + "\n")
+        except OSError as error:
+            print(f"error: {write_error(Path(json), error)}", file=sys.stderr)
+            return EXIT_NOT_A_DATA_SET
+        where = f"report: {json}; "
+    print(f"\n{where}{'no problems found' if not bad else f'{bad} problem(s)'}")
+    return EXIT_PROBLEMS if bad else EXIT_CLEAN
+
+
+def _doctor_potsdam(root: Path, json: Path | None) -> int:
+    """:func:`doctor` on a Potsdam root (the ISPRS download, or rgb/ + height/ tiles): its tiles are checked."""
+    if json is not None and (problem := _unwritable_report(Path(json))):
+        print(f"error: {problem}", file=sys.stderr)
+        return EXIT_NOT_A_DATA_SET
+    reports = check_potsdam(root)
+    print(f"{root}: Potsdam tiles ({'ISPRS download' if reports[0]['layout'] == 'isprs' else 'rgb/ + height/'}): "
+          "each pair checked as the crops are cut (paired, decodable, of one size); the pose and depth checks are "
+          "for UAPD-format sets")
+    for r in reports:
+        lines = [f"== {r['height_dir']}: {r['pairs']} tile pair(s), {len(r['errors'])} error(s)"]
+        print("\n".join(lines + [f"   ERROR   {e}" for e in r["errors"]]))
+    bad = sum(len(r["errors"]) for r in reports)
+    where = ""
+    if json is not None:
+        try:
             Path(json).parent.mkdir(parents=True, exist_ok=True)
             write_text(json, dumps(reports, indent=2) + "\n")
         except OSError as error:

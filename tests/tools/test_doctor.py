@@ -379,3 +379,21 @@ def test_a_set_rendered_with_another_depth_limit_is_checked_with_it(tmp_path, ca
         err = capsys.readouterr().err
         assert "max_depth: " in err and "but a depth limit must be a number of metres above 1" in err
         assert "Fix: --max_depth 1000" in err
+
+
+def test_a_potsdam_root_has_its_tiles_checked(tmp_path, capsys):
+    """A healthy Potsdam root, crops cut, passes (before: 'crops_32_ndsm_log/depth: missing folder', exit 1); a tile
+    without its height tile is named."""
+    from dapm_lightning.data import PotsdamDataset
+    from tests.data.test_potsdam import isprs_download
+
+    root = isprs_download(tmp_path / "isprs")
+    PotsdamDataset(root, "train", crop_size=32)
+    assert doctor_main([str(root), "--json", str(tmp_path / "r.json")]) == 0
+    out = capsys.readouterr().out
+    assert "Potsdam tiles (ISPRS download)" in out and "missing folder" not in out and "no problems found" in out
+    assert [(r["product"], r["pairs"], r["errors"]) for r in json.loads((tmp_path / "r.json").read_text())] == [
+        ("ndsm", 2, []), ("dsm", 2, [])]
+    (root / "1_DSM_normalisation" / "dsm_potsdam_03_11_normalized_lastools.jpg").unlink()
+    assert doctor_main([str(root)]) == 1
+    assert f"ERROR   {root / '2_Ortho_RGB' / 'top_potsdam_3_11_RGB.tif'}: no height tile" in capsys.readouterr().out
