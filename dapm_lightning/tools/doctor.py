@@ -40,7 +40,7 @@ from dapm_lightning.data.depth_kind import (
 from dapm_lightning.data.errors import DatasetError
 from dapm_lightning.data.files import write_error, write_text
 from dapm_lightning.data.potsdam import ISPRS_PRODUCT_DIRS, ISPRS_RGB_DIR, PotsdamCrops, is_potsdam_root
-from dapm_lightning.data.uapd import UAPDDataset, read_depth_grey, read_rgb
+from dapm_lightning.data.uapd import SYNTH_SETTINGS, UAPDDataset, read_depth_grey, read_rgb
 from dapm_lightning.geometry.constants import MAX_DEPTH_M, POSE_KEYS, POSE_RANGES, SKY_GREY
 from dapm_lightning.geometry.depth_codec import check_depth_limit, depth_to_grey, grey_to_depth
 from dapm_lightning.geometry.igd import DepthKind, ideal_ground_depth
@@ -327,7 +327,7 @@ def depth_limit(root: Path, max_depth: float | None) -> tuple[float, str]:
     """
     if max_depth is not None:
         return check_depth_limit(max_depth, "max_depth"), "given by --max_depth"
-    record = root / "synth.json"
+    record = root / SYNTH_SETTINGS
     try:
         recorded = json_module.loads(record.read_text()).get("max_depth")
     except (OSError, ValueError, AttributeError):  # none, unreadable, or not an object: not a synth set's record
