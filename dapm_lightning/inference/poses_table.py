@@ -79,7 +79,8 @@ def write_poses(out: Path, rows: list[dict[str, Any]]) -> Path:
             writer = csv.DictWriter(handle, fieldnames=columns, restval="")
             writer.writeheader()
             writer.writerows(merged.values())
-        values = [{k: v if _text_column(k) else _number(v) for k, v in row.items()} for row in merged.values()]
+        values = [{column: row.get(column, "") if _text_column(column) else _number(row.get(column))
+                   for column in columns} for row in merged.values()]  # every row with every column, as the CSV
         write_text(out / "poses.json", json.dumps(values, indent=2) + "\n")
     return path
 
@@ -90,7 +91,9 @@ def _text_column(column: str) -> bool:
 
 
 def _number(value: Any) -> Any:
-    """A CSV cell back to a number where it is one (rows merged from an earlier run's file are text)."""
+    """A CSV cell back to a number where it is one (rows merged from an earlier run's file are text); empty: null."""
+    if value in (None, ""):
+        return None
     if isinstance(value, str):
         try:
             return float(value)

@@ -213,6 +213,12 @@ def test_poses_json_keeps_names_that_look_like_numbers_as_names(tmp_path):
     assert [row["name"] for row in table] == ["000123", "20230514_101502", "nan"]
     assert {row["height_m_provenance"] for row in table} == {"1e3"}
     assert all(row["pitch_deg"] == -30.0 and row["height_m_network"] == 48.0 for row in table)
+    write_poses(tmp_path, [{"name": "frame", "time_s": 1.5, "height_m": 40.0, "pitch_deg": -20.0, "roll_deg": 0.0,
+                            "fov_deg": 70.0}])  # a video frame without telemetry beside images with it
+    table = json.loads((tmp_path / "poses.json").read_text())
+    assert len({tuple(row) for row in table}) == 1  # every row has every column, as poses.csv
+    assert table[-1]["height_m_provenance"] == "" and table[-1]["height_m_source"] == "network"
+    assert table[0]["time_s"] is None and table[-1]["time_s"] == 1.5  # an empty number is null, not ""
 
 
 # --------------------------------------------------------------------------------------------------- a full disk
