@@ -45,8 +45,26 @@ def is_lightning_form(args: Sequence[str]) -> bool:
 class _Parser(argparse.ArgumentParser):
     """argparse without abbreviations, whose unknown-option error suggests the closest option in two lines."""
 
+    argv: Sequence[str] = ()
+    """The arguments being parsed (:func:`parse`), for what a missing SOURCE most likely means."""
+
     def error(self, message: str) -> None:  # type: ignore[override]
+        if "required: SOURCE" in message and (taken := _sources_taken_as_outputs(self.argv)):
+            message += (f" ({', '.join(map(repr, taken))} was read as an --outputs kind: put SOURCE before "
+                        "--outputs, or give the kinds with commas, --outputs depth_npy,camera)")
         self.exit(2, f"{self.prog}: error: {message}\nSee `{self.prog} --help`.\n")
+
+
+def _sources_taken_as_outputs(argv: Sequence[str]) -> list[str]:
+    """The words after ``--outputs`` that are not output kinds (nor ``all``): SOURCEs that ``nargs="+"`` took."""
+    taken: list[str] = []
+    for index, word in enumerate(argv):
+        if word == "--outputs":
+            for value in argv[index + 1:]:
+                if value.startswith("-"):
+                    break
+                taken += [part for part in value.split(",") if part and part not in (*OUTPUT_KINDS, "all")]
+    return taken
 
 
 def whole_number(least: int) -> Callable[[str], int]:
@@ -150,6 +168,7 @@ def build_parser() -> argparse.ArgumentParser:
 def parse(argv: Sequence[str]) -> argparse.Namespace:
     """Parse the one-line form; an unknown option is named with the closest valid one."""
     parser = build_parser()
+    parser.argv = list(argv)
     args, unknown = parser.parse_known_intermixed_args(list(argv))  # SOURCE ... before, between or after options
     if unknown:
         options = [o for action in parser._actions for o in action.option_strings]

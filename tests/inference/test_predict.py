@@ -481,6 +481,10 @@ def test_one_line_predict_errors_and_help(checkpoint, image_folder, tmp_path, ca
     with pytest.raises(SystemExit) as info:
         main(["predict", str(image_folder), "--ckpt_path", str(checkpoint), "--outputs", "depth_np"])
     assert info.value.code == 2 and "did you mean depth_npy" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as info:  # SOURCE after --outputs KIND KIND: taken as a third kind
+        main(["predict", "--outputs", "depth_npy", "camera", str(image_folder), "--ckpt_path", str(checkpoint)])
+    assert info.value.code == 2 and f"required: SOURCE ('{image_folder}' was read as an --outputs kind: put SOURCE " \
+        "before --outputs, or give the kinds with commas" in capsys.readouterr().err
     with pytest.raises(SystemExit) as info:
         main(["predict", str(tmp_path / "nothing"), "--ckpt_path", str(checkpoint)])
     assert info.value.code == 1 and "nothing: no such file or folder" in capsys.readouterr().err
