@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import difflib
+import math
 import signal
 import sys
 import warnings
@@ -86,6 +87,22 @@ def whole_number(least: int) -> Callable[[str], int]:
 positive, not_negative = whole_number(1), whole_number(0)
 
 
+def number_in(low: float, high: float, what: str, *, high_included: bool = True) -> Callable[[str], float]:
+    """An argparse type: a finite number from ``low`` to ``high`` (``what`` it is), or an error saying so."""
+
+    def check(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not a number ({what})") from None
+        if not (low <= value and (value <= high if high_included else value < high)):
+            bound = f"[{low:g}, {high:g}{']' if high_included else ')'}"
+            raise argparse.ArgumentTypeError(f"must be {what} in {bound}, got {text}")
+        return value
+
+    return check
+
+
 def positive_metres(text: str) -> float:
     """An argparse type: a distance in metres above 0 (``inf`` allowed), or an error saying so."""
     try:
@@ -145,7 +162,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help="CSV name,height_m,pitch_deg,roll_deg,fov_deg (empty cell: unknown), or a video's SRT")
     flight.add_argument("--no_metadata", action="store_true",
                         help="ignore the images' DJI XMP / EXIF and a video's own .SRT")
-    flight.add_argument("--sensor_width_mm", type=float, default=None,
+    flight.add_argument("--sensor_width_mm", type=number_in(1e-3, 1e3, "a sensor width in mm"), default=None,
                         help="sensor width in mm (of the area the images cover): each image's EXIF FocalLength then "
                              "gives its FoV, before its 35 mm equivalent")
     flight.add_argument("--strict_telemetry", action="store_true",
@@ -154,10 +171,12 @@ def build_parser() -> argparse.ArgumentParser:
     flight.add_argument("--telemetry_mode", choices=PRIOR_MODES, default="condition",
                         help="into the network's IGD (condition), depth fitted afterwards (scale), or both "
                              "(default: %(default)s)")
-    flight.add_argument("--telemetry_sigma", type=float, nargs=4, default=EXACT_SIGMA,
+    flight.add_argument("--telemetry_sigma", type=number_in(0.0, math.inf, "a standard deviation"), nargs=4,
+                        default=EXACT_SIGMA,
                         metavar=("HEIGHT_M", "PITCH", "ROLL", "FOV"),
                         help="telemetry uncertainty; 0 replaces the network's value (default: 0 0 0 0)")
-    flight.add_argument("--igd_bound", type=float, default=IGD_BOUND_MARGIN, metavar="MARGIN",
+    flight.add_argument("--igd_bound", type=number_in(0.0, 10.0, "a margin", high_included=False),
+                        default=IGD_BOUND_MARGIN, metavar="MARGIN",
                         help="images whose telemetry gives the height: each pixel's depth capped at (1 + MARGIN) x the "
                              "flat ground of the pose used (default: %(default)s; docs/predict.md)")
     flight.add_argument("--no_igd_bound", dest="igd_bound", action="store_const", const=None,

@@ -481,6 +481,11 @@ def test_one_line_predict_errors_and_help(checkpoint, image_folder, tmp_path, ca
     with pytest.raises(SystemExit) as info:
         main(["predict", str(image_folder), "--ckpt_path", str(checkpoint), "--outputs", "depth_np"])
     assert info.value.code == 2 and "did you mean depth_npy" in capsys.readouterr().err
+    for option, value in (("--igd_bound", ["-1"]), ("--telemetry_sigma", ["-1", "0", "0", "0"]),
+                          ("--sensor_width_mm", ["nan"])):  # refused with the usage error, before the model loads
+        with pytest.raises(SystemExit) as info:
+            main(["predict", str(image_folder), "--ckpt_path", str(tmp_path / "not read.ckpt"), option, *value])
+        assert info.value.code == 2 and f"argument {option}: must be" in capsys.readouterr().err
     with pytest.raises(SystemExit) as info:  # SOURCE after --outputs KIND KIND: taken as a third kind
         main(["predict", "--outputs", "depth_npy", "camera", str(image_folder), "--ckpt_path", str(checkpoint)])
     assert info.value.code == 2 and f"required: SOURCE ('{image_folder}' was read as an --outputs kind: put SOURCE " \
