@@ -371,8 +371,8 @@ def doctor(root: Path, splits: list[str] | None = None, depth_kind: DepthKind = 
         splits: splits to check (default: every sub-folder with rgb/ and depth/).
         depth_kind: what the depth maps hold: range (lens to point) or planar (along the optical axis;
             CARLA's depth camera).
-        max_depth: the metres grey 255 of the depth files means (METRES). Default: the ``max_depth`` recorded in
-            ROOT/synth.json (a set rendered with ``dapm-lightning synth --max_depth``), else UAPD's 1000.
+        max_depth: the metres grey 255 of the depth files means (METRES). Default: the max_depth recorded in
+            ROOT/synth.json (a set rendered with `dapm-lightning synth --max_depth`), else UAPD's 1000.
         json: also write the report as JSON to this file (nothing is written otherwise).
         quiet: no progress bar (there is none off a terminal).
 

@@ -361,7 +361,7 @@ def test_a_report_the_disk_cannot_hold_is_not_left_half_written(synthetic, tmp_p
 def test_a_set_rendered_with_another_depth_limit_is_checked_with_it(tmp_path, capsys):
     """A 500 m synth set: the doctor reads its limit from synth.json and finds it as healthy as a 1000 m set (before:
     grey read as 1000 m everywhere, agreement 0.003, a false 'pitch and roll swapped', exit 1); with 1000 m forced
-    the same set is flagged, and a limit that cannot be one is refused with the fix."""
+    the same set is refused as read with the wrong limit, and a limit that cannot be one is refused with the fix."""
     near = generate_uapd(tmp_path / "s500", train=6, val=3, size=32, max_depth=500, workers=1)
     usual = generate_uapd(tmp_path / "s1000", train=6, val=3, size=32, workers=1)
     assert doctor_main([str(usual), "--quiet", "--json", str(tmp_path / "usual.json")]) == 0
@@ -373,7 +373,8 @@ def test_a_set_rendered_with_another_depth_limit_is_checked_with_it(tmp_path, ca
     assert all(r["max_depth"] == 500 for r in json.loads((tmp_path / "near.json").read_text()))
     assert doctor_main([str(near), "--quiet", "--max_depth", "1000"]) == 1
     out = capsys.readouterr().out
-    assert "grey 255 = 1000 m, given by --max_depth" in out and "FLAGGED" in out
+    assert "grey 255 = 1000 m, given by --max_depth" in out  # the set's own record contradicts it: named
+    assert "rendered with a depth limit of 500 m (grey 255), but it would be read with 1000 m" in out
     for bad in ("0", ".nan", ".inf"):
         assert doctor_main([str(near), "--quiet", "--max_depth", bad]) == 2
         err = capsys.readouterr().err
