@@ -4,7 +4,9 @@
 with an output name that is unique in the run and says where the file came from: a file found in a folder or by a
 pattern is named by its path below that folder (``100MEDIA/DJI_0001.JPG`` -> ``100MEDIA_DJI_0001``), a file given
 by itself by its stem. Extensions are matched regardless of case (``.JPG``), hidden files and folders (``.Trashes``,
-macOS's ``._DJI_0001.JPG``) are left out.
+macOS's ``._DJI_0001.JPG``) are left out, and so are the pictures an earlier predict run wrote into a folder a
+folder or pattern reaches (a folder marked as a run's output, :func:`~dapm_lightning.inference.run_folder.
+is_output_folder`), with one note naming the folder.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ from pathlib import Path
 from typing import Literal
 
 from dapm_lightning.data.uapd import IMAGE_SUFFIXES
+from dapm_lightning.inference.run_folder import is_output_folder, written_by_predict
 
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg", ".wmv")
 LIST_SUFFIX = ".txt"
@@ -77,35 +80,71 @@ def _named(path: Path, root: Path | None) -> tuple[Path, str]:
     return path, "_".join((*relative.parent.parts, relative.stem))
 
 
+def _run_outputs(paths: list[Path]) -> tuple[list[Path], list[str], list[Path]]:
+    """``paths`` less the pictures predict wrote into a run's output folder; a note per such folder; the folders.
+
+    A run's outputs (depth maps, sky masks, its contact sheet) are not drone images: a later run given a folder
+    or pattern that reaches them leaves them out (:func:`~dapm_lightning.inference.run_folder.is_output_folder`).
+    """
+    marked: dict[Path, bool] = {}
+    kept: list[Path] = []
+    left: Counter[Path] = Counter()
+    for p in paths:
+        if written_by_predict(p.name) and file_kind(p):
+            if p.parent not in marked:
+                marked[p.parent] = is_output_folder(p.parent)
+            if marked[p.parent]:
+                left[p.parent] += 1
+                continue
+        kept.append(p)
+    notes = [f"{folder}: a predict output folder, its {count} picture(s) written by predict left out (depth maps, "
+             "not drone images); name them one by one to predict them anyway" for folder, count in left.items()]
+    return kept, notes, list(left)
+
+
+def _output_folder_fix(folders: list[Path]) -> str:
+    return (f"{folders[0]} is a predict output folder (a run's depth maps, sky masks and contact sheet, not drone "
+            "images): give the folder of the images it was predicted from")
+
+
 def _folder(path: Path) -> tuple[list[tuple[Path, str]], list[str]]:
-    """A folder's images, sub-folders included; a note on the videos it also holds (not predicted)."""
-    files = sorted(p for p in path.rglob("*") if p.is_file() and not _hidden(p, path))
+    """A folder's images, sub-folders included; notes on what it also holds.
+
+    The videos it holds are noted, not predicted; so are the predict output folders in it (their pictures left out).
+    """
+    files, notes, outputs = _run_outputs(sorted(p for p in path.rglob("*") if p.is_file() and not _hidden(p, path)))
     images = [_named(p, path) for p in files if file_kind(p) == "image"]
     videos = [p.relative_to(path).as_posix() for p in files if file_kind(p) == "video"]
     if not images:
         fix = (f"give the video file itself, e.g. {path / videos[0]}" if videos
+               else _output_folder_fix(outputs) if outputs
                else "give a folder that holds images, an image or a video, a glob such as 'DIR/*.JPG', or a .txt "
                "list of files")
         held = f" (it holds video(s) {', '.join(videos[:3])})" if videos else ""
         raise ValueError(f"{path}: no images ({', '.join(IMAGE_SUFFIXES)}, any case, sub-folders included){held}"
                          f"\nFix: {fix}")
-    notes = []
     if videos:
         notes.append(f"{path}: {len(videos)} video(s) not predicted ({', '.join(videos[:2])}"
                      f"{', ...' if len(videos) > 2 else ''}): give a video as SOURCE to predict its frames")
     return images, notes
 
 
-def _pattern(text: str) -> list[tuple[Path, str]]:
-    """The images and videos a glob pattern matches (extensions in any case), named below its root."""
+def _pattern(text: str) -> tuple[list[tuple[Path, str]], list[str]]:
+    """The images and videos a glob pattern matches (extensions in any case), named below its root; notes.
+
+    The predict output folders it reaches are noted, their pictures left out.
+    """
     parts = Path(text).expanduser().parts
     first = next(k for k, part in enumerate(parts) if has_magic(part))
     root = Path(*parts[:first]) if first else Path(".")
     matches = sorted({Path(p) for p in glob.glob(case_free(str(Path(text).expanduser())), recursive=True)})
-    found = [_named(p, root) for p in matches if p.is_file() and file_kind(p) and not _hidden(p, root)]
-    if not found:
+    files, notes, outputs = _run_outputs([p for p in matches if p.is_file() and file_kind(p) and not _hidden(p, root)])
+    if not files:
+        if outputs:
+            raise FileNotFoundError(f"{text}: the pattern matches no image or video but a predict run's outputs\n"
+                                    f"Fix: {_output_folder_fix(outputs)}")
         raise FileNotFoundError(f"{text}: the pattern matches no image or video ({len(matches)} other path(s))")
-    return found
+    return [_named(p, root) for p in files], notes
 
 
 def _entry(text: str, origin: str = "") -> tuple[list[tuple[Path, str]], list[str]]:
@@ -120,7 +159,7 @@ def _entry(text: str, origin: str = "") -> tuple[list[tuple[Path, str]], list[st
         return [_named(path, None)], []
     if has_magic(text):
         try:
-            return _pattern(text), []
+            return _pattern(text)
         except FileNotFoundError as error:
             raise FileNotFoundError(f"{origin}{error}") from None
     raise FileNotFoundError(f"{origin}{text}: no such file or folder (give folders of images, glob patterns such as "
@@ -154,6 +193,8 @@ def _list_file(path: Path) -> tuple[list[tuple[Path, str]], list[str]]:
         try:
             files, more = _entry(text, f"{path} line {number}: ")
         except FileNotFoundError as error:  # its own fix: the entry starts from the list's folder, not from here
+            if "\nFix: " in str(error):
+                raise
             raise FileNotFoundError(f"{error}\nFix: correct or remove line {number} of {path}; a relative path in a "
                                     f"list starts from the list's folder ({path.parent.resolve()}), not the "
                                     "current directory.") from None

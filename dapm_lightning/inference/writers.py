@@ -12,6 +12,8 @@ lock: runs into one folder at once keep every row) and ``contact_sheet.png`` (ti
 Every file is written whole or not at all and checked (:mod:`dapm_lightning.data.files`): a failed write raises
 :class:`~dapm_lightning.data.files.WriteError` naming the file and the fix. The output folder is checked before
 any work and made with the first file; one inside the source is refused (:func:`check_output_outside_source`).
+A folder written to is marked as a run's (:data:`~dapm_lightning.inference.run_folder.OUTPUT_MARKER`), so that a
+later source scan leaves its pictures out (:mod:`dapm_lightning.inference.sources`).
 """
 
 from __future__ import annotations
@@ -49,7 +51,7 @@ from dapm_lightning.inference.contact_sheet import CONTACT_MAX_IMAGES, contact_s
 from dapm_lightning.inference.inputs import PredictSource
 from dapm_lightning.inference.poses_table import pose_row, write_poses
 from dapm_lightning.inference.postprocess import Prediction, batch_predictions
-from dapm_lightning.inference.run_folder import remove_stale_files, run_folder
+from dapm_lightning.inference.run_folder import MARKER_TEXT, OUTPUT_MARKER, remove_stale_files, run_folder
 from dapm_lightning.inference.runtime import apply_inference_options
 from dapm_lightning.inference.sources import Sources, as_list, is_list_file, list_entries
 from dapm_lightning.inference.video_preview import VideoPreviews
@@ -251,6 +253,8 @@ class PredictionFiles:
         check_folder_writable(self.output_dir, option)
         self.created: list[Path] = []
         """The folders this object created (outermost first)."""
+        self.marked = False
+        """Whether the folder was marked as a prediction run's (:meth:`_mark`)."""
         self.start()
 
     def start(self) -> None:
@@ -271,6 +275,23 @@ class PredictionFiles:
             self.created += make_folder(self.output_dir)
         return self.output_dir
 
+    def _mark(self) -> None:
+        """Mark the folder as a prediction run's, once, after its first file.
+
+        With :data:`~dapm_lightning.inference.run_folder.OUTPUT_MARKER` there, a later run given a folder or pattern
+        that reaches it leaves its pictures out.
+
+        Best effort: a marker that cannot be written (a full disk) does not stop the run, whose error would name
+        it instead of the files; the folder is still known by its poses tables.
+        """
+        if not self.marked:
+            self.marked = True
+            if not (self.output_dir / OUTPUT_MARKER).is_file():
+                try:
+                    write_text(self.output_dir / OUTPUT_MARKER, MARKER_TEXT)
+                except (WriteError, OSError):
+                    pass
+
     def _failed(self, error: BaseException) -> BaseException:
         """After a failed write: the folder goes if this run created it and it is empty; the error names the option."""
         self.close()
@@ -283,6 +304,8 @@ class PredictionFiles:
         try:
             written = prediction_files(self._folder(), prediction, self.outputs, self.points_stride,
                                        self.points_max_depth, self.depth_range)
+            if written:
+                self._mark()
             if self.video_preview and prediction.time_s is not None and prediction.depth_m is not None:
                 self.previews.add(self.output_dir, prediction,
                                   depth_picture(prediction.depth_m, prediction.sky, self.depth_range))

@@ -33,9 +33,9 @@ def test_the_default_run_is_light_and_all_is_everything(checkpoint, photo, tmp_p
     main(["predict", str(photo), "--ckpt_path", str(checkpoint), "--out", str(out), "--device", "cpu"])
     assert capsys.readouterr().out.strip().endswith(
         f"depth_color, sky, camera per image; poses.csv, contact_sheet.png in {out}/")
-    assert sorted(p.name for p in out.iterdir()) == ["DJI_0001_camera.json", "DJI_0001_depth_color.png",
-                                                     "DJI_0001_sky.png", "contact_sheet.png", "poses.csv",
-                                                     "poses.json"]
+    assert sorted(p.name for p in out.iterdir()) == [".dapm_predict", "DJI_0001_camera.json",
+                                                     "DJI_0001_depth_color.png", "DJI_0001_sky.png",
+                                                     "contact_sheet.png", "poses.csv", "poses.json"]
     assert sum(p.stat().st_size for p in out.iterdir()) < 1_000_000
     every = tmp_path / "all"
     main(["predict", str(photo), "--ckpt_path", str(checkpoint), "--out", str(every), "--device", "cpu",
@@ -44,8 +44,8 @@ def test_the_default_run_is_light_and_all_is_everything(checkpoint, photo, tmp_p
     chosen = tmp_path / "chosen"
     main(["predict", str(photo), "--ckpt_path", str(checkpoint), "--out", str(chosen), "--device", "cpu",
           "--outputs", "depth_npy,points", "--contact_sheet", "0"])
-    assert sorted(p.name for p in chosen.iterdir()) == ["DJI_0001_depth.npy", "DJI_0001_points.ply", "poses.csv",
-                                                        "poses.json"]
+    assert sorted(p.name for p in chosen.iterdir()) == [".dapm_predict", "DJI_0001_depth.npy",
+                                                        "DJI_0001_points.ply", "poses.csv", "poses.json"]
     # the cloud at about the network's resolution, not one point per photo pixel
     shape = np.load(chosen / "DJI_0001_depth.npy").shape
     points = len(read_ply_independently(chosen / "DJI_0001_points.ply"))

@@ -104,7 +104,7 @@ def flight(tmp_path):
 def assert_whole(folder, earlier=None):
     """Every file in ``folder`` is complete: no empty or temporary file, each image and array readable."""
     names = sorted(p.name for p in folder.iterdir())
-    assert not [n for n in names if n.startswith(".")], names  # no temporary or lock file left behind
+    assert not [n for n in names if n.startswith(".") and n != ".dapm_predict"], names  # no temporary or lock file
     for path in folder.iterdir():
         assert path.stat().st_size > 0, path
         if path.suffix in (".png", ".tif"):
@@ -593,7 +593,8 @@ def test_the_summary_names_only_what_was_written(tmp_path, capsys):
         files.add(result)
         summary = files.finish()
     assert summary == f"predicted 1 image: camera per image; poses.csv in {out}/"
-    assert sorted(p.name for p in out.iterdir()) == [f"{result.name}_camera.json", "poses.csv", "poses.json"]
+    assert sorted(p.name for p in out.iterdir()) == [".dapm_predict", f"{result.name}_camera.json", "poses.csv",
+                                                     "poses.json"]
     with PredictionFiles(tmp_path / "none") as files:
         assert files.finish() == "predicted 0 images: nothing written"
     assert not (tmp_path / "none").exists()

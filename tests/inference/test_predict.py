@@ -341,7 +341,8 @@ def test_cli_predict_honours_precision_and_a_video_source(checkpoint, tmp_path, 
     assert names == ["clip_f000000", "clip_f000002", "clip_f000004"]
     assert sorted(p.name for p in out.iterdir()) == sorted(
         [f"{n}_{s}" for n in names for s in ("depth.npy", "camera.json")]
-        + ["poses.csv", "poses.json", "contact_sheet.png", "clip_depth.mp4"])  # the frames beside their depth
+        + ["poses.csv", "poses.json", "contact_sheet.png", "clip_depth.mp4", ".dapm_predict"])  # the frames beside
+    # their depth; the marker that keeps a later run from reading them back as images
     preview = cv2.VideoCapture(str(out / "clip_depth.mp4"))
     assert preview.get(cv2.CAP_PROP_FRAME_COUNT) == 3 and preview.get(cv2.CAP_PROP_FPS) == pytest.approx(5.0)
     assert preview.get(cv2.CAP_PROP_FRAME_WIDTH) == 96 and preview.get(cv2.CAP_PROP_FRAME_HEIGHT) == 36

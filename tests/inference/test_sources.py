@@ -170,3 +170,33 @@ def test_an_image_named_as_a_video_frame_is_refused_beside_that_video(tmp_path):
         resolve_sources(sources)
     files, _ = resolve_sources([str(tmp_path / n) for n in ("clip.mp4", "clip_f12.png", "other_f000001.png")])
     assert [f.name for f in files] == ["clip", "clip_f12", "other_f000001"]  # no frame of clip.mp4 has those names
+
+
+def test_a_run_written_inside_the_images_folder_is_not_read_back_as_images(sd_card, checkpoint, capsys, caplog):
+    """Photos given one by one (a shell-expanded glob) may write next to themselves; a later run on the card
+    leaves that run's pictures out with one note naming its folder, and the folder alone is refused with a fix."""
+    media = sd_card / "DCIM" / "100MEDIA"
+    out = media / "pred"
+    main(["predict", str(media / "DJI_0001.JPG"), str(media / "DJI_0002.JPG"), "--ckpt_path", str(checkpoint),
+          "--out", str(out), "--device", "cpu"])
+    capsys.readouterr()
+    assert (out / "DJI_0001_depth_color.png").is_file() and (out / ".dapm_predict").is_file()
+    files, notes = resolve_sources(sd_card)
+    assert [f.name for f in files] == ["DCIM_100MEDIA_DJI_0001", "DCIM_100MEDIA_DJI_0002", "DCIM_101MEDIA_DJI_0001"]
+    note = (f"{out}: a predict output folder, its 5 picture(s) written by predict left out (depth maps, not drone "
+            "images); name them one by one to predict them anyway")
+    assert [n for n in notes if "output folder" in n] == [note]
+    with pytest.raises(FileNotFoundError, match="Fix: .*pred is a predict output folder"):  # only its PNGs match
+        resolve_sources(f"{sd_card}/**/*.png")
+
+    main(["predict", str(sd_card / "DCIM"), "--ckpt_path", str(checkpoint), "--out", str(sd_card.parent / "run2"),
+          "--device", "cpu", "--outputs", "camera"])
+    assert "predicted 3 images" in capsys.readouterr().out
+    assert [r.message for r in caplog.records if "output folder" in r.message] == [note]
+    assert sorted(p.name for p in (sd_card.parent / "run2").glob("*_camera.json")) == [
+        "100MEDIA_DJI_0001_camera.json", "100MEDIA_DJI_0002_camera.json", "101MEDIA_DJI_0001_camera.json"]
+
+    (out / ".dapm_predict").unlink()  # a run from before the marker: its poses tables tell it
+    with pytest.raises(ValueError, match="no images .*\nFix: .*pred is a predict output folder"):
+        resolve_sources(out)
+    assert resolve_sources(out / "DJI_0001_depth_color.png")[0][0].name == "DJI_0001_depth_color"  # named: kept
