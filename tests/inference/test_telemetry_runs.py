@@ -23,6 +23,7 @@ from dapm_lightning.inference.telemetry import (
     images_telemetry,
     video_telemetry,
 )
+from tests.conftest import run_main
 
 NAN = math.nan
 
@@ -92,6 +93,27 @@ def test_an_image_whose_metadata_pillow_refuses_falls_back_alone_naming_it(tmp_p
     assert "--no_metadata" in caught[0] and "this image's telemetry is not used" in caught[0]
     with pytest.raises(TelemetryError, match=r"b.png: its metadata cannot be read.*--strict_telemetry"):
         images_telemetry([good, bloated], strict=True)
+
+
+def test_a_png_cut_short_is_its_decode_error_not_a_broken_exif_block(checkpoint, tmp_path, capsys):
+    """Pillow reads a PNG's EXIF by decoding it, so a PNG cut short raised 'image file is truncated' there: it was
+    warned about as an EXIF block to strip, and --strict_telemetry stopped on that alone, never saying to replace
+    the file. Now its metadata is none and the image reader's error (the file and the fix) is what is shown."""
+    images = tmp_path / "bad"
+    images.mkdir()
+    whole = cv2.imencode(".png", np.random.default_rng(3).integers(0, 255, (40, 60, 3), np.uint8))[1].tobytes()
+    cut = images / "trunc.png"
+    cut.write_bytes(whole[:len(whole) // 2])
+    (telemetry,), caught = record(lambda: images_telemetry([cut], strict=True)[0])
+    assert telemetry == PoseTelemetry() and caught == []
+    for strict in ([], ["--strict_telemetry"]):
+        code, err = run_main(["predict", str(images), "--ckpt_path", str(checkpoint), "--out", str(tmp_path / "x"),
+                              "--device", "cpu", *strict], capsys)
+        assert code == 1 and "EXIF" not in err, err
+        lines = err.splitlines()
+        error = next(k for k, line in enumerate(lines) if line.startswith("error: "))
+        assert lines[error] == f"error: {cut}: cannot be decoded as an image (damaged, cut short, or not an image)"
+        assert lines[error + 1].startswith("Fix: replace it with an intact copy, or move it out of the source")
 
 
 def write_video(path, frames=9, size=(36, 48), fps=10.0):

@@ -85,6 +85,23 @@ def _rational(value: Any) -> float:
         return math.nan
 
 
+def _pixels_undecodable(path: Path) -> bool:
+    """Whether Pillow cannot decode the image itself (cut short, damaged).
+
+    Pillow reads a PNG's EXIF (which may follow the pixels) by decoding the image, so a PNG cut short fails there
+    with ``image file is truncated``: that is the file's damage, which the image reader reports with its fix
+    (replace it with an intact copy), not a broken EXIF block to strip.
+    """
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            with Image.open(path) as im:
+                im.load()
+    except Exception:  # noqa: BLE001 - any failure to decode is the image's own
+        return True
+    return False
+
+
 def _read_header(path: Path) -> tuple[int, int, Any, float, float] | None:
     """``(width, height, XMP packet or None, f35, focal)`` from the file's header; None when Pillow cannot open it."""
     try:
@@ -101,6 +118,8 @@ def _read_header(path: Path) -> tuple[int, int, Any, float, float] | None:
                     f35 = _rational(exif_ifd.get(_EXIF_F35, exif.get(_EXIF_F35)))
                     focal = _rational(exif_ifd.get(_EXIF_FOCAL, exif.get(_EXIF_FOCAL)))
                 except Exception as exc:  # Pillow raises many kinds on a damaged EXIF block
+                    if _pixels_undecodable(path):  # a PNG's EXIF is read by decoding it: the file, not its EXIF
+                        return None
                     raise TelemetryError(f"{path}: its EXIF block cannot be read ({type(exc).__name__}: {exc}); "
                                          "repair or strip it, give the pose in a --telemetry CSV, or read no image "
                                          "metadata (--no_metadata; read_metadata=False in Python)") from exc
