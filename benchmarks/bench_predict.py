@@ -291,7 +291,7 @@ def memory(frames: int = 2000, every: int = 200, batch_size: int = 16, ckpt_path
             "--trainer.callbacks+=benchmarks.callbacks.MemoryProbe", "--trainer.callbacks.every", str(every)])
         probe = next(c for c in cli.trainer.callbacks if isinstance(c, MemoryProbe))
         writer = next(c for c in cli.trainer.callbacks if isinstance(c, PredictionWriter))
-        files = sum(1 for _ in Path(writer.output_dir).iterdir())
+        files = sum(1 for p in Path(writer.output_dir).iterdir() if not p.name.startswith("."))  # not the marker
     seconds = probe.seconds
     print(f"{probe.seen} frames in {seconds:.0f} s ({probe.seen / max(seconds, 1e-9):.1f} frames/s), "
           f"{files} files written")
