@@ -173,6 +173,7 @@ class PotsdamCrops:
         (self.out / "rgb").mkdir(parents=True, exist_ok=True)
         (self.out / "height").mkdir(parents=True, exist_ok=True)
         names: list[str] = []
+        small: list[str] = []  # tiles too small for one crop
         for rgb_path, height_path in pairs:
             result = self.read_pair(rgb_path, height_path)  # every tile is decoded: each one that fails is listed
             if isinstance(result, list):
@@ -182,6 +183,8 @@ class PotsdamCrops:
                 continue
             rgb, height = result
             s = self.crop_size
+            if min(rgb.shape[:2]) < s:
+                small.append(f"{rgb_path}: {rgb.shape[1]}x{rgb.shape[0]} pixels, smaller than one {s}x{s} crop")
             for top in range(0, rgb.shape[0] - s + 1, s):
                 for left in range(0, rgb.shape[1] - s + 1, s):
                     name = f"{rgb_path.stem}_{top}_{left}"
@@ -191,6 +194,9 @@ class PotsdamCrops:
                     names.append(name)
         if problems and self.on_bad_file != "skip":
             raise DatasetError(self.root, problems, fix=TILE_FIX)
+        if not names and small:  # no tile large enough for one crop
+            raise DatasetError(self.root, small, fix="Fix: a smaller --data.init_args.crop_size (each tile is cut "
+                               "into crops of that side; ISPRS Potsdam's tiles are 6000x6000 pixels).")
         if not names:  # every tile bad: on_bad_file skip left out all of them
             raise DatasetError(self.root, problems, fix=EVERY_FILE_SKIPPED_FIX)
         index.write_text(json.dumps({"crop_size": self.crop_size, "layout": self.kind, "ndsm_scale": self.ndsm_scale,

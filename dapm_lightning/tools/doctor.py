@@ -363,7 +363,7 @@ def check_potsdam(root: Path) -> list[dict[str, Any]]:
 
 
 def doctor(root: Path, splits: list[str] | None = None, depth_kind: DepthKind = "range",
-           max_depth: float | None = None, json: Path | None = None, quiet: bool = False) -> int:
+           json: Path | None = None, quiet: bool = False, max_depth: float | None = None) -> int:
     """Check a UAPD-format data set (ROOT/SPLIT/rgb, ROOT/SPLIT/depth) and print a report per split.
 
     Args:

@@ -137,7 +137,7 @@ LIGHTNING_CHECKPOINT_WORDS = ("best", "last", "hpc", "registry")
 
 def is_lightning_checkpoint_word(ckpt_path: str) -> bool:
     """Whether ``ckpt_path`` is one of Lightning's own values (:data:`LIGHTNING_CHECKPOINT_WORDS`), not a path."""
-    return ckpt_path in LIGHTNING_CHECKPOINT_WORDS or ckpt_path.startswith("registry:")
+    return ckpt_path in LIGHTNING_CHECKPOINT_WORDS or ckpt_path.lower().startswith("registry")  # any case, as it
 
 
 def unreadable_yaml(paths: Sequence[str]) -> str | None:

@@ -124,3 +124,11 @@ def test_a_missing_root_is_named_as_such(tmp_path):
     assert info.value.problems == [f"{tmp_path / 'nowhere'}: no such folder"]
     assert info.value.fix.startswith("Fix: give data.init_args.root the unpacked ISPRS Potsdam download")
     assert not (tmp_path / "nowhere").exists()
+
+
+def test_tiles_smaller_than_one_crop_are_named_with_the_crop_size_to_use(tmp_path):
+    isprs_download(tmp_path)  # 96x64 tiles
+    with pytest.raises(DatasetError) as info:
+        PotsdamDataset(tmp_path, "train", crop_size=512)
+    assert info.value.problems[0].endswith("96x64 pixels, smaller than one 512x512 crop"), info.value.problems
+    assert info.value.fix.startswith("Fix: a smaller --data.init_args.crop_size")

@@ -299,10 +299,19 @@ def test_csv_rows_named_by_folder_tell_apart_images_of_one_name(tmp_path):
     assert len(caught) == 1 and "1 row(s) serve several images of one name in different folders, e.g. `DJI_0001` " \
         "(bare.csv line 2)" in str(caught[0].message) and "100MEDIA/DJI_0001.JPG" in str(caught[0].message)
     third = write_jpeg((tmp_path / "other").mkdir() or tmp_path / "other" / "DJI_0001.JPG")
-    with pytest.raises(TelemetryError, match=r"other/DJI_0001.JPG: the telemetry CSV has rows of different values "
-                                             r"for an image of this name \(`100MEDIA/DJI_0001` \(by_folder.csv line 2"
-                                             r"\), `D:/card/DCIM/101MEDIA/DJI_0001` .*\(other/DJI_0001.JPG\)"):
-        telemetry_for_images([third], by_folder, read_metadata=False)
+    out, _ = record(telemetry_for_images, [third], by_folder, read_metadata=False)  # rows of other folders
+    assert out == [PoseTelemetry()]
+    one_folder = write_csv(tmp_path / "one.csv", "name,height_m\n100MEDIA/DJI_0001.JPG,33\n")
+    out, caught = record(telemetry_for_images, [first, second], one_folder, read_metadata=False)
+    assert [t.height_m for t in out][0] == 33.0 and math.isnan(out[1].height_m) and not caught
+    with_bare = write_csv(tmp_path / "with_bare.csv", "name,height_m\n100MEDIA/DJI_0001.JPG,33\nDJI_0001.JPG,50\n")
+    out, caught = record(telemetry_for_images, [first, second, third], with_bare, read_metadata=False)
+    assert [t.height_m for t in out] == [33.0, 50.0, 50.0]  # the folder's row first, the bare one for the rest
+    alike = write_csv(tmp_path / "alike.csv", "name,height_m\na/100MEDIA/DJI_0001.JPG,33\nb/100MEDIA/DJI_0001,34\n")
+    with pytest.raises(TelemetryError, match=r"100MEDIA/DJI_0001.JPG: the telemetry CSV has rows of different values "
+                                             r"that fit this image equally \(`a/100MEDIA/DJI_0001` \(alike.csv line 2"
+                                             r"\), `b/100MEDIA/DJI_0001` .*name the rows by more of their folders"):
+        telemetry_for_images([first], alike, read_metadata=False)
 
 
 def test_an_srt_given_as_the_images_csv_says_it_goes_with_a_video(tmp_path):

@@ -139,7 +139,8 @@ def test_an_srt_with_fewer_subtitles_than_frames_warns_once_and_a_csv_names_fram
     assert len(caught) == 1 and "cover frames up to 4 of v.avi; 4 of the 9 frame(s) predicted (the first: 5)" in \
         caught[0]
     table = tmp_path / "frames.csv"
-    table.write_text("name,height_m,fov_deg\nv_f000002,55.5,\nv_f000007,60,70\nother,1,\n")
+    table.write_text("name,height_m,fov_deg\nv_f000002,55.5,\nframes/v_f000007.png,60,70\nother,1,\n")  # folders:
+    # a frame is named by its output name, so a folder in the row's name does not count
     (frames, report), caught = record(video_telemetry, video, range(9), srt, table, size=(48, 36), fps=10.0)
     assert frames[2].height_m == 55.5 and frames[2].provenance[0] == "frames.csv line 2"
     assert frames[2].pitch_deg == -45.0 and frames[2].provenance[1] == "v.SRT subtitle 3 gb_pitch"  # SRT fills in

@@ -111,6 +111,9 @@ def test_a_wrong_ckpt_path_stops_fit_and_test_before_their_log_folders_are_made(
         code, err = run_main([subcommand, "--config", str(QUICKSTART), *data, "--ckpt_path", "runs"], capsys)
         assert code == 1 and "runs: a folder, not a checkpoint file" in err, err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["runs"]  # no run folder, no logger's version_N
+    from dapm_lightning.training.lightning_cli import is_lightning_checkpoint_word
+    assert all(map(is_lightning_checkpoint_word, ("best", "last", "hpc", "registry", "REGISTRY:model:1")))
+    assert not any(map(is_lightning_checkpoint_word, ("nope.ckpt", "runs", "lastly.ckpt", "best.ckpt")))
 
 
 def test_bad_setting_and_debug_flag(capsys, monkeypatch, tmp_path):

@@ -61,17 +61,19 @@ def rows_by_stem(rows: Mapping[str, PoseTelemetry]) -> dict[str, list[str]]:
 def row_for_image(path: Path, rows: Mapping[str, PoseTelemetry], by_stem: Mapping[str, list[str]]) -> str | None:
     """The key of the row naming the image ``path``, None when no row does.
 
-    A row names an image by its stem, and its folders, where it has any, tell apart images of one name: of the rows
-    ending in the image's stem, the one that shares the most trailing folders with the image's path
-    (``flight1/DJI_0001`` for ``/data/flight1/DJI_0001.JPG``, not ``flight2/DJI_0001``).
+    A row names an image by its stem; a row that also names folders names only an image in its last folder
+    (``100MEDIA/DJI_0001`` names ``.../100MEDIA/DJI_0001.JPG``, not ``.../101MEDIA/DJI_0001.JPG``), and a row of
+    the bare name any image of that name. Of the rows that name the image, the one sharing the most trailing folders
+    with its path is its (``D:/card/DCIM/101MEDIA/DJI_0001`` and ``DCIM/101MEDIA/DJI_0001`` share two with
+    ``/data/DCIM/101MEDIA/DJI_0001.JPG``).
 
     Raises:
-        TelemetryError: two rows of different values share the most folders with it, so the CSV does not say
-            which is the image's (naming both).
+        TelemetryError: two rows of different values share as many folders with the image's path, so the CSV does
+            not say which is the image's (naming both).
     """
     keys = by_stem.get(path.stem, [])
-    if len(keys) <= 1:
-        return keys[0] if keys else None
+    if not keys:
+        return None
     folders = path.absolute().parent.parts[::-1]
 
     def shared(key: str) -> int:
@@ -82,13 +84,15 @@ def row_for_image(path: Path, rows: Mapping[str, PoseTelemetry], by_stem: Mappin
             count += 1
         return count
 
-    best = max(map(shared, keys))
-    chosen = [key for key in keys if shared(key) == best]
+    naming = {key: shared(key) for key in keys if "/" not in key or shared(key) > 0}
+    if not naming:
+        return None
+    best = max(naming.values())
+    chosen = [key for key, count in naming.items() if count == best]
     if any(not np.array_equal(rows[chosen[0]].values(), rows[key].values(), equal_nan=True) for key in chosen[1:]):
         lines = ", ".join(f"`{key}` ({rows[key].source})" for key in chosen)
-        raise TelemetryError(f"{path}: the telemetry CSV has rows of different values for an image of this name "
-                             f"({lines}) and none names its folder; name the rows by folder and file "
-                             f"({path.parent.name}/{path.name})")
+        raise TelemetryError(f"{path}: the telemetry CSV has rows of different values that fit this image equally "
+                             f"({lines}); name the rows by more of their folders")
     return chosen[0]
 
 

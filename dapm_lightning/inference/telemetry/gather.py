@@ -106,7 +106,7 @@ class TelemetryCsv:
         """A video is predicted: the rows naming any of its frames (``frame_name``, ``PREFIX_f000012``) are its."""
         self.videos.append(video)
         self.frame_prefixes.append(video.stem if prefix is None else prefix)
-        self.matched.update(name for name in self.rows if frame_name.fullmatch(name))
+        self.matched.update(key for key in self.rows if frame_name.fullmatch(key.rsplit("/", 1)[-1]))
 
     def warn_unmatched(self) -> None:
         """One warning for the names that match no input (a flight log often covers more than one run predicts)."""
@@ -121,6 +121,15 @@ class TelemetryCsv:
                       f"{first_few(unmatched)}; names are matched by file name with or without extension "
                       "(case-sensitive; folders in a name must be the image's), those rows are unused",
                       TelemetryWarning, stacklevel=3)
+
+
+def frame_rows(rows: dict[str, PoseTelemetry]) -> dict[str, PoseTelemetry]:
+    """The rows by their last name, for video frames.
+
+    A frame is named by its output name (``100MEDIA_DJI_0005_f000012``), so folders in a row's name
+    (``frames/DJI_0005_f000012.png``) do not count for it.
+    """
+    return {key.rsplit("/", 1)[-1]: row for key, row in rows.items()}
 
 
 def _table(csv: StrPath | TelemetryCsv | None) -> TelemetryCsv | None:
@@ -245,7 +254,7 @@ def video_telemetry(video: Path, frames: Sequence[int] | None, srt_path: StrPath
             fall_back(exc, "video", strict)
             report.fell_back.append(Path(srt_path).name)
     table, shared = _table(csv_path), isinstance(csv_path, TelemetryCsv)
-    rows = table.rows if table is not None else {}
+    rows = frame_rows(table.rows) if table is not None else {}
     prefix = video.stem if name is None else name  # the CSV names frames as their outputs are named
     frame_name = re.compile(re.escape(prefix) + r"_f(\d{6,})")
     if frames is None:
