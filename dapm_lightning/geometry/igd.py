@@ -127,7 +127,7 @@ class IGDSpec:
         depth_kind: ``"range"`` or ``"planar"``; must be what the data set's depth maps hold.
         max_depth: metres; sky and the clamp of every depth (finite, above ``MIN_DEPTH_LIMIT_M``: refused otherwise,
             naming ``model.net.igd.max_depth``).
-        pose_ranges: normalisation ranges of the pose, ``{key: (lo, hi)}`` (UAPD's by default).
+        pose_ranges: normalisation ranges of the pose, ``{key: (lo, hi)}``; a component not given keeps UAPD's.
     """
 
     model: IGDModel = "pinhole"
@@ -136,10 +136,12 @@ class IGDSpec:
     pose_ranges: Mapping[str, tuple[float, float]] = field(default_factory=_uapd_ranges)
 
     def __post_init__(self) -> None:
-        missing = set(POSE_RANGES) - {str(k) for k in self.pose_ranges}
-        if missing:
-            raise ValueError(f"pose_ranges lacks {sorted(missing)}; it needs {list(POSE_RANGES)}")
-        ranges = {str(k): _pose_range(str(k), v) for k, v in self.pose_ranges.items()}
+        unknown = {str(k) for k in self.pose_ranges} - set(POSE_RANGES)
+        if unknown:
+            raise ValueError(f"model.net.igd.pose_ranges: unknown component(s) {sorted(unknown)}; the pose's are "
+                             f"{list(POSE_RANGES)}")
+        given = {str(k): v for k, v in self.pose_ranges.items()}  # a component not given keeps UAPD's range
+        ranges = {key: _pose_range(key, given.get(key, default)) for key, default in _uapd_ranges().items()}
         object.__setattr__(self, "pose_ranges", ranges)
         object.__setattr__(self, "max_depth", check_depth_limit(self.max_depth, "model.net.igd.max_depth"))
 

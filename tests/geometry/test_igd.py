@@ -168,3 +168,12 @@ def test_a_pose_range_that_normalises_nothing_is_refused_naming_the_setting(bad)
                                          r".fov: \[30, 120\] \(UAPD's\)"):
         IGDSpec(pose_ranges=ranges)
     assert IGDSpec(pose_ranges={**POSE_RANGES, "fov": [89, 91]}).pose_ranges["fov"] == (89.0, 91.0)
+
+
+def test_pose_ranges_given_in_part_keep_uapd_s_for_the_rest_and_an_unknown_component_is_refused():
+    """conventions.md's one-lens example, `pose_ranges: {fov: [85, 95]}`, used to be refused for the three missing."""
+    spec = IGDSpec(pose_ranges={"fov": [85, 95]})
+    assert spec.pose_ranges == {**POSE_RANGES, "fov": (85.0, 95.0)}
+    assert list(spec.pose_ranges) == list(POSE_RANGES)
+    with pytest.raises(ValueError, match=r"pose_ranges: unknown component\(s\) \['fv'\]; the pose's are \['height'"):
+        IGDSpec(pose_ranges={"fv": [85, 95]})
