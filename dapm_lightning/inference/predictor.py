@@ -135,6 +135,13 @@ class DAPMPredictor:
             if image.ndim != 3 or image.shape[0] not in (1, 3):
                 raise ValueError(f"image {index}: a tensor must be [3, H, W] or [B, 3, H, W] RGB, got "
                                  f"{tuple(image.shape)}")
+            if not image.is_floating_point():
+                raise ValueError(f"image {index}: a tensor must be uint8 (0-255) or float RGB in [0, 1], got "
+                                 f"{image.dtype}")
+            low, high = (float(v) for v in torch.aminmax(image.detach()))
+            if not (-1e-3 <= low and high <= 1.0 + 1e-3):  # NaN fails too
+                raise ValueError(f"image {index}: a float tensor must hold RGB in [0, 1], got values from {low:g} to "
+                                 f"{high:g}; divide 0-255 values by 255 (or pass a uint8 tensor)")
             size = (int(image.shape[1]), int(image.shape[2]))
             net = network_size(*size, self.target)
             item = PredictInput(resize_images(image.expand(3, -1, -1)[None], net)[0], str(index), size, prior=prior,

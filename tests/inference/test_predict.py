@@ -277,6 +277,11 @@ def test_python_api_images_batches_and_tensors(checkpoint):
         np.testing.assert_allclose(s.depth_m, r.depth_m, rtol=1e-4, atol=1e-3)
         np.testing.assert_allclose(t.depth_m, r.depth_m, rtol=0.05)  # tensors are resized by torch, not OpenCV
     assert floats.depth_m.shape == (50, 80)
+    with pytest.raises(ValueError, match=r"image 0: a float tensor must hold RGB in \[0, 1\], got values from 0 to "
+                                         r"25\d; divide 0-255 values by 255"):  # the division forgotten
+        predictor(torch.from_numpy(rgb).permute(2, 0, 1).float())
+    with pytest.raises(ValueError, match="a tensor must be uint8 .0-255. or float RGB in .0, 1., got torch.int64"):
+        predictor(torch.from_numpy(rgb).permute(2, 0, 1).long())
     bf16 = DAPMPredictor(predictor.module, image_width=64, precision="bf16")(rgb)
     assert bf16.depth_m.dtype == np.float32 and np.isfinite(bf16.depth_m).all()
     points = a.points(stride=2, rgb=rgb)
