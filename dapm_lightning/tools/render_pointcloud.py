@@ -103,9 +103,18 @@ def render_main(ckpt_path: Path, image: Path, out: Path = Path("pointcloud.png")
     from dapm_lightning.inference.inputs import read_image
     from dapm_lightning.inference.predictor import DAPMPredictor
 
-    rgb = read_image(Path(image))
+    image = Path(image)
+    if not image.is_file():  # read_image reports a missing file as one it cannot decode
+        raise FileNotFoundError(f"--image {image}: no such image file" if not image.exists() else
+                                f"--image {image}: a folder, not an image file (this tool draws one image)")
+    rgb = read_image(image)
     predictor = DAPMPredictor.from_checkpoint(ckpt_path, image_width=image_width)
     prediction = predictor(rgb)
+    if prediction.pose is None or prediction.depth_m is None:
+        kind = "DAPM(D), depth only: no pose branch" if prediction.pose is None else "DAPM(P), pose only: no depth"
+        raise ValueError(f"--ckpt_path {ckpt_path}: a {kind}; a point cloud needs both depth and pose.\n"
+                         "Fix: pass a full DAPM checkpoint (depth and pose); `dapm-lightning predict` writes what "
+                         "this model predicts alone.")
     given = predictor(rgb, prior=np.asarray(telemetry, dtype=np.float64)) if telemetry is not None else None
     if ply is not None:
         prediction.points(stride, max_depth, rgb).write_ply(ply)
@@ -117,10 +126,16 @@ def render_main(ckpt_path: Path, image: Path, out: Path = Path("pointcloud.png")
 
 def main(argv: Sequence[str] | None = None) -> None:
     """Command line of :func:`render_main`."""
+    import sys
+
     from jsonargparse import auto_cli
 
-    auto_cli(render_main, args=None if argv is None else list(argv), as_positional=False,
-             prog="python -m dapm_lightning.tools.render_pointcloud", description=__doc__)
+    from dapm_lightning.tools.errors import debug_requested, run_reporting_errors
+
+    debug, args = debug_requested(sys.argv[1:] if argv is None else argv)
+    run_reporting_errors(lambda: auto_cli(render_main, args=args, as_positional=False,
+                                          prog="python -m dapm_lightning.tools.render_pointcloud",
+                                          description=__doc__), debug)
 
 
 if __name__ == "__main__":

@@ -1,5 +1,6 @@
 import matplotlib
 import numpy as np
+import pytest
 import torch
 
 from dapm_lightning.geometry import ideal_ground_depth
@@ -43,3 +44,40 @@ def test_render_with_and_without_telemetry_from_a_checkpoint(checkpoint, tmp_pat
     two = render_main(checkpoint, image, tmp_path / "two.png", telemetry=[40.0, -35.0, 0.0, 70.0])
     width = lambda path: cv2.imread(str(path)).shape[1]  # noqa: E731
     assert width(two) > 1.4 * width(one)  # a third panel: the cloud with telemetry
+
+
+def _render(args, capsys):
+    """``python -m dapm_lightning.tools.render_pointcloud ARGS`` expected to exit: ``(status, stderr)``."""
+    from dapm_lightning.tools.render_pointcloud import main
+
+    with pytest.raises(SystemExit) as stop:
+        main(args)
+    return stop.value.code, capsys.readouterr().err
+
+
+def test_missing_files_and_a_depth_only_model_are_short_messages(checkpoint, tiny_uapd, tmp_path, capsys):
+    """A missing --image was called undecodable, a missing --ckpt_path and a DAPM(D) checkpoint ended in tracebacks."""
+    import cv2
+
+    from tests.conftest import _one_step_quickstart
+
+    image = tmp_path / "frame.png"
+    cv2.imwrite(str(image), np.zeros((48, 64, 3), np.uint8))
+    out = ["--out", str(tmp_path / "view.png")]
+    code, err = _render(["--ckpt_path", str(checkpoint), "--image", str(tmp_path / "nope.png"), *out], capsys)
+    assert code == 1 and f"--image {tmp_path / 'nope.png'}: no such image file" in err, err
+    assert "Fix: check the path" in err and "decoded" not in err and "Traceback" not in err
+    code, err = _render(["--ckpt_path", str(checkpoint), "--image", str(tmp_path), *out], capsys)
+    assert code == 1 and "a folder, not an image file" in err and "Traceback" not in err, err
+    code, err = _render(["--ckpt_path", str(tmp_path / "nope.ckpt"), "--image", str(image), *out], capsys)
+    assert code == 1 and f"{tmp_path / 'nope.ckpt'}: no such checkpoint file" in err and "Traceback" not in err, err
+    code, err = _render(["--ckpt_path", str(checkpoint), "--imag", str(image)], capsys)
+    assert code == 2 and "Traceback" not in err, err  # a usage error
+    depth_only = _one_step_quickstart(tiny_uapd, tmp_path / "dapm_d", "--model.net.use_pose", "false",
+                                      "--model.net.use_igd_feature", "false", "--model.net.depth_parametrization",
+                                      "absolute", "--model.net.depth_readout", "head")
+    code, err = _render(["--ckpt_path", str(depth_only), "--image", str(image), *out], capsys)
+    assert code == 1 and "DAPM(D), depth only: no pose branch" in err and "Traceback" not in err, err
+    assert "Fix: pass a full DAPM checkpoint" in err and not (tmp_path / "view.png").exists()
+    with pytest.raises(FileNotFoundError):  # --debug: the traceback
+        _render(["--ckpt_path", str(tmp_path / "nope.ckpt"), "--image", str(image), "--debug"], capsys)
