@@ -85,6 +85,7 @@ def export(ckpt_path: Path, out: Path | None = None, height: int | None = None, 
         raise ValueError("--int8 quantises the float32 model: leave --fp16 out")
     check_export_size(height, width)
     check_export_counts(checks=checks, calibration_images=calibration_images, verdict_images=verdict_images)
+    check_not_onnx(ckpt_path)  # before --out, whose default from an .onnx name would be that name itself
     suffix = "_fp16" if fp16 else "_int8" if int8 else ""
     out = Path(out) if out else ckpt_path.with_name(ckpt_path.stem + suffix + ".onnx")
     check_export_path(out, ckpt_path)
@@ -199,6 +200,26 @@ def check_export_counts(**counts: int) -> None:
         if count < 1:
             raise ValueError(f"--{name} {count}: at least 1 (the export is checked on random inputs, an int8 model "
                              f"calibrated and measured on renders).\nFix: give --{name} 1 or more, or leave it out")
+
+
+def check_not_onnx(ckpt_path: Path) -> None:
+    """Refuse an exported model given as the checkpoint: a name ending in .onnx, or an ONNX file by its content."""
+    from dapm_lightning.training.checkpoint_files import looks_like_onnx
+
+    named = ckpt_path.suffix.lower() == ".onnx"
+    if not named:
+        try:
+            with open(ckpt_path, "rb") as stream:
+                if not looks_like_onnx(stream.read(16)):
+                    return
+        except OSError:  # missing or unreadable: read_checkpoint names it
+            return
+    run = (f"dapm-lightning predict SOURCE --ckpt_path {ckpt_path}" if named else
+           f"dapm-lightning predict SOURCE --ckpt_path {ckpt_path.with_suffix('.onnx')} (renamed to end in .onnx, "
+           "which is how predict tells an ONNX model)")
+    raise ValueError(f"{ckpt_path}: an exported ONNX model already, not a checkpoint: export takes the checkpoint "
+                     "written by `dapm-lightning fit` (a .ckpt file, e.g. the run's last.ckpt).\nFix: export that "
+                     f".ckpt; to run this ONNX model, give it to predict directly: {run}")
 
 
 def check_export_path(out: Path, ckpt_path: Path) -> None:

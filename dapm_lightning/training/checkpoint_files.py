@@ -46,6 +46,59 @@ class CheckpointReadError(RuntimeError):
     """A checkpoint file that cannot be read: truncated, corrupt or not a PyTorch file (the message names it)."""
 
 
+class NotACheckpointFileError(CheckpointReadError):
+    """A file that is something else than a checkpoint, said what (an ONNX model, a part of a split checkpoint)."""
+
+    explained = True  # the message says what it is and the fix: printed as it is (tools/errors.py)
+
+
+_SPLIT_PART = re.compile(r"^checkpoint\.part\d+$")
+"""The name of one part of a split checkpoint (:func:`split_checkpoint`)."""
+_ONNX_MODEL_TAGS = frozenset({0x12, 0x1A, 0x22, 0x28, 0x32, 0x3A, 0x42, 0x72})
+"""The protobuf tags of ONNX ``ModelProto`` fields 2-8 and 14, one of which follows ``ir_version`` (field 1)."""
+
+
+def looks_like_onnx(head: bytes) -> bool:
+    """Whether a file's first bytes are an ONNX model's (protobuf ``ModelProto``: ``ir_version``, then another field).
+
+    Protobuf writes fields in number order: tag ``0x08`` (field 1, a varint), the IR version (1 to 127), then the
+    tag of a later field (producer, graph, opset imports...). A PyTorch checkpoint starts ``PK`` (zip) or ``0x80``.
+    """
+    return len(head) >= 3 and head[0] == 0x08 and 0 < head[1] < 0x80 and head[2] in _ONNX_MODEL_TAGS
+
+
+def _not_a_checkpoint(path: str | Path, source: Path) -> str | None:
+    """What a local file that torch cannot load is, when it is an ONNX model or a split checkpoint's part; else None."""
+    listed = source.parent / SPLIT_MANIFEST
+    part_of_split = _SPLIT_PART.match(source.name) is not None
+    if listed.is_file() and not part_of_split:
+        try:
+            part_of_split = source.name in {str(p.get("name")) for p in json.loads(listed.read_text())["parts"]}
+        except (OSError, ValueError, KeyError, TypeError, AttributeError):
+            part_of_split = False
+    if part_of_split:
+        folder = source.parent
+        if listed.is_file():
+            return (f"{path}: one part of a split checkpoint, not a whole checkpoint: the folder {folder} holds it "
+                    f"(its parts and {SPLIT_MANIFEST}), joined and checked when read.\nFix: pass the folder, "
+                    f"{folder}, instead of one of its parts.")
+        return (f"{path}: one part of a split checkpoint, not a whole checkpoint, and {folder} has no "
+                f"{SPLIT_MANIFEST} to join it with the other parts.\nFix: pass the folder that holds all the parts "
+                f"and {SPLIT_MANIFEST} (copy it again whole if parts.json is missing).")
+    try:
+        with open(source, "rb") as stream:
+            head = stream.read(16)
+    except OSError:
+        return None
+    if looks_like_onnx(head):
+        run = (f"`dapm-lightning predict SOURCE --ckpt_path {path}`" if source.suffix.lower() == ".onnx" else
+               f"`dapm-lightning predict SOURCE --ckpt_path {source.with_suffix('.onnx')}` (renamed to end in .onnx, "
+               "which is how predict tells an ONNX model)")
+        return (f"{path}: an exported ONNX model, not a checkpoint written by `dapm-lightning fit` (.ckpt).\nFix: "
+                f"pass the .ckpt it was exported from; predict runs the ONNX model directly: {run}.")
+    return None
+
+
 class UnsafeCheckpointError(RuntimeError):
     """A checkpoint refused because it holds pickled Python objects (code could run); nothing in it was run."""
 
@@ -462,6 +515,9 @@ def read_checkpoint(path: str | Path, map_location: Any = "cpu") -> dict[str, An
                 "weights_only=True (tensors and plain values only).\nFix: use a checkpoint written by "
                 "`dapm-lightning fit`; if you made this file yourself and trust it, load it once with "
                 "torch.load(..., weights_only=False) and save it again with tensors and plain values only.") from error
+        other = None if isinstance(source, bytes) else _not_a_checkpoint(path, source)
+        if other:
+            raise NotACheckpointFileError(other) from error
         size = len(source) if isinstance(source, bytes) else source.stat().st_size
         first = str(error).strip().splitlines()[0].split(". ")[0] if str(error).strip() else type(error).__name__
         raise CheckpointReadError(f"{path}: not a readable checkpoint ({size} bytes; truncated, corrupt or not a "

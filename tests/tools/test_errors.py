@@ -289,3 +289,56 @@ def test_a_missing_export_extra_names_the_install(tmp_path, capsys, monkeypatch)
            '"dapm-lightning[export]" (onnx, onnxscript, onnxruntime)' in err, err
     message, _ = describe(ModuleNotFoundError("No module named 'yaml'", name="yaml"))
     assert "export extra" not in message  # another missing package is not said to be the extra's
+
+
+def _onnx_bytes() -> bytes:
+    """A small ONNX model (Identity), as onnx writes it."""
+    onnx = pytest.importorskip("onnx")
+    from onnx import TensorProto, helper
+
+    value = helper.make_tensor_value_info
+    graph = helper.make_graph([helper.make_node("Identity", ["x"], ["y"])], "g", [value("x", TensorProto.FLOAT, [1])],
+                              [value("y", TensorProto.FLOAT, [1])])
+    return onnx.helper.make_model(graph, producer_name="pytorch").SerializeToString()
+
+
+def test_export_of_an_onnx_model_says_it_is_exported_already(tmp_path, capsys):
+    """`export m.onnx` said to write --out m.onnx (the same path), `export x.onnx --out y.onnx` called it corrupt."""
+    code, err = run_main(["export", str(tmp_path / "exp" / "m.onnx")], capsys)  # by its name, there or not
+    assert code == 1 and f"{tmp_path / 'exp' / 'm.onnx'}: an exported ONNX model already, not a checkpoint" in err, err
+    assert f"predict directly: dapm-lightning predict SOURCE --ckpt_path {tmp_path / 'exp' / 'm.onnx'}" in err
+    assert "ending in .onnx" not in err and "copy the checkpoint again" not in err
+    named = tmp_path / "x.onnx"
+    named.write_bytes(_onnx_bytes())
+    code, err = run_main(["export", str(named), "--out", str(tmp_path / "y.onnx")], capsys)
+    assert code == 1 and "an exported ONNX model already" in err and "not a readable" not in err, err
+    renamed = tmp_path / "model.ckpt"  # by its content
+    renamed.write_bytes(_onnx_bytes())
+    code, err = run_main(["export", str(renamed), "--out", str(tmp_path / "y.onnx")], capsys)
+    assert code == 1 and f"{renamed}: an exported ONNX model already" in err, err
+    assert f"--ckpt_path {tmp_path / 'model.onnx'} (renamed to end in .onnx" in err
+    assert not (tmp_path / "y.onnx").exists()
+
+
+def test_a_part_of_a_split_checkpoint_or_an_onnx_model_given_to_predict_say_what_they_are(checkpoint, tmp_path,
+                                                                                            capsys, monkeypatch):
+    """A split checkpoint's part was called truncated or corrupt, with the fix to copy it again."""
+    from dapm_lightning.training.checkpoint_files import split_checkpoint
+
+    monkeypatch.chdir(tmp_path)
+    folder = tmp_path / "split"
+    split_checkpoint(checkpoint, folder, part_bytes=checkpoint.stat().st_size // 2 + 1)
+    predict = ["predict", "--config", str(CONFIGS / "predict.yaml"), "--data.init_args.source", str(tmp_path)]
+    code, err = run_main([*predict, "--ckpt_path", str(folder / "checkpoint.part00")], capsys)
+    assert code == 1 and f"{folder / 'checkpoint.part00'}: one part of a split checkpoint" in err, err
+    assert f"Fix: pass the folder, {folder}, instead of one of its parts" in err and "copy the checkpoint" not in err
+    alone = tmp_path / "copied"
+    alone.mkdir()
+    (alone / "checkpoint.part01").write_bytes((folder / "checkpoint.part01").read_bytes())
+    code, err = run_main([*predict, "--ckpt_path", str(alone / "checkpoint.part01")], capsys)
+    assert code == 1 and f"{alone} has no parts.json" in err, err
+    renamed = tmp_path / "model.ckpt"
+    renamed.write_bytes(_onnx_bytes())
+    code, err = run_main([*predict, "--ckpt_path", str(renamed)], capsys)
+    assert code == 1 and f"{renamed}: an exported ONNX model, not a checkpoint" in err, err
+    assert f"--ckpt_path {tmp_path / 'model.onnx'}` (renamed to end in .onnx" in err
