@@ -417,6 +417,11 @@ def doctor(root: Path, splits: list[str] | None = None, depth_kind: DepthKind = 
         print(f"note: {root} has no val/ split: `dapm-lightning fit` validates on ROOT/val and refuses to start "
               "without it (`test` reads it too unless data.init_args.test_split names another)")
     bad = sum(len(r["errors"]) + len(r["flagged"]) + bool(r.get("depth_kind_problem")) for r in reports)
+    return _conclude(reports, bad, json)
+
+
+def _conclude(reports: list[dict[str, Any]], bad: int, json: Path | None) -> int:
+    """Write the JSON report when asked (whole or not at all), print the closing line, and return the exit status."""
     where = ""
     if json is not None:
         try:  # atomically: a full disk leaves no half report, and an earlier one whole
@@ -442,18 +447,7 @@ def _doctor_potsdam(root: Path, json: Path | None) -> int:
     for r in reports:
         lines = [f"== {r['height_dir']}: {r['pairs']} tile pair(s), {len(r['errors'])} error(s)"]
         print("\n".join(lines + [f"   ERROR   {e}" for e in r["errors"]]))
-    bad = sum(len(r["errors"]) for r in reports)
-    where = ""
-    if json is not None:
-        try:
-            Path(json).parent.mkdir(parents=True, exist_ok=True)
-            write_text(json, dumps(reports, indent=2) + "\n")
-        except OSError as error:
-            print(f"error: {write_error(Path(json), error)}", file=sys.stderr)
-            return EXIT_NOT_A_DATA_SET
-        where = f"report: {json}; "
-    print(f"\n{where}{'no problems found' if not bad else f'{bad} problem(s)'}")
-    return EXIT_PROBLEMS if bad else EXIT_CLEAN
+    return _conclude(reports, sum(len(r["errors"]) for r in reports), json)
 
 
 def _unwritable_report(path: Path) -> str | None:
