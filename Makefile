@@ -8,7 +8,8 @@ CKPT_OUT ?= outputs/checkpoint_demo
 WHEELS ?= wheels
 # the fast tier's pytest workers (pytest-xdist): one per core, at most 4; TEST_WORKERS=0 runs it in one process
 TEST_WORKERS ?= auto
-INT8_CKPT ?= $(lastword $(wildcard $(OUT)/tensorboard/version_*/checkpoints/best-*.ckpt))
+# the int8 bench's model: the newest demo run's best checkpoint (by time: by name version_8 sorts after version_10)
+INT8_CKPT ?= $(firstword $(shell ls -t $(OUT)/tensorboard/version_*/checkpoints/best-*.ckpt 2>/dev/null))
 
 .PHONY: install demo test test-all bench bench-gpu wheels install-offline lint clean
 

@@ -25,9 +25,10 @@ from dapm_lightning.geometry.igd import ideal_ground_depth
 from dapm_lightning.metrics import DepthMetrics, PoseMetrics
 from dapm_lightning.tools.errors import debug_requested, run_reporting_errors
 from dapm_lightning.tools.evaluate import evaluate
-from dapm_lightning.training.checkpoint_files import is_remote, local_path, split_checkpoint_card
+from dapm_lightning.training.checkpoint_files import is_remote, local_path, read_checkpoint, split_checkpoint_card
 from dapm_lightning.training.checkpointing import best_or_last_checkpoint, load_dapm_module
 from dapm_lightning.training.lightning_cli import run_lightning_cli
+from dapm_lightning.training.module import training_image_size
 from dapm_lightning.training.visualize import depth_panel
 
 DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "quickstart.yaml"
@@ -142,19 +143,25 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=Path("outputs/quickstart"), help="output folder")
     parser.add_argument("--config", type=Path, default=DEFAULT_CONFIG)
     parser.add_argument("--data-root", type=Path, default=None, help="synthetic data cache (default OUT/data)")
-    parser.add_argument("--max-epochs", type=int, default=None, help="override the config's trainer.max_epochs")
-    parser.add_argument("--train-size", type=int, default=None, help="override the synthetic training set size")
+    parser.add_argument("--max-epochs", type=at_least_one, default=None,
+                        help="override the config's trainer.max_epochs")
+    parser.add_argument("--train-size", type=at_least_one, default=None,
+                        help="override the synthetic training set size")
     parser.add_argument("--checkpoint", default=None,
                         help="test this trained checkpoint (a file or a split checkpoint folder) instead of training")
-    parser.add_argument("--image-size", type=int, default=None,
-                        help="with --checkpoint: the images' size (default: the split checkpoint's card, else 64)")
+    parser.add_argument("--image-size", type=at_least_one, default=None,
+                        help="with --checkpoint: the images' size (default: the size the checkpoint was trained at, "
+                             "else 64)")
     parser.add_argument("--render-seed", type=int, default=1,
                         help="with --checkpoint: the seed of the images rendered (default 1; the quickstart and the "
                              "shipped model train on seed 0)")
-    parser.add_argument("--val-size", type=int, default=200, help="with --checkpoint: the test images")
+    parser.add_argument("--val-size", type=at_least_one, default=200, help="with --checkpoint: the test images")
     args = parser.parse_args(argv)
     if args.checkpoint:
         return main_checkpoint(args)
+    if args.image_size is not None:
+        parser.error("--image-size is for --checkpoint: the quickstart trains and tests at its config's "
+                     "data.init_args.image_size (--config FILE to change it)")
     warnings.filterwarnings("ignore", message="LightningCLI's args parameter")  # we call the CLI from Python
     warnings.filterwarnings("ignore", message=".*treespec, LeafSpec.*")
     start = time.time()
@@ -201,6 +208,29 @@ def main(argv: list[str] | None = None) -> int:
     return 0 if not failures else 1
 
 
+def checkpoint_image_size(checkpoint: str, default: int = 64) -> int:
+    """The square side a checkpoint was trained at: a split folder's card, a local file's record, else ``default``."""
+    card = split_checkpoint_card(checkpoint)
+    if "image_size" in card:
+        return int(card["image_size"])
+    if not is_remote(checkpoint) and local_path(checkpoint).is_file():
+        size = training_image_size(read_checkpoint(local_path(checkpoint)))
+        if size is not None:
+            return max(size)
+    return default
+
+
+def at_least_one(text: str) -> int:
+    """An argparse type: a whole number of at least 1 (0 would silently mean the default)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
 def main_checkpoint(args: argparse.Namespace) -> int:
     """The quickstart without training: ``args.checkpoint`` tested on rendered images beside the baselines."""
     start = time.time()
@@ -208,7 +238,7 @@ def main_checkpoint(args: argparse.Namespace) -> int:
         raise FileNotFoundError(f"{args.checkpoint}: no such checkpoint file or folder")  # before any rendering
     out = args.out.resolve()
     out.mkdir(parents=True, exist_ok=True)
-    size = args.image_size or int(split_checkpoint_card(args.checkpoint).get("image_size", 64))
+    size = args.image_size or checkpoint_image_size(args.checkpoint)
     data_root = (args.data_root or out / f"data_{size}_seed{args.render_seed}").resolve()
     chosen = {"train": args.train_size or 500, "val": args.val_size, "size": size, "seed": args.render_seed}
     print(f"[1/3] synthetic UAPD-format data in {data_root}: {chosen['val']} test images at {size}x{size}, "

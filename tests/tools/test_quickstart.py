@@ -81,3 +81,23 @@ def test_a_second_run_in_the_same_folder_names_its_own_outputs(tmp_path):
     assert "tensorboard/version_2/panels, tensorboard/version_10/panels: 2 picture(s)" in listing
     assert "tensorboard/version_2, tensorboard/version_10: logs of the fit and the test" in listing
     assert "tensorboard/version_2/checkpoints/best-epoch=3.ckpt: the checkpoint tested" in listing
+
+
+def test_a_checkpoint_file_is_tested_at_its_training_size_and_zero_counts_are_refused(checkpoint, tmp_path, capsys):
+    """`make demo CKPT=best.ckpt` of a model trained at 256 was tested on 64² renders: only a split folder's card was
+    read. 0 epochs or images silently meant the config's (a full 12-epoch run)."""
+    import pytest
+
+    from dapm_lightning.tools.quickstart import checkpoint_image_size, main
+    from dapm_lightning.training.checkpoint_files import read_checkpoint
+    from dapm_lightning.training.module import training_image_size
+
+    trained = training_image_size(read_checkpoint(checkpoint))
+    assert trained is not None and checkpoint_image_size(str(checkpoint)) == max(trained) != 64
+    assert checkpoint_image_size(str(tmp_path / "nope.ckpt")) == 64
+    for args in (["--max-epochs", "0"], ["--train-size", "0"], ["--image-size", "32"]):
+        with pytest.raises(SystemExit) as info:
+            main(["--out", str(tmp_path / "demo"), *args])
+        assert info.value.code == 2
+    assert "--image-size is for --checkpoint" in capsys.readouterr().err
+    assert not (tmp_path / "demo").exists()
