@@ -661,6 +661,12 @@ class DAPMCLI(LightningCLI):
         """
         roots, folders = cls._run_folders(config)
         training = subcommand not in EVALUATION_SUBCOMMANDS
+        if not training and not cls._run_folders(config, current_directory=False)[0]:
+            raise NoWeightsError(
+                f"{subcommand} --ckpt_path last: the configuration names no run folder (trainer.default_root_dir, a "
+                "logger's save_dir or a checkpoint callback's dirpath), so `last` would be the newest checkpoint of "
+                f"any run under the current directory.\nFix: --trainer.default_root_dir set to the folder `fit` wrote "
+                "its run to, or --ckpt_path CKPT naming a checkpoint file.")
         found = resolve_last_checkpoint(roots, folders, start_from_scratch=training)
         if found is None:
             damaged = find_last_checkpoint(roots) is not None
@@ -680,7 +686,7 @@ class DAPMCLI(LightningCLI):
                                f"{', '.join(map(str, dict.fromkeys(roots)))}: training starts from scratch")
             return None
         path, checkpoint = found
-        rank_zero_info(f"--ckpt_path last: resuming from {path}")
+        rank_zero_info(f"--ckpt_path last: {'resuming from' if training else 'the weights of'} {path}")
         config["ckpt_path"] = str(path)
         return str(path), checkpoint
 

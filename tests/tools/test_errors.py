@@ -116,6 +116,17 @@ def test_a_wrong_ckpt_path_stops_fit_and_test_before_their_log_folders_are_made(
     assert not any(map(is_lightning_checkpoint_word, ("nope.ckpt", "runs", "lastly.ckpt", "best.ckpt")))
 
 
+def test_predict_with_ckpt_path_last_and_no_run_folder_is_refused(checkpoint, tmp_path, capsys, monkeypatch):
+    """predict.yaml names no run folder: `last` was the newest last.ckpt of any run under the current directory."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "someone_else" / "checkpoints").mkdir(parents=True)
+    (tmp_path / "someone_else" / "checkpoints" / "last.ckpt").write_bytes(checkpoint.read_bytes())
+    code, err = run_main(["predict", "--config", str(CONFIGS / "predict.yaml"), "--ckpt_path", "last",
+                          "--data.init_args.source", str(tmp_path)], capsys)
+    assert code == 1 and "predict --ckpt_path last: the configuration names no run folder" in err, err
+    assert "Fix: --trainer.default_root_dir set to the folder `fit` wrote its run to" in err
+
+
 def test_bad_setting_and_debug_flag(capsys, monkeypatch, tmp_path):
     monkeypatch.chdir(tmp_path)
     args = ["fit", "--config", str(QUICKSTART), "--model.net.head_stride", "3", "--trainer.logger", "false"]
