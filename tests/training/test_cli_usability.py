@@ -1,7 +1,6 @@
 """The command line's user errors and defaults: foreign checkpoints, unknown options, unknown backbones,
 no logger, GPU configs on a CPU machine, logs under default_root_dir."""
 
-import logging
 import re
 import subprocess
 import sys
@@ -306,18 +305,11 @@ def test_a_first_fit_with_ckpt_path_last_says_it_starts_from_scratch(tiny_uapd, 
     """A job always launched with ``--ckpt_path last``: its first run says it starts from scratch, without Lightning's
     hint to set ``ModelCheckpoint(save_last=True)`` (the project's LastCheckpoint writes last.ckpt)."""
     monkeypatch.chdir(tmp_path)
-    said: list[str] = []  # Lightning's loggers may not propagate to caplog's handler: one of the test's own
-    handler = logging.Handler(logging.INFO)
-    handler.emit = lambda record: said.append(record.getMessage())  # type: ignore[method-assign]
-    logger = logging.getLogger("lightning.pytorch.utilities.rank_zero")
-    logger.addHandler(handler)
-    monkeypatch.setattr(logger, "level", logging.INFO)
-    try:
-        with warnings.catch_warnings(record=True) as warned:
-            warnings.simplefilter("always")
-            cli = run_lightning_cli(small_fit(tiny_uapd, tmp_path / "run", "--ckpt_path", "last"))
-    finally:
-        logger.removeHandler(handler)
+    said: list[str] = []  # what the CLI tells the user (Lightning's logger, whose handlers other tests change)
+    monkeypatch.setattr(lightning_cli, "rank_zero_info", lambda message, *args, **kwargs: said.append(message))
+    with warnings.catch_warnings(record=True) as warned:
+        warnings.simplefilter("always")
+        cli = run_lightning_cli(small_fit(tiny_uapd, tmp_path / "run", "--ckpt_path", "last"))
     assert cli.trainer.global_step == 1
     assert f"--ckpt_path last: no checkpoint of this run yet under {tmp_path / 'run'}: training starts from " \
            "scratch" in said, said
