@@ -1,4 +1,4 @@
-"""Options as users type them, for the ``jsonargparse`` commands: lists and boolean flags.
+"""Options as users type them: lists and boolean flags for the ``jsonargparse`` commands, counts for ``argparse``.
 
 ``jsonargparse`` reads a list option only as ``[train,val]`` (or one value per ``--splits+``), and a boolean only
 with its value (``--quiet true``); ``--splits train val``, ``--splits train,val``, ``--splits=train``, ``--quiet``
@@ -7,7 +7,24 @@ and ``--no_quiet`` are rewritten to those forms before parsing.
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+import argparse
+from collections.abc import Callable, Iterable, Sequence
+
+
+def whole_number(least: int) -> Callable[[str], int]:
+    """An argparse type: a whole number of at least ``least`` (sizes, counts), or an error saying so."""
+
+    def check(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+        if value < least:
+            raise argparse.ArgumentTypeError(f"must be {'at least 1' if least == 1 else f'{least} or more'}, "
+                                             f"got {value}")
+        return value
+
+    return check
 
 
 def list_options(argv: Sequence[str], names: Iterable[str]) -> list[str]:

@@ -27,6 +27,7 @@ from dapm_lightning.options import (  # nothing heavy until the command line is 
     PRIOR_MODES,
     check_outputs,
 )
+from dapm_lightning.tools.argv import whole_number
 
 LIGHTNING_OPTIONS = ("--config", "--data", "--trainer", "--model", "--print_config", "--seed_everything")
 """Options that select the Lightning form of ``predict``."""
@@ -66,22 +67,6 @@ def _sources_taken_as_outputs(argv: Sequence[str]) -> list[str]:
                     break
                 taken += [part for part in value.split(",") if part and part not in (*OUTPUT_KINDS, "all")]
     return taken
-
-
-def whole_number(least: int) -> Callable[[str], int]:
-    """An argparse type: a whole number of at least ``least`` (sizes, counts), or an error saying so."""
-
-    def check(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
-        if value < least:
-            raise argparse.ArgumentTypeError(f"must be {'at least 1' if least == 1 else f'{least} or more'}, "
-                                             f"got {value}")
-        return value
-
-    return check
 
 
 positive, not_negative = whole_number(1), whole_number(0)

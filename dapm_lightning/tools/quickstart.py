@@ -23,6 +23,7 @@ from dapm_lightning.data.uapd import UAPDDataset
 from dapm_lightning.geometry.constants import POSE_KEYS
 from dapm_lightning.geometry.igd import ideal_ground_depth
 from dapm_lightning.metrics import DepthMetrics, PoseMetrics
+from dapm_lightning.tools.argv import whole_number
 from dapm_lightning.tools.errors import debug_requested, run_reporting_errors
 from dapm_lightning.tools.evaluate import evaluate
 from dapm_lightning.training.checkpoint_files import is_remote, local_path, read_checkpoint, split_checkpoint_card
@@ -208,6 +209,10 @@ def main(argv: list[str] | None = None) -> int:
     return 0 if not failures else 1
 
 
+at_least_one = whole_number(1)
+"""An argparse type for the counts and sizes: 0 would silently mean the config's."""
+
+
 def checkpoint_image_size(checkpoint: str, default: int = 64) -> int:
     """The square side a checkpoint was trained at: a split folder's card, a local file's record, else ``default``."""
     card = split_checkpoint_card(checkpoint)
@@ -218,17 +223,6 @@ def checkpoint_image_size(checkpoint: str, default: int = 64) -> int:
         if size is not None:
             return max(size)
     return default
-
-
-def at_least_one(text: str) -> int:
-    """An argparse type: a whole number of at least 1 (0 would silently mean the default)."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
-    return value
 
 
 def main_checkpoint(args: argparse.Namespace) -> int:
