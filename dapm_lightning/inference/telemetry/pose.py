@@ -129,12 +129,6 @@ class PoseTelemetry:
         provenance = [a if o else b for a, b, o in zip(self.provenance, fallback.provenance, own)]
         return PoseTelemetry.from_values(values, source, provenance)
 
-    def without(self, keys: Sequence[str]) -> PoseTelemetry:
-        """This telemetry with the components ``keys`` made unknown."""
-        values = [math.nan if k in keys else v for k, v in zip(POSE_KEYS, self.values().tolist())]
-        provenance = ["" if k in keys else p for k, p in zip(POSE_KEYS, self.provenance)]
-        return PoseTelemetry.from_values(values, self.source if any(provenance) else "", provenance)
-
     def _key(self) -> tuple[Any, ...]:
         return (*(None if math.isnan(v) else v for v in self.values().tolist()), self.source, self.provenance)
 
