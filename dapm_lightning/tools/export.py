@@ -78,6 +78,7 @@ def export(ckpt_path: Path, out: Path | None = None, height: int | None = None, 
             verdict.
         threads: onnxruntime threads for the verdict's timing (default 1: steady on a busy machine; 0: onnxruntime's).
     """
+    from dapm_lightning.training.checkpoint_files import check_checkpoint_there
     from dapm_lightning.training.checkpointing import load_dapm_module
 
     ckpt_path = Path(ckpt_path)
@@ -85,6 +86,7 @@ def export(ckpt_path: Path, out: Path | None = None, height: int | None = None, 
         raise ValueError("--int8 quantises the float32 model: leave --fp16 out")
     check_export_size(height, width)
     check_export_counts(checks=checks, calibration_images=calibration_images, verdict_images=verdict_images)
+    check_checkpoint_there(ckpt_path)  # before --out, whose default comes from the checkpoint's name
     check_not_onnx(ckpt_path)  # before --out, whose default from an .onnx name would be that name itself
     suffix = "_fp16" if fp16 else "_int8" if int8 else ""
     out = Path(out) if out else ckpt_path.with_name(ckpt_path.stem + suffix + ".onnx")

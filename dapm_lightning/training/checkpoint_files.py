@@ -468,6 +468,22 @@ def _folder_not_checkpoint(folder: Path) -> str:
     return f"{folder}: a folder, not a checkpoint file; below it: {listed}.\nFix: give one of them, e.g. {found[0]}"
 
 
+def check_checkpoint_there(path: str | Path) -> None:
+    """Refuse a local path holding neither a file nor a split checkpoint, as :func:`read_checkpoint` would.
+
+    Raises:
+        FileNotFoundError: nothing there.
+        IsADirectoryError: a folder that is not a split checkpoint (naming the checkpoints below it).
+    """
+    if is_remote(path) or is_split_checkpoint(path):
+        return
+    source = local_path(path)
+    if source.is_dir():
+        raise IsADirectoryError(_folder_not_checkpoint(source))
+    if not source.is_file():
+        raise FileNotFoundError(f"{path}: no such checkpoint file")
+
+
 def read_checkpoint(path: str | Path, map_location: Any = "cpu") -> dict[str, Any]:
     """Load a checkpoint safely: ``weights_only=True`` with :data:`SAFE_GLOBALS`, from any kind of path.
 
@@ -494,11 +510,8 @@ def read_checkpoint(path: str | Path, map_location: Any = "cpu") -> dict[str, An
     elif is_split_checkpoint(path):
         source = join_split_checkpoint(path)
     else:
+        check_checkpoint_there(path)
         source = local_path(path)
-        if source.is_dir():
-            raise IsADirectoryError(_folder_not_checkpoint(source))
-        if not source.is_file():
-            raise FileNotFoundError(f"{path}: no such checkpoint file")
     try:
         with torch.serialization.safe_globals(list(SAFE_GLOBALS)):
             if isinstance(source, bytes):

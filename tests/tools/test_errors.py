@@ -315,10 +315,17 @@ def _onnx_bytes() -> bytes:
 
 def test_export_of_an_onnx_model_says_it_is_exported_already(tmp_path, capsys):
     """`export m.onnx` said to write --out m.onnx (the same path), `export x.onnx --out y.onnx` called it corrupt."""
-    code, err = run_main(["export", str(tmp_path / "exp" / "m.onnx")], capsys)  # by its name, there or not
-    assert code == 1 and f"{tmp_path / 'exp' / 'm.onnx'}: an exported ONNX model already, not a checkpoint" in err, err
-    assert f"predict directly: dapm-lightning predict SOURCE --ckpt_path {tmp_path / 'exp' / 'm.onnx'}" in err
+    exported = tmp_path / "exp" / "m.onnx"
+    exported.parent.mkdir()
+    exported.write_bytes(b"\x08\x07")  # by its name: an .onnx file cut short is still one
+    code, err = run_main(["export", str(exported)], capsys)
+    assert code == 1 and f"{exported}: an exported ONNX model already, not a checkpoint" in err, err
+    assert f"predict directly: dapm-lightning predict SOURCE --ckpt_path {exported}" in err
     assert "ending in .onnx" not in err and "copy the checkpoint again" not in err
+    for missing in (tmp_path / "none.onnx", tmp_path / "none.ckpt"):  # nothing there: said so, not taken for a model
+        code, err = run_main(["export", str(missing)], capsys)
+        assert code == 1 and f"{missing}: no such checkpoint file" in err and "already" not in err, err
+        assert "--out" not in err
     named = tmp_path / "x.onnx"
     named.write_bytes(_onnx_bytes())
     code, err = run_main(["export", str(named), "--out", str(tmp_path / "y.onnx")], capsys)
