@@ -18,7 +18,7 @@ from dapm_lightning.data.errors import EVERY_FILE_SKIPPED_FIX, BadFileError, Dat
 from dapm_lightning.data.pngcheck import read_png_info, scan_files
 from dapm_lightning.data.sample import Sample, SampleKey, Transform, make_sample, seed_augmentation, split_key
 from dapm_lightning.geometry.constants import MAX_DEPTH_M, POSE_KEYS
-from dapm_lightning.geometry.depth_codec import grey_to_depth
+from dapm_lightning.geometry.depth_codec import check_depth_limit, grey_to_depth
 from dapm_lightning.geometry.pose import impossible_pose_value
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp")
@@ -246,12 +246,26 @@ SYNTH_SETTINGS = "synth.json"
 
 
 def recorded_depth_limit(root: str | Path) -> float | None:
-    """The depth limit (metres of grey 255) ``ROOT/synth.json`` records; None without a readable one."""
+    """The depth limit (metres of grey 255) ``ROOT/synth.json`` records; None when no readable record names one.
+
+    Raises:
+        ValueError: the record names a value that cannot be a depth limit (the message names the file; callers add
+            the fix of their own setting).
+    """
+    record = Path(root) / SYNTH_SETTINGS
     try:
-        settings = json.loads((Path(root) / SYNTH_SETTINGS).read_text())
-        return float(settings["max_depth"])
-    except (OSError, ValueError, KeyError, TypeError):
+        recorded = json.loads(record.read_text()).get("max_depth")
+    except (OSError, ValueError, AttributeError):  # none, unreadable, or not an object: not a synth set's record
         return None
+    if recorded is None:
+        return None
+    if isinstance(recorded, bool) or not isinstance(recorded, (int, float)):
+        raise ValueError(f"{record}: max_depth {recorded!r} is not a number of metres")
+    try:
+        return check_depth_limit(recorded, "max_depth")
+    except ValueError as error:
+        reason = str(error).partition("\n")[0]  # without the fix, which names another setting than the caller's
+        raise ValueError(f"{record}: {reason}") from None
 
 
 class UAPDDataset(SkipsBadFiles, torch.utils.data.Dataset[Sample]):
@@ -316,7 +330,12 @@ class UAPDDataset(SkipsBadFiles, torch.utils.data.Dataset[Sample]):
             raise DatasetError(self.root, [f"{self.root}: {what}"], fix=(
                 f"Fix: give data.init_args.root the folder of a UAPD-format set ({layout}; relative paths start "
                 "from the current directory); `dapm-lightning synth --out ROOT` renders a synthetic one."))
-        recorded = recorded_depth_limit(self.root)
+        try:
+            recorded = recorded_depth_limit(self.root)
+        except ValueError as error:
+            raise DatasetError(self.root, [str(error)], fix=(
+                "Fix: write the limit the set was rendered with into it (`dapm-lightning synth --max_depth`; "
+                "UAPD: 1000), or remove its max_depth to read it with --data.init_args.max_depth.")) from None
         if recorded is not None and recorded != self.max_depth:
             raise DatasetError(self.root, [
                 f"{self.root / SYNTH_SETTINGS}: the set was rendered with a depth limit of {recorded:g} m (grey 255), "

@@ -15,7 +15,6 @@ records (a set from `dapm-lightning synth --max_depth`), else UAPD's 1000.
 
 from __future__ import annotations
 
-import json as json_module
 import math
 import os
 import sys
@@ -40,7 +39,7 @@ from dapm_lightning.data.depth_kind import (
 from dapm_lightning.data.errors import DatasetError
 from dapm_lightning.data.files import write_error, write_text
 from dapm_lightning.data.potsdam import ISPRS_PRODUCT_DIRS, ISPRS_RGB_DIR, PotsdamCrops, is_potsdam_root
-from dapm_lightning.data.uapd import SYNTH_SETTINGS, UAPDDataset, read_depth_grey, read_rgb
+from dapm_lightning.data.uapd import SYNTH_SETTINGS, UAPDDataset, read_depth_grey, read_rgb, recorded_depth_limit
 from dapm_lightning.geometry.constants import MAX_DEPTH_M, POSE_KEYS, POSE_RANGES, SKY_GREY
 from dapm_lightning.geometry.depth_codec import check_depth_limit, depth_to_grey, grey_to_depth
 from dapm_lightning.geometry.igd import DepthKind, ideal_ground_depth
@@ -329,18 +328,13 @@ def depth_limit(root: Path, max_depth: float | None) -> tuple[float, str]:
         return check_depth_limit(max_depth, "max_depth"), "given by --max_depth"
     record = root / SYNTH_SETTINGS
     try:
-        recorded = json_module.loads(record.read_text()).get("max_depth")
-    except (OSError, ValueError, AttributeError):  # none, unreadable, or not an object: not a synth set's record
-        recorded = None
+        recorded = recorded_depth_limit(root)
+    except ValueError as error:
+        raise ValueError(f"{error}.\nFix: --max_depth METRES, the limit the set was written with (`dapm-lightning "
+                         "synth --max_depth`; UAPD: 1000)") from None
     if recorded is None:
         return MAX_DEPTH_M, f"UAPD's, the default: no {record.name} records another"
-    if isinstance(recorded, bool) or not isinstance(recorded, (int, float)):
-        raise ValueError(f"{record}: max_depth {recorded!r} is not a number of metres.\nFix: --max_depth METRES, the "
-                         "limit the set was written with (`dapm-lightning synth --max_depth`; UAPD: 1000)")
-    try:
-        return check_depth_limit(recorded, "max_depth"), f"recorded in {record}"
-    except ValueError as error:
-        raise ValueError(f"{record}: {error}") from None
+    return recorded, f"recorded in {record}"
 
 
 def check_potsdam(root: Path) -> list[dict[str, Any]]:

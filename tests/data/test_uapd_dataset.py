@@ -159,3 +159,9 @@ def test_a_set_rendered_with_another_depth_limit_is_refused_naming_the_limit_to_
     assert float(depth.max()) <= 500.0
     (uapd_copy / "synth.json").write_text('{"size": 32}')  # no limit recorded: the given one is used
     assert len(UAPDDataset(uapd_copy, "train")) > 0
+    for bad in ('"far"', "0", "Infinity", "true"):  # a record naming no usable limit: refused, not read as 1000 m
+        (uapd_copy / "synth.json").write_text(f'{{"max_depth": {bad}}}')
+        with pytest.raises(DatasetError, match="max_depth") as refused:
+            UAPDDataset(uapd_copy, "train")
+        assert str(uapd_copy / "synth.json") in str(refused.value) and "dapm-lightning synth --max_depth" in \
+            refused.value.fix

@@ -380,6 +380,11 @@ def test_a_set_rendered_with_another_depth_limit_is_checked_with_it(tmp_path, ca
         err = capsys.readouterr().err
         assert "max_depth: " in err and "but a depth limit must be a number of metres above 1" in err
         assert "Fix: --max_depth 1000" in err
+    for bad in ('"far"', "0"):  # the set's record naming no usable limit: refused as the dataset refuses it
+        (near / "synth.json").write_text(f'{{"max_depth": {bad}}}')
+        assert doctor_main([str(near), "--quiet"]) == 2
+        err = capsys.readouterr().err
+        assert f"{near / 'synth.json'}: max_depth" in err and "Fix: --max_depth METRES" in err, err
 
 
 def test_a_potsdam_root_has_its_tiles_checked(tmp_path, capsys):
