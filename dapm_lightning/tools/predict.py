@@ -192,6 +192,19 @@ def _short_warning(message: Warning | str, category: type[Warning], filename: st
     return f"warning: {message}\n"
 
 
+def check_not_lightning_word(ckpt_path: str) -> None:
+    """Refuse Lightning's ``--ckpt_path`` words (``last``, ``best``...), which name a file only in its form."""
+    from pathlib import Path
+
+    from dapm_lightning.training.lightning_cli import is_lightning_checkpoint_word
+
+    if is_lightning_checkpoint_word(ckpt_path) and not Path(ckpt_path).exists():
+        raise ValueError(f"--ckpt_path {ckpt_path}: no such file; this form of predict takes a checkpoint file, not "
+                         "Lightning's words for one (last, best): `--ckpt_path last` works in predict's Lightning "
+                         "form, whose configuration names the run's folder (docs/long_jobs.md).\nFix: give the "
+                         "checkpoint file, e.g. --ckpt_path outputs/RUN/tensorboard/version_0/checkpoints/last.ckpt")
+
+
 def predict_main(argv: Sequence[str]) -> None:
     """``dapm-lightning predict SOURCE --ckpt_path CKPT [--out DIR] [--device cpu|cuda|auto] [--outputs ...]``."""
     args = parse(argv)
@@ -204,6 +217,7 @@ def predict_main(argv: Sequence[str]) -> None:
     from dapm_lightning.tools.progress import progress_bar, quiet_notes
 
     quiet_notes(args.quiet)
+    check_not_lightning_word(args.ckpt_path)
     check_device(args.device, args.precision)  # before the model loads: gpu for cuda, 16 on the CPU
     warnings.formatwarning = _short_warning  # "warning: MESSAGE", not the source line that raised it
     # what can be found wrong without the model is found before it loads (seconds): a missing source, an

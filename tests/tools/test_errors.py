@@ -5,6 +5,8 @@ import os
 import subprocess
 import sys
 
+import cv2
+import numpy as np
 import pytest
 import torch
 
@@ -360,3 +362,18 @@ def test_a_part_of_a_split_checkpoint_or_an_onnx_model_given_to_predict_say_what
     code, err = run_main([*predict, "--ckpt_path", str(renamed)], capsys)
     assert code == 1 and f"{renamed}: an exported ONNX model, not a checkpoint" in err, err
     assert f"--ckpt_path {tmp_path / 'model.onnx'}` (renamed to end in .onnx" in err
+
+
+def test_one_line_predict_given_lightning_s_word_for_a_checkpoint_says_which_form_reads_it(tmp_path, capsys,
+                                                                                            monkeypatch):
+    """`predict SRC --ckpt_path last` said only 'last: no such checkpoint file'; a file named `last` is read."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "photos").mkdir()
+    cv2.imwrite(str(tmp_path / "photos" / "a.png"), np.zeros((16, 16, 3), np.uint8))
+    for word in ("last", "best"):
+        code, err = run_main(["predict", str(tmp_path / "photos"), "--ckpt_path", word], capsys)
+        assert code == 1 and f"--ckpt_path {word}: no such file; this form of predict takes a checkpoint file" in err
+        assert "Fix: give the checkpoint file" in err and not (tmp_path / "runs").exists(), err
+    (tmp_path / "last").write_bytes(b"not a checkpoint")  # a file of that name: read as one, and named if bad
+    code, err = run_main(["predict", str(tmp_path / "photos"), "--ckpt_path", "last"], capsys)
+    assert code == 1 and "last: not a readable checkpoint" in err and "Lightning's words" not in err, err
