@@ -29,7 +29,7 @@ test: $(STAMP)
 	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --maxprocesses 4
 
 test-all: test  # the README's fast tier first, then the slow tier (in one process: its tests start their own)
-	$(BIN)/python -m pytest -q -m slow
+	$(BIN)/python -m pytest -q -m slow --durations=20
 
 # benchmarks/ beside the package (not in the wheel), run from the repository root
 bench: $(STAMP)
