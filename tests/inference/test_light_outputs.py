@@ -6,6 +6,7 @@ import pytest
 
 from dapm_lightning.cli import main
 from dapm_lightning.inference.postprocess import Prediction
+from dapm_lightning.inference.run_folder import PER_IMAGE_FILES
 from dapm_lightning.inference.writers import OUTPUT_KINDS, check_outputs
 from tests.conftest import run_main
 from tests.inference.test_predict import read_ply_independently
@@ -26,6 +27,8 @@ def test_outputs_by_name_comma_lists_and_all():
     assert check_outputs("all") == list(OUTPUT_KINDS) and check_outputs(["all", "npz"]) == list(OUTPUT_KINDS)
     with pytest.raises(ValueError, match=r"unknown output 'depth_np' \(did you mean depth_npy\?\); choose from "):
         check_outputs("camera,depth_np")
+    # each kind's file name is known to the run folder: an earlier run's file of it is removed, a scan leaves it out
+    assert list(PER_IMAGE_FILES) == list(OUTPUT_KINDS)
 
 
 def test_the_default_run_is_light_and_all_is_everything(checkpoint, photo, tmp_path, capsys):
@@ -40,7 +43,8 @@ def test_the_default_run_is_light_and_all_is_everything(checkpoint, photo, tmp_p
     every = tmp_path / "all"
     main(["predict", str(photo), "--ckpt_path", str(checkpoint), "--out", str(every), "--device", "cpu",
           "--outputs", "all"])
-    assert len(list(every.glob("DJI_0001*"))) == len(OUTPUT_KINDS)
+    assert sorted(p.name for p in every.glob("DJI_0001*")) == sorted(name.format("DJI_0001")
+                                                                     for name in PER_IMAGE_FILES.values())
     chosen = tmp_path / "chosen"
     main(["predict", str(photo), "--ckpt_path", str(checkpoint), "--out", str(chosen), "--device", "cpu",
           "--outputs", "depth_npy,points", "--contact_sheet", "0"])
