@@ -1,1 +1,1 @@
-"""Stand-alone tools built on the training core: prediction, export, data-set doctor, quickstart, CARLA."""
+"""Programs built on the core: one-line prediction, export, data-set doctor, synth, quickstart, CARLA, evaluation."""
