@@ -1,4 +1,4 @@
-"""The package's layers: no module imports a layer above its own (DEVELOPERS.md, "Layers")."""
+"""The package's layers: no module imports a layer above its own (docs/architecture.md, "Layers")."""
 
 import ast
 from pathlib import Path
@@ -16,11 +16,19 @@ def layer_of(module: str) -> str | None:
     return parts[1] if parts[1] in LAYERS else None
 
 
-def imports(path: Path) -> list[str]:
+def imports(path: Path, text: str | None = None) -> list[str]:
+    """Every module ``path`` imports, anywhere in it: ``from A import B`` names ``A`` and ``A.B`` (B may be a module,
+    as in ``from dapm_lightning import training``); a relative import is resolved against ``path``'s package."""
     found = []
-    for node in ast.walk(ast.parse(path.read_text())):
-        if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-            found.append(node.module)
+    for node in ast.walk(ast.parse(path.read_text() if text is None else text)):
+        if isinstance(node, ast.ImportFrom):
+            module = node.module
+            if node.level:
+                package = path.relative_to(PACKAGE.parent).parts[:-1]
+                base = package[:len(package) - node.level + 1]
+                module = ".".join((*base, *([node.module] if node.module else [])))
+            if module:
+                found += [module] + [f"{module}.{alias.name}" for alias in node.names]
         elif isinstance(node, ast.Import):
             found += [alias.name for alias in node.names]
     return found
@@ -39,7 +47,13 @@ def test_no_module_imports_a_higher_layer():
     assert not violations, "\n".join(violations)
 
 
-def test_models_and_geometry_never_import_lightning():
+def test_imports_of_a_layer_by_its_package_or_a_relative_name_are_seen():
+    text = "from dapm_lightning import training\nfrom ..inference import writers\nfrom . import dapm\n"
+    found = imports(PACKAGE / "models" / "new.py", text)
+    assert {"dapm_lightning.training", "dapm_lightning.inference.writers", "dapm_lightning.models.dapm"} <= set(found)
+
+
+def test_geometry_models_and_metrics_never_import_lightning():
     for layer in ("geometry", "models", "metrics"):
         for path in (PACKAGE / layer).rglob("*.py"):
             assert not any(m.split(".")[0] in ("lightning", "pytorch_lightning") for m in imports(path)), path
