@@ -1,7 +1,7 @@
 """A checkpoint on a world no generator of this project made: does its depth respect the ground it is told about?
 
 ``python -m benchmarks.bench_foreign --checkpoint CKPT --out OUT``: renders ``--count`` UAPD-format images with a
-second, deliberately plain renderer written from design.md §1 alone (none of :mod:`dapm_lightning.data.synthetic`
+second, deliberately plain renderer written from docs/conventions.md alone (none of :mod:`dapm_lightning.data.synthetic`
 or :mod:`dapm_lightning.geometry.igd`): a plane ground (level, or tilted by ``--slope``) with colour bands and
 roads, box buildings and cylinder trees, shaded by one sun, a sky gradient and haze; the depth is the exact ray
 range. The checkpoint is then
@@ -49,7 +49,7 @@ row is what ``predict --telemetry`` gives (the bound at its default margin)."""
 
 
 def camera_rays(pose: Sequence[float], size: tuple[int, int]) -> np.ndarray:
-    """``[H, W, 3]`` world directions of every pixel's ray (not unit length), design.md §1 written out."""
+    """``[H, W, 3]`` world directions of every pixel's ray (not unit length), docs/conventions.md written out."""
     _, pitch, roll, fov = (float(v) for v in pose)
     rows, cols = size
     p, r = math.radians(pitch), math.radians(roll)

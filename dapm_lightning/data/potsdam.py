@@ -1,4 +1,4 @@
-"""ISPRS Potsdam (design.md §4): RGB + height tiles cut into square crops, seeded 8:2 split, depth only."""
+"""ISPRS Potsdam (docs/data.md, "Potsdam"): RGB + height tiles cut into square crops, seeded 8:2 split, depth only."""
 
 from __future__ import annotations
 

@@ -29,7 +29,7 @@ from dapm_lightning.geometry.pose import flip_pose
 class PoseAwareHorizontalFlip(A.HorizontalFlip):
     """Horizontal flip of image and masks (the depth) that also negates the roll of a ``pose`` target.
 
-    Mirroring an image left-right is the same camera with roll negated (design.md §1); height, pitch
+    Mirroring an image left-right is the same camera with roll negated (docs/conventions.md, "Camera"); height, pitch
     and FoV are kept. Use it inside any ``A.Compose`` and pass ``pose=`` (``[4]`` physical) with the image.
     """
 
@@ -198,7 +198,8 @@ none at 3 (it would alias): far ground shows the pattern's mean colour, as real 
 def ground_plane_xy(pose: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     """``[H, W, 2]`` world (X, Y) in metres where each pixel's ray meets the ground plane; NaN above the horizon.
 
-    ``pose``: ``[4]`` (height m, pitch, roll, fov deg); the world of design.md §1 (origin under the camera).
+    ``pose``: ``[4]`` (height m, pitch, roll, fov deg); the world frame of docs/conventions.md (origin under
+    the camera).
     """
     height, pitch, roll, fov = (torch.tensor([float(v)], dtype=torch.float64) for v in pose)
     rays = camera_rays(pitch, roll, fov, size)[0].numpy()

@@ -1,4 +1,4 @@
-"""UAPD on disk (design.md §4): file-name pose parsing and the data set reading rgb/depth pairs."""
+"""UAPD on disk (docs/data.md, "UAPD layout"): file-name pose parsing and the data set reading rgb/depth pairs."""
 
 from __future__ import annotations
 
@@ -98,7 +98,7 @@ def parse_uapd_filename(name: str | PurePath) -> dict[str, Any]:
 def format_uapd_filename(tokens: Sequence[str], pose: Sequence[float] | np.ndarray, *, x: float = 0.0,
                          y: float = 0.0, yaw: float = 0.0, extra: Mapping[str, float] | None = None,
                          suffix: str = ".png") -> str:
-    """The UAPD file name :func:`parse_uapd_filename` reads back (design.md §4).
+    """The UAPD file name :func:`parse_uapd_filename` reads back (docs/data.md, "UAPD layout").
 
     ``tokens`` (e.g. ``["Town03", "000123"]``) come first, then ``x, y, z`` (the height), ``pitch, roll, yaw,
     fov`` with 2 decimals (the precision the renderers place the camera with), then ``extra`` keys with 3
@@ -146,9 +146,9 @@ DEPTH_CONTAINERS = {0: "grey", 2: "RGB", 4: "grey+alpha", 6: "RGBA"}
 authors read depth with OpenCV's grayscale flag, so an RGB(A) copy of the grey map loads the same)."""
 
 CARLA_RAW_DEPTH_HINT = (
-    "UAPD depth is 8-bit grey in the log encoding g = floor(255 log2(d + 1) / log2(1001)) (design.md §3); unequal "
-    "channels look like CARLA's raw 24-bit depth (metres = 1000 (R + 256 G + 65536 B) / (256^3 - 1)). Convert "
-    "each file with dapm_lightning.geometry.depth_codec.depth_to_grey("
+    "UAPD depth is 8-bit grey in the log encoding g = floor(255 log2(d + 1) / log2(1001)) (docs/conventions.md, "
+    "Depth encoding); unequal channels look like CARLA's raw 24-bit depth (metres = 1000 (R + 256 G + 65536 B) / "
+    "(256^3 - 1)). Convert each file with dapm_lightning.geometry.depth_codec.depth_to_grey("
     "dapm_lightning.tools.carla_collect.decode_carla_depth(cv2.imread(path, cv2.IMREAD_UNCHANGED))), save the "
     "grey image, and set depth_kind: planar (CARLA's depth is planar) in the data and in model.net.igd")
 """The fix for a depth PNG whose colour channels differ."""

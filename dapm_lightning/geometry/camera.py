@@ -1,4 +1,4 @@
-"""Pinhole camera of design.md §1: pixel offsets, intrinsics, and per-pixel rays in the world frame."""
+"""Pinhole camera of docs/conventions.md ("Camera"): pixel offsets, intrinsics, per-pixel rays in the world frame."""
 
 from __future__ import annotations
 
@@ -37,7 +37,7 @@ def inverse_focal(fov_deg: Tensor, width: int) -> Tensor:
 
 
 def intrinsics_matrix(fov_deg: Tensor, size: tuple[int, int]) -> Tensor:
-    """Pinhole intrinsics ``K`` of design.md §1 for a horizontal FoV across the image width.
+    """Pinhole intrinsics ``K`` of docs/conventions.md ("Camera") for a horizontal FoV across the image width.
 
     Args:
         fov_deg: ``[B]`` horizontal field of view in degrees.

@@ -1,4 +1,4 @@
-"""The only home of the UAPD pose ranges and units, the depth limit, the sky threshold and grey (design.md §1, §3)."""
+"""The only home of UAPD's pose ranges and units, the depth limit, the sky threshold and grey (docs/conventions.md)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Ideal Ground Depth (design.md §2): the depth a camera of a given pose would see on a flat ground."""
+"""Ideal Ground Depth: the depth a camera of a given pose would see on a flat ground (docs/conventions.md)."""
 
 from __future__ import annotations
 
@@ -66,7 +66,7 @@ def ideal_ground_depth(pose: Tensor, size: tuple[int, int], *, model: IGDModel =
 
 def _pinhole(height: Tensor, pitch_deg: Tensor, roll_deg: Tensor, a: Tensor, b: Tensor,
              norm: Tensor, depth_kind: DepthKind, max_depth: float) -> Tensor:
-    """Exact ray-plane intersection of design.md §1, ``[B, H, W]``."""
+    """Exact ray-plane intersection of docs/conventions.md ("Camera"), ``[B, H, W]``."""
     p = torch.deg2rad(pitch_deg)[:, None, None]
     r = torch.deg2rad(roll_deg)[:, None, None]
     downward = torch.cos(p) * (a * torch.sin(r) + b * torch.cos(r)) - torch.sin(p)  # -d_z
@@ -78,7 +78,7 @@ def _pinhole(height: Tensor, pitch_deg: Tensor, roll_deg: Tensor, a: Tensor, b: 
 
 def _paper(height: Tensor, pitch_deg: Tensor, roll_deg: Tensor, a: Tensor, b: Tensor,
            norm: Tensor, depth_kind: DepthKind, max_depth: float) -> Tensor:
-    """The paper's separable model (Eq. 10-17) with the roll un-rotation of design.md §2, ``[B, H, W]``."""
+    """The paper's separable model (Eq. 10-17) with the roll un-rotation of docs/conventions.md, ``[B, H, W]``."""
     r = torch.deg2rad(roll_deg)[:, None, None]
     a_rolled = a * torch.cos(r) - b * torch.sin(r)  # u' / f = tan(theta_u)
     b_rolled = a * torch.sin(r) + b * torch.cos(r)  # v' / f; theta_v = atan(-v'/f)

@@ -1,4 +1,4 @@
-"""Metric point clouds (design.md §1 world frame) from a depth map and the camera's pose."""
+"""Metric point clouds (the world frame of docs/conventions.md, "Camera") from a depth map and the camera's pose."""
 
 from __future__ import annotations
 
@@ -51,7 +51,7 @@ def depth_to_points(depth_m: Tensor, pose: Tensor, *, depth_kind: DepthKind = "r
 
 
 def camera_to_world(pose: Tensor) -> Tensor:
-    """Pose of the camera in the world frame of design.md §1, as a rigid transform.
+    """Pose of the camera in the world frame of docs/conventions.md ("Camera"), as a rigid transform.
 
     Args:
         pose: ``[B, 4]`` (height m, pitch deg, roll deg, fov deg).

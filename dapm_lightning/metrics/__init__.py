@@ -1,4 +1,4 @@
-"""Depth and pose metrics as ``torchmetrics.Metric`` subclasses (design.md §5), correct under DDP."""
+"""Depth and pose metrics as ``torchmetrics.Metric`` subclasses, correct under DDP (docs/model.md: their protocols)."""
 
 from dapm_lightning.metrics.depth import (
                                          AUTHORS_DEPTH_METRIC_NAMES,

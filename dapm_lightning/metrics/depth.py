@@ -1,4 +1,4 @@
-"""Depth metrics as ``torchmetrics.Metric`` subclasses (design.md §5), two protocols.
+"""Depth metrics as ``torchmetrics.Metric`` subclasses (docs/model.md, "Depth metrics"), two protocols.
 
 - :class:`DepthMetrics`: the Monocular-Depth-Estimation-Toolbox protocol the paper cites, per image over
   valid non-sky pixels, in metres (primary; ``space="uapd_log"`` runs the same protocol on grey levels).
@@ -74,7 +74,7 @@ def per_image_depth_metrics(pred: Tensor, target: Tensor, *, min_depth: float = 
 class DepthMetrics(Metric):
     """``d1 d2 d3 abs_rel sq_rel rmse rmse_log log10 silog``: per image, then the mean over images.
 
-    The Monocular-Depth-Estimation-Toolbox protocol the paper cites (design.md §5). Images
+    The Monocular-Depth-Estimation-Toolbox protocol the paper cites (docs/model.md, "Depth metrics"). Images
     without a valid pixel are skipped; with none at all every value is NaN. States are sums and a
     count, so the DDP reduction is exact.
 
@@ -119,7 +119,7 @@ _POOLED_SUMS = ("d1", "d2", "d3", "abs_rel", "sq_rel", "sq_err", "log_sq", "log"
 
 
 class AuthorsDepthMetrics(Metric):
-    """The authors' released depth evaluation (design.md §5), for comparison with the paper's Table 4.
+    """The authors' released depth evaluation (docs/model.md, "Depth metrics"), for comparison with the paper's Table 4.
 
     Both maps become grey levels of the 8-bit log encoding (``255 * encode_log_depth(d)``, continuous),
     clamped at ``1e-3``; every pixel with a finite target counts, sky (grey 255) included; pixels are

@@ -1,4 +1,4 @@
-"""Pose metrics as ``torchmetrics.Metric`` subclasses (design.md §5).
+"""Pose metrics as ``torchmetrics.Metric`` subclasses (docs/model.md, "Pose metrics").
 
 :class:`PoseMetrics`: median error and GeoCalib's AUC per component; :class:`AuthorsPoseMetrics`: the authors'
 protocol (3-point AUC, MAE).

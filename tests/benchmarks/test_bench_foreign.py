@@ -21,7 +21,7 @@ def empty_world(pose):
 
 @pytest.mark.parametrize("pose", POSES)
 def test_flat_ground_range_is_the_igd_written_apart(pose):
-    """Two implementations of design.md §1: where the ground is seen they agree, the rest is sky in both."""
+    """Two implementations of docs/conventions.md: where the ground is seen they agree, the rest is sky in both."""
     _, depth = render(pose, (24, 32), empty_world(pose))
     igd = ideal_ground_depth(torch.tensor([pose], dtype=torch.float64), (24, 32), depth_kind="range")[0, 0].numpy()
     seen = np.isfinite(depth) & (depth < 999.0)

@@ -111,7 +111,7 @@ def test_depth_with_unequal_channels_names_carlas_raw_encoding(uapd_copy):
         dataset[dataset.names.index(name)]
     text = str(info.value)
     assert str(path) in text and "CARLA's raw 24-bit depth" in text and "decode_carla_depth" in text
-    assert "depth_to_grey" in text and "design.md §3" in text
+    assert "depth_to_grey" in text and "docs/conventions.md, Depth encoding" in text
 
 
 def test_size_mismatch(uapd_copy):

@@ -240,7 +240,7 @@ def test_dji_roll_sign_equals_project_roll_sign(tmp_path):
     Aerospace body axes (x forward, y right, z down): rolling by phi about x turns y into
     (0, cos phi, sin phi), so the right axis gains a *down* component sin(phi) > 0 for phi > 0.
     The project's camera with the same roll must also look down on its right edge (and up on its
-    left edge): then the horizon's right end is up in the image, as design.md §1 says.
+    left edge): then the horizon's right end is up in the image, as docs/conventions.md ("Camera") says.
     """
     phi = 10.0
     aerospace_right_down_component = math.sin(math.radians(phi))

@@ -1,4 +1,4 @@
-"""The authors' depth protocol (design.md §5): grey levels, sky included, pixels pooled, against a plain loop."""
+"""The authors' depth protocol (docs/model.md): grey levels, sky included, pixels pooled, against a plain loop."""
 
 import math
 

@@ -1,11 +1,11 @@
-"""Synthetic UAPD-format data: ray-cast worlds of several scene families seen by the exact camera of design.md §1.
+"""Synthetic UAPD-format data: ray-cast worlds of several scene families seen by the exact camera (docs/conventions.md).
 
 Scenes (:mod:`.scene`) are dense downtowns, suburbs, industrial estates (:mod:`.urban`), farmland,
 forest (:mod:`.rural`) and water (coast, lake, river: :mod:`.water`), with vehicles and people at their
 real size (:mod:`.objects`), on a ground plane that reaches the horizon. Embree (:mod:`.engine`) casts
 the rays against their triangle meshes; the ground is intersected analytically, so its depth is exactly
 the ideal ground depth. :mod:`.shading` gives materials, sun and cast shadows, haze, clouds and camera
-processing. The written depth is the *range* to the hit, log-encoded to 8 bits (design.md §3);
+processing. The written depth is the *range* to the hit, log-encoded to 8 bits (docs/conventions.md, "Depth encoding");
 :mod:`.generate` writes data sets, byte-identical for a seed whatever the worker count or sharding.
 See docs/synthetic.md.
 """

@@ -5,7 +5,7 @@ view frustum (widened, so that shadows cast from just outside the picture still 
 the pixel size (an object smaller than ``LOD_PIXELS`` of a pixel at its distance is left out). The
 mesh is built in camera-centred coordinates so that float32 keeps millimetres near the camera.
 The ground plane is not meshed: it is intersected analytically in float64 by the renderer, which
-keeps ground depth exactly the ideal ground depth of design.md §2.
+keeps ground depth exactly the ideal ground depth of docs/conventions.md ("Ideal Ground Depth").
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""One picture of a scene through the exact camera of design.md §1: RGB, range depth and a hit map."""
+"""One picture of a scene through the exact camera of docs/conventions.md ("Camera"): RGB, range depth and a hit map."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ from dapm_lightning.geometry.constants import MAX_DEPTH_M
 
 
 def camera_frame(pose: np.ndarray, yaw_deg: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """World forward, right and down axes of the camera (design.md §1, turned by ``yaw_deg`` about Z)."""
+    """World forward, right and down axes of the camera (docs/conventions.md, turned by ``yaw_deg`` about Z)."""
     p, r, y = (math.radians(float(v)) for v in (pose[1], pose[2], yaw_deg))
     sp, cp, sr, cr = math.sin(p), math.cos(p), math.sin(r), math.cos(r)
     forward = np.array([cp, 0.0, sp])
