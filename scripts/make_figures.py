@@ -1,4 +1,4 @@
-"""Render the figures of docs/ with the project's own code: python scripts/make_figures.py."""
+"""Render the figures of docs/ that need no trained model, with the project's code: python scripts/make_figures.py."""
 
 from pathlib import Path
 
@@ -55,7 +55,7 @@ LAYERS = [("cli", "dapm-lightning: subcommands and tools, one line each"),
           ("training", "DAPMModule, DAPMLoss, callbacks, checkpoints, DAPMCLI"),
           ("data", "samples, UAPD / Potsdam / synthetic, PredictBatch"),
           ("models | metrics", "DAPMNet, PQB, IGD feature, PosePrior | torchmetrics"),
-          ("geometry", "pose, camera, IGD, depth codec, bins, point clouds")]
+          ("geometry | options.py", "pose, camera, IGD, depth codec, bins, point clouds | the options' values")]
 FLOW = [("SOURCE: folder, glob, image, video", "inputs.resolve_source"),
         ("PredictInput per image\n(network size, name, size, prior)", "ImageFilesDataset / VideoFramesDataset"),
         ("PredictBatch\n(one size; PosePrior + mode)", "inputs.predict_loader"),
