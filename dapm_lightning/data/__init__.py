@@ -1,6 +1,8 @@
 """Data: UAPD reading, Potsdam crops, synthetic UAPD-format generation, the sample schema.
 
-The Lightning data modules live in :mod:`dapm_lightning.data.datamodules`.
+The Lightning data modules live in :mod:`dapm_lightning.data.datamodules`; the typed predict batch in
+:mod:`dapm_lightning.data.unlabelled`; files written whole and checked in :mod:`dapm_lightning.data.files`; loader
+workers in :mod:`dapm_lightning.data.workers`.
 """
 
 from dapm_lightning.data.errors import DatasetError
