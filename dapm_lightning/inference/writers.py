@@ -51,7 +51,13 @@ from dapm_lightning.inference.contact_sheet import CONTACT_MAX_IMAGES, contact_s
 from dapm_lightning.inference.inputs import PredictSource
 from dapm_lightning.inference.poses_table import pose_row, write_poses
 from dapm_lightning.inference.postprocess import Prediction, batch_predictions
-from dapm_lightning.inference.run_folder import MARKER_TEXT, OUTPUT_MARKER, remove_stale_files, run_folder
+from dapm_lightning.inference.run_folder import (
+    MARKER_TEXT,
+    OUTPUT_MARKER,
+    PER_IMAGE_FILES,
+    remove_stale_files,
+    run_folder,
+)
 from dapm_lightning.inference.runtime import apply_inference_options
 from dapm_lightning.inference.sources import Sources, as_list, is_list_file, list_entries
 from dapm_lightning.inference.video_preview import VideoPreviews
@@ -64,6 +70,8 @@ from dapm_lightning.training.checkpointing import EXIT_SIGTERM, started_by_light
 
 DEPTH16_SCALE = 64.0
 """``depth16.png`` stores ``round(depth_m * 64)``: 1/64 m steps, 1000 m = 64000."""
+
+
 def write_prediction(out: Path, prediction: Prediction, outputs: Iterable[str] = DEFAULT_OUTPUTS,
                      points_stride: int | None = None, points_max_depth: float | None = None,
                      depth_range: tuple[float, float] | None = None) -> list[Path]:
@@ -86,32 +94,36 @@ def prediction_files(out: Path, prediction: Prediction, outputs: Iterable[str] =
                      depth_range: tuple[float, float] | None = None) -> dict[str, Path]:
     """:func:`write_prediction`, returning each kind written with its path (what the model could give of it)."""
     outputs, written, name = set(outputs), {}, prediction.name
+
+    def path(kind: str) -> Path:
+        return out / PER_IMAGE_FILES[kind].format(name)
+
     if prediction.depth_m is not None:
         depth = prediction.depth_m.astype(np.float32)
         if "depth_npy" in outputs:
-            written["depth_npy"] = out / f"{name}_depth.npy"
+            written["depth_npy"] = path("depth_npy")
             with open_atomic(written["depth_npy"]) as handle:
                 np.save(handle, depth)
         if "depth_tiff" in outputs:  # 32-bit float TIFF: GDAL, QGIS, PIL ("F" mode), tifffile, OpenCV read it
-            written["depth_tiff"] = write_image(out / f"{name}_depth.tif", depth)
+            written["depth_tiff"] = write_image(path("depth_tiff"), depth)
         if "depth16" in outputs:
-            written["depth16"] = write_image(out / f"{name}_depth16.png",
+            written["depth16"] = write_image(path("depth16"),
                                              np.clip(np.round(depth * DEPTH16_SCALE), 0, 65535).astype(np.uint16))
         if "depth_color" in outputs:
             color = depth_picture(depth, prediction.sky, depth_range)
-            written["depth_color"] = write_image(out / f"{name}_depth_color.png",
+            written["depth_color"] = write_image(path("depth_color"),
                                                  cv2.cvtColor(color, cv2.COLOR_RGB2BGR))
     if "sky" in outputs and prediction.sky_prob is not None:
-        written["sky"] = write_image(out / f"{name}_sky.png",
+        written["sky"] = write_image(path("sky"),
                                      np.round(np.clip(prediction.sky_prob, 0, 1) * 255).astype(np.uint8))
     if "camera" in outputs and prediction.pose is not None:
-        written["camera"] = write_text(out / f"{name}_camera.json", _json_rows(prediction.camera_dict()))
+        written["camera"] = write_text(path("camera"), _json_rows(prediction.camera_dict()))
     if "points" in outputs and prediction.depth_m is not None and prediction.pose is not None:
         stride = points_stride or prediction.auto_stride()  # None: about the network's resolution
         written["points"] = prediction.points(stride, points_max_depth, prediction.rgb).write_ply(
-            out / f"{name}_points.ply")
+            path("points"))
     if "npz" in outputs:
-        written["npz"] = out / f"{name}.npz"
+        written["npz"] = path("npz")
         arrays: dict[str, Any] = npz_arrays(prediction)
         with open_atomic(written["npz"]) as handle:
             np.savez_compressed(handle, **arrays)
