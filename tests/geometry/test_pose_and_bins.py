@@ -49,6 +49,12 @@ def test_grey_codec_matches_paper_equation():
     assert levels[1] / levels[0] == pytest.approx(1.027, abs=0.002)
 
 
+def test_grey_decodes_by_eq20_over_255_levels():
+    # g / 255 of log2(1001): grey 85 is a third of the way, 1001 ** (1/3) - 1 = 9.0033 m; 170 two thirds, 99.07 m
+    depth = grey_to_depth(np.array([0, 85, 170], np.uint8))
+    np.testing.assert_allclose(depth, [0.0, 1001 ** (1 / 3) - 1, 1001 ** (2 / 3) - 1], rtol=1e-6)
+
+
 def test_grey_255_decodes_to_exactly_max_depth():
     depth = grey_to_depth(np.array([254, 255], np.uint8), max_depth=1000.0)
     assert depth[1] == np.float32(1000.0) and depth[0] < 1000.0
