@@ -61,6 +61,45 @@ def test_every_term_and_the_total_by_hand():
     assert terms["total"].item() == pytest.approx(expected.item(), rel=1e-6)
 
 
+def test_pose_bins_targets_are_the_true_poses_classes():
+    # true pose (46, -90, 0, 60) normalised: (0.4, 1/11, 0.5, 1/3) -> 16 bins: 6, 1, 8, 5; 64 bins: 25, 5, 32, 21
+    out, targets = example()
+    logits = []
+    for n, classes in ((16, [6, 1, 8, 5]), (64, [25, 5, 32, 21])):
+        confident = torch.zeros(1, 4, n)
+        confident[0, torch.arange(4), classes] = 30.0
+        logits.append(confident)
+    out = out._replace(pose=out.pose._replace(bin_logits=tuple(logits)))
+    assert DAPMLoss()(out, targets)["pq"].item() == pytest.approx(0.0, abs=1e-9)
+
+
+def test_the_sky_stage_is_trained_on_valid_pixels_only():
+    # pixel 0: ground at 10 m, sky logit 0 (BCE ln 2); pixel 1: no depth (invalid), confidently called sky
+    depth = torch.tensor([[[[10.0, float("nan")]]]])
+    norm = encode_log_depth(torch.tensor([[[[10.0, 10.0]]]]))
+    prediction = DepthPrediction(depth_norm=norm, depth_init_norm=norm, depth_m=decode(norm),
+                                 sky_logits=torch.tensor([[[[0.0, 30.0]]]]), bin_logits=(), igd_norm=None,
+                                 refined=True)
+    targets = dict(depth=depth, sky=torch.zeros_like(depth, dtype=torch.bool), valid=torch.isfinite(depth))
+    assert DAPMLoss().depth_terms(prediction, targets)["dq"].item() == pytest.approx(LN2, rel=1e-6)
+
+
+def test_pose_terms_count_only_images_with_a_pose():
+    # image 0 is example()'s (refined pose off by 9 m of 90 in height); image 1 has no pose and a far-off prediction
+    out, targets = example()
+    pose = out.pose
+    far = torch.full((1, 4), 0.9)
+    two = pose._replace(pose_norm=torch.cat([pose.pose_norm, far]),
+                        pose_init_norm=torch.cat([pose.pose_init_norm, far]), pose=torch.cat([pose.pose, pose.pose]),
+                        bin_logits=tuple(torch.cat([b, b]) for b in pose.bin_logits))
+    pose_targets = dict(pose=torch.cat([targets["pose"], torch.full((1, 4), float("nan"))]),
+                        has_pose=torch.tensor([True, False]))
+    terms = DAPMLoss(LossConfig(use_igd_loss=False)).pose_terms(two, pose_targets)
+    assert terms["pose"].item() == pytest.approx((9 / 90) ** 2 / 4, rel=1e-5)
+    assert terms["init_pose"].item() == pytest.approx(0.0, abs=1e-12)
+    assert terms["pq"].item() == pytest.approx(math.log(16) + math.log(64), rel=1e-6)
+
+
 def test_switched_off_terms_are_absent():
     out, targets = example()
     terms = DAPMLoss(LossConfig(use_igd_loss=False))(out, targets)
