@@ -65,6 +65,17 @@ def test_callback_sets_share_and_eval_ignores_it(monkeypatch):
     assert seen[1] is None  # validation: predictions only
 
 
+def test_after_training_the_igd_sees_predictions_only():
+    """The share the module is left with: a later fit without the callback must not keep feeding true poses."""
+    module = DAPMModule(DAPMConfig(backbone="resnet18"), optimizer=OptimizerConfig(schedule_steps=120))
+    module.log = lambda *a, **k: None
+    callback = IGDTeacherForcing()
+    callback.on_train_batch_start(SimpleNamespace(global_step=0), module, None, 0)
+    assert module.igd_predicted_share == 0.0
+    callback.on_train_end(SimpleNamespace(), module)
+    assert module.igd_predicted_share == 1.0
+
+
 def test_warmup_then_cosine():
     assert warmup_cosine(0, 100, 0.3, 0.0) == pytest.approx(1 / 30)
     assert warmup_cosine(29, 100, 0.3, 0.0) == pytest.approx(1.0)
