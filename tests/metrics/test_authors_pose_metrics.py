@@ -29,6 +29,18 @@ def test_three_point_auc_and_mae_by_hand():
         assert got[f"{key}_mae"].item() == pytest.approx(34.5 / 5, rel=1e-6)
 
 
+def test_two_processes_merged_equal_one():
+    """Sum states: two "processes" (1 and 4 images) merged as DDP reduces them give the by-hand figures of all 5."""
+    pred, target = poses_with_errors([0.5, 2.0, 5.0, 7.0, 20.0])
+    a, b = AuthorsPoseMetrics(), AuthorsPoseMetrics()
+    a.update(pred[:1], target[:1])
+    b.update(pred[1:], target[1:])
+    a.merge_state(b)
+    got = a.compute()
+    assert got["roll_auc5"].item() == pytest.approx(0.34, rel=1e-6)
+    assert got["height_mae"].item() == pytest.approx(34.5 / 5, rel=1e-6)
+
+
 def test_differs_from_geocalib_auc_on_the_same_errors():
     # GeoCalib's AUC@5 follows every error, the authors' only the recalls at 1 and 5
     pred, target = poses_with_errors([0.5, 2.0, 3.0, 7.0, 20.0])

@@ -55,6 +55,19 @@ def test_two_half_updates_equal_one_full():
         assert halves.compute()[k].item() == pytest.approx(v.item(), rel=1e-6)
 
 
+def test_two_processes_merged_equal_one():
+    """The states are sums: two "processes" of unequal shares merged (what DDP's reduction does) give the figures of
+    one; a mean reduction of the image count would weigh the processes wrongly."""
+    pred, gt = random_batch(1, 6)
+    full, a, b = DepthMetrics(), DepthMetrics(), DepthMetrics()
+    full.update(pred, gt)
+    a.update(pred[:1], gt[:1])
+    b.update(pred[1:], gt[1:])
+    a.merge_state(b)
+    for k, v in full.compute().items():
+        assert a.compute()[k].item() == pytest.approx(v.item(), rel=1e-6), k
+
+
 def test_image_without_valid_pixels_is_skipped_and_all_empty_is_nan():
     pred, gt = random_batch()
     gt_empty = gt.clone()
