@@ -490,7 +490,7 @@ class DAPMModule(L.LightningModule):
         self.sigterm.agree(self.trainer)
 
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        """Add the training image size, the training RNG states and loop counters that resume exactly.
+        """Add the training image size, the skipped steps' count, the training RNG states and exact loop counters.
 
         The RNG states are those of the training stream: during a validation inside a fit, those saved when
         it started (:meth:`on_validation_start`). Loop counters that Lightning would resume in the wrong epoch
@@ -500,6 +500,7 @@ class DAPMModule(L.LightningModule):
         """
         if self.train_image_size is not None:
             checkpoint["dapm_train_image_size"] = list(self.train_image_size)
+        checkpoint["dapm_nonfinite_steps"] = self.nonfinite_steps  # rank 0's count, as its warning says
         fit_loop = checkpoint.get("loops", {}).get("fit_loop")
         if fit_loop is not None and self._trainer is not None and self.trainer.state.fn == TrainerFn.FITTING:
             resume_after_last_batch(fit_loop)
@@ -522,6 +523,7 @@ class DAPMModule(L.LightningModule):
         if self._trainer is None:
             return
         if self.trainer.state.fn == TrainerFn.FITTING:  # the best model stays the best across a resume
+            self.nonfinite_steps = int(checkpoint.get("dapm_nonfinite_steps", 0))  # "N so far" counts the whole run
             roots = [self.trainer.default_root_dir, *(getattr(log, "save_dir", None) for log in self.trainer.loggers)]
             keep_checkpoint_rankings(checkpoint, self.trainer.checkpoint_callbacks, roots)
         per_rank = checkpoint.get("dapm_rng_states_per_rank")

@@ -524,6 +524,30 @@ def test_nonfinite_loss_skips_the_step(tiny_uapd, tmp_path, monkeypatch):
             assert torch.equal(value, before[key]), key
 
 
+def test_the_count_of_skipped_steps_goes_on_across_a_resume(tiny_uapd, tmp_path, monkeypatch):
+    """The warning's "N so far" counted from 0 again after a resume: the count is in the checkpoint."""
+    monkeypatch.chdir(tmp_path)
+
+    def fit(max_steps, *extra):
+        cli = run_lightning_cli(["--config", str(QUICKSTART), "--data.class_path",
+                                 "dapm_lightning.data.datamodules.UAPDDataModule", "--data.init_args.root",
+                                 str(tiny_uapd), *TINY, "--trainer.max_steps", str(max_steps), "--trainer.logger",
+                                 "false", "--trainer.callbacks", "[]", "--trainer.enable_checkpointing", "false"],
+                                run=False)
+        real = cli.model.criterion.forward
+        monkeypatch.setattr(cli.model.criterion, "forward",
+                            lambda out, t: {**real(out, t), "total": torch.tensor(float("nan"), requires_grad=True)})
+        with pytest.warns(UserWarning, match="non-finite training loss") as caught:
+            cli.trainer.fit(cli.model, datamodule=cli.datamodule, ckpt_path=extra[0] if extra else None)
+        return cli, [str(w.message) for w in caught if "non-finite" in str(w.message)]
+
+    first, _ = fit(1)
+    assert first.model.nonfinite_steps == 1
+    first.trainer.save_checkpoint(tmp_path / "skipped.ckpt")
+    resumed, said = fit(2, str(tmp_path / "skipped.ckpt"))
+    assert resumed.model.nonfinite_steps == 2 and "(2 so far)" in said[-1], said
+
+
 def test_bad_files_at_scale_are_all_listed_and_skippable(tmp_path, monkeypatch):
     root = generate_uapd(tmp_path / "big", train=1000, val=2, size=(8, 12), seed=1)
     rgb, depth = root / "train" / "rgb", root / "train" / "depth"
