@@ -264,8 +264,14 @@ def test_a_depth_only_model_into_a_full_disk_raises_and_lists_nothing(flight, sm
     torch.manual_seed(0)
     predictor = DAPMPredictor(DAPMModule(net=DAPMConfig(**TINY, use_pose=False, use_igd_feature=False)),
                               image_width=32, batch_size=8)
-    if small_disk is None:
-        monkeypatch.setattr(files_module.cv2, "imencode", lambda *args: (False, None))
+    if small_disk is None:  # no tmpfs here: the encoder refuses after a few images' files, as the disk would
+        calls, encode = [0], cv2.imencode
+
+        def refuse_after_ten(ext, image, *args):
+            calls[0] += 1
+            return (False, None) if calls[0] > 10 else encode(ext, image, *args)
+
+        monkeypatch.setattr(files_module.cv2, "imencode", refuse_after_ten)
         out = flight.parent / "out"
     else:
         fill(small_disk, leave=64 * 1024)  # room for a few images' files
