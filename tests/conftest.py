@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import os
+import random
 import shutil
 import signal
 import tempfile
+import zlib
 from pathlib import Path
 
 import cv2
@@ -18,6 +20,16 @@ from dapm_lightning.geometry import MAX_DEPTH_M, depth_to_grey
 from dapm_lightning.training.lightning_cli import run_lightning_cli
 
 TINY_HW = (24, 40)  # non-square, so an H/W swap fails
+
+
+@pytest.fixture(autouse=True)
+def _global_rngs_seeded_by_test(request):
+    """Each test starts from global RNG states of its own (seeded by its id), whatever ran before it in its process
+    or xdist worker: a test drawing without a seed gets the same draws alone, in one process or in any worker."""
+    seed = zlib.crc32(request.node.nodeid.encode())
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
 
 
 def _threads_per_worker() -> int | None:
