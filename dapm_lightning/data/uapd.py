@@ -243,6 +243,9 @@ def check_pair(name: str, rgb_path: Path, depth_path: Path) -> tuple[dict[str, A
 
 SYNTH_SETTINGS = "synth.json"
 """The file in which ``dapm-lightning synth`` records a rendered set's settings, its depth limit among them."""
+BAD_DEPTH_RECORD_FIX = ("write the limit the set was rendered with into its max_depth (`dapm-lightning synth "
+                        "--max_depth`; UAPD: 1000), or remove max_depth from it to give the limit yourself")
+"""The fix for a ``synth.json`` whose ``max_depth`` cannot be a limit (the data set and the doctor refuse it)."""
 
 
 def recorded_depth_limit(root: str | Path) -> float | None:
@@ -264,7 +267,7 @@ def recorded_depth_limit(root: str | Path) -> float | None:
     try:
         return check_depth_limit(recorded, "max_depth")
     except ValueError as error:
-        reason = str(error).partition("\n")[0]  # without the fix, which names another setting than the caller's
+        reason = str(error).partition("\n")[0].rstrip(".")  # without the fix, which names another setting
         raise ValueError(f"{record}: {reason}") from None
 
 
@@ -334,8 +337,7 @@ class UAPDDataset(SkipsBadFiles, torch.utils.data.Dataset[Sample]):
             recorded = recorded_depth_limit(self.root)
         except ValueError as error:
             raise DatasetError(self.root, [str(error)], fix=(
-                "Fix: write the limit the set was rendered with into it (`dapm-lightning synth --max_depth`; "
-                "UAPD: 1000), or remove its max_depth to read it with --data.init_args.max_depth.")) from None
+                f"Fix: {BAD_DEPTH_RECORD_FIX} (--data.init_args.max_depth).")) from None
         if recorded is not None and recorded != self.max_depth:
             raise DatasetError(self.root, [
                 f"{self.root / SYNTH_SETTINGS}: the set was rendered with a depth limit of {recorded:g} m (grey 255), "

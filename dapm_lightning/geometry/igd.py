@@ -78,7 +78,11 @@ def _pinhole(height: Tensor, pitch_deg: Tensor, roll_deg: Tensor, a: Tensor, b: 
 
 def _paper(height: Tensor, pitch_deg: Tensor, roll_deg: Tensor, a: Tensor, b: Tensor,
            norm: Tensor, depth_kind: DepthKind, max_depth: float) -> Tensor:
-    """The paper's separable model (Eq. 10-17) with the roll un-rotation of docs/conventions.md, ``[B, H, W]``."""
+    """The paper's separable model (Eq. 10-17), ``[B, H, W]``.
+
+    The roll is undone on the pixel grid first, as the authors' ``pose_to_log_depth`` does, then the separable
+    angles are taken (docs/conventions.md, "Ideal Ground Depth").
+    """
     r = torch.deg2rad(roll_deg)[:, None, None]
     a_rolled = a * torch.cos(r) - b * torch.sin(r)  # u' / f = tan(theta_u)
     b_rolled = a * torch.sin(r) + b * torch.cos(r)  # v' / f; theta_v = atan(-v'/f)

@@ -39,7 +39,14 @@ from dapm_lightning.data.depth_kind import (
 from dapm_lightning.data.errors import DatasetError
 from dapm_lightning.data.files import write_error, write_text
 from dapm_lightning.data.potsdam import ISPRS_PRODUCT_DIRS, ISPRS_RGB_DIR, PotsdamCrops, is_potsdam_root
-from dapm_lightning.data.uapd import SYNTH_SETTINGS, UAPDDataset, read_depth_grey, read_rgb, recorded_depth_limit
+from dapm_lightning.data.uapd import (
+    BAD_DEPTH_RECORD_FIX,
+    SYNTH_SETTINGS,
+    UAPDDataset,
+    read_depth_grey,
+    read_rgb,
+    recorded_depth_limit,
+)
 from dapm_lightning.geometry.constants import MAX_DEPTH_M, POSE_KEYS, POSE_RANGES, SKY_GREY
 from dapm_lightning.geometry.depth_codec import check_depth_limit, depth_to_grey, grey_to_depth
 from dapm_lightning.geometry.igd import DepthKind, ideal_ground_depth
@@ -330,8 +337,7 @@ def depth_limit(root: Path, max_depth: float | None) -> tuple[float, str]:
     try:
         recorded = recorded_depth_limit(root)
     except ValueError as error:
-        raise ValueError(f"{error}.\nFix: --max_depth METRES, the limit the set was written with (`dapm-lightning "
-                         "synth --max_depth`; UAPD: 1000)") from None
+        raise ValueError(f"{error}.\nFix: {BAD_DEPTH_RECORD_FIX} (--max_depth)") from None
     if recorded is None:
         return MAX_DEPTH_M, f"UAPD's, the default: no {record.name} records another"
     return recorded, f"recorded in {record}"

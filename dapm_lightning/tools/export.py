@@ -54,7 +54,7 @@ class Int8Refused(RuntimeError):
     explained = True  # the message says what it is and the fix: printed as it is (tools/errors.py)
 
 
-def export(ckpt_path: Path, out: Path | None = None, height: int | None = None, width: int | None = None,
+def export(ckpt_path: str | Path, out: Path | None = None, height: int | None = None, width: int | None = None,
            dynamic: bool = True, fp16: bool = False, checks: int = 2, int8: bool = False,
            calibration_images: int = 64, verdict_images: int = 256, force: bool = False,
            threads: int | None = 1) -> Path:
@@ -78,9 +78,12 @@ def export(ckpt_path: Path, out: Path | None = None, height: int | None = None, 
             verdict.
         threads: onnxruntime threads for the verdict's timing (default 1: steady on a busy machine; 0: onnxruntime's).
     """
-    from dapm_lightning.training.checkpoint_files import check_checkpoint_there
+    from dapm_lightning.training.checkpoint_files import check_checkpoint_there, is_remote
     from dapm_lightning.training.checkpointing import load_dapm_module
 
+    if is_remote(ckpt_path):  # before Path(), which would fold its "//"
+        raise ValueError(f"{ckpt_path}: export reads a local checkpoint file (the model's metadata records its "
+                         "SHA-256).\nFix: copy the checkpoint here first and export the copy")
     ckpt_path = Path(ckpt_path)
     if int8 and fp16:
         raise ValueError("--int8 quantises the float32 model: leave --fp16 out")
@@ -214,7 +217,7 @@ def check_not_onnx(ckpt_path: Path) -> None:
             with open(ckpt_path, "rb") as stream:
                 if not looks_like_onnx(stream.read(16)):
                     return
-        except OSError:  # missing or unreadable: read_checkpoint names it
+        except OSError:  # unreadable: read_checkpoint names it
             return
     run = (f"dapm-lightning predict SOURCE --ckpt_path {ckpt_path}" if named else
            f"dapm-lightning predict SOURCE --ckpt_path {ckpt_path.with_suffix('.onnx')} (renamed to end in .onnx, "

@@ -136,8 +136,11 @@ LIGHTNING_CHECKPOINT_WORDS = ("best", "last", "hpc", "registry")
 
 
 def is_lightning_checkpoint_word(ckpt_path: str) -> bool:
-    """Whether ``ckpt_path`` is one of Lightning's own values (:data:`LIGHTNING_CHECKPOINT_WORDS`), not a path."""
-    return ckpt_path in LIGHTNING_CHECKPOINT_WORDS or ckpt_path.lower().startswith("registry")  # any case, as it
+    """Whether ``ckpt_path`` is one of Lightning's own values (:data:`LIGHTNING_CHECKPOINT_WORDS`), not a path.
+
+    ``registry`` and ``registry:NAME`` count in any case, as Lightning matches them; ``registry_old.ckpt`` is a path.
+    """
+    return ckpt_path in LIGHTNING_CHECKPOINT_WORDS or re.match(r"registry(:.*|$)", ckpt_path.lower()) is not None
 
 
 def unreadable_yaml(paths: Sequence[str]) -> str | None:

@@ -384,7 +384,10 @@ def test_a_set_rendered_with_another_depth_limit_is_checked_with_it(tmp_path, ca
         (near / "synth.json").write_text(f'{{"max_depth": {bad}}}')
         assert doctor_main([str(near), "--quiet"]) == 2
         err = capsys.readouterr().err
-        assert f"{near / 'synth.json'}: max_depth" in err and "Fix: --max_depth METRES" in err, err
+        assert f"{near / 'synth.json'}: max_depth" in err and "or remove max_depth from it" in err, err
+        assert ".." not in err
+    (near / "synth.json").write_text('{"size": 32}')  # the fix it gives works: the limit is then --max_depth's
+    assert doctor_main([str(near), "--quiet", "--max_depth", "500"]) == 0
 
 
 def test_a_potsdam_root_has_its_tiles_checked(tmp_path, capsys):

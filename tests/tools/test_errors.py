@@ -115,6 +115,7 @@ def test_a_wrong_ckpt_path_stops_fit_and_test_before_their_log_folders_are_made(
     assert sorted(p.name for p in tmp_path.iterdir()) == ["runs"]  # no run folder, no logger's version_N
     from dapm_lightning.training.lightning_cli import is_lightning_checkpoint_word
     assert all(map(is_lightning_checkpoint_word, ("best", "last", "hpc", "registry", "REGISTRY:model:1")))
+    assert not any(map(is_lightning_checkpoint_word, ("registry_old.ckpt", "lastest.ckpt", "runs/last")))
     assert not any(map(is_lightning_checkpoint_word, ("nope.ckpt", "runs", "lastly.ckpt", "best.ckpt")))
 
 
@@ -328,6 +329,8 @@ def test_export_of_an_onnx_model_says_it_is_exported_already(tmp_path, capsys):
         code, err = run_main(["export", str(missing)], capsys)
         assert code == 1 and f"{missing}: no such checkpoint file" in err and "already" not in err, err
         assert "--out" not in err
+    code, err = run_main(["export", "https://example.com/runs/m.ckpt"], capsys)  # its address was folded to https:/
+    assert code == 1 and "https://example.com/runs/m.ckpt: export reads a local checkpoint file" in err, err
     named = tmp_path / "x.onnx"
     named.write_bytes(_onnx_bytes())
     code, err = run_main(["export", str(named), "--out", str(tmp_path / "y.onnx")], capsys)
