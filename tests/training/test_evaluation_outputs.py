@@ -56,6 +56,8 @@ def test_writer_writes_the_igd_of_the_predicted_and_true_pose(tiny_uapd, tmp_pat
                         default_root_dir=str(tmp_path))
     trainer.test(model, datamodule=data)
     rows = {r["name"]: r for r in csv.DictReader(open(tmp_path / "out" / "per_image.csv"))}
+    data.setup("test")
+    assert sorted(rows) == sorted(Path(n).stem for n in data.make_dataset("val", train=False).names)  # not none
     for name, row in rows.items():
         true = cv2.imread(str(tmp_path / "out" / "maps" / "igd_true" / f"{name}.png"), cv2.IMREAD_UNCHANGED)
         pred = cv2.imread(str(tmp_path / "out" / "maps" / "igd_pred" / f"{name}.png"), cv2.IMREAD_UNCHANGED)
