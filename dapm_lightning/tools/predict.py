@@ -196,7 +196,7 @@ def check_not_lightning_word(ckpt_path: str) -> None:
     """Refuse Lightning's ``--ckpt_path`` words (``last``, ``best``...), which name a file only in its form."""
     from pathlib import Path
 
-    from dapm_lightning.training.lightning_cli import is_lightning_checkpoint_word
+    from dapm_lightning.training.checkpoint_files import is_lightning_checkpoint_word
 
     if is_lightning_checkpoint_word(ckpt_path) and not Path(ckpt_path).exists():
         raise ValueError(f"--ckpt_path {ckpt_path}: no such file; this form of predict takes a checkpoint file, not "

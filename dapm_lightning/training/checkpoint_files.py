@@ -459,6 +459,18 @@ def _refused_globals(source: str | Path | bytes) -> list[str]:
     return [name for name in found if name not in allowed]
 
 
+LIGHTNING_CHECKPOINT_WORDS = ("best", "last", "hpc", "registry")
+"""``--ckpt_path`` values Lightning resolves itself (``registry:NAME:VERSION`` too); any other is a path."""
+
+
+def is_lightning_checkpoint_word(ckpt_path: str) -> bool:
+    """Whether ``ckpt_path`` is one of Lightning's own values (:data:`LIGHTNING_CHECKPOINT_WORDS`), not a path.
+
+    ``registry`` and ``registry:NAME`` count in any case, as Lightning matches them; ``registry_old.ckpt`` is a path.
+    """
+    return ckpt_path in LIGHTNING_CHECKPOINT_WORDS or re.match(r"registry(:.*|$)", ckpt_path.lower()) is not None
+
+
 def _folder_not_checkpoint(folder: Path) -> str:
     """What to say when a folder is given as a checkpoint: the checkpoints below it, the latest first."""
     found = sorted(folder.rglob("*.ckpt"), key=lambda p: p.stat().st_mtime, reverse=True)
@@ -481,7 +493,12 @@ def check_checkpoint_there(path: str | Path) -> None:
     if source.is_dir():
         raise IsADirectoryError(_folder_not_checkpoint(source))
     if not source.is_file():
-        raise FileNotFoundError(f"{path}: no such checkpoint file")
+        hint = ""
+        if is_lightning_checkpoint_word(str(path)):
+            hint = (f"; `{path}` is Lightning's word for a checkpoint, which only fit, validate, test and predict "
+                    "given a --config resolve (docs/long_jobs.md).\nFix: give the checkpoint file, e.g. "
+                    "outputs/RUN/tensorboard/version_0/checkpoints/last.ckpt")
+        raise FileNotFoundError(f"{path}: no such checkpoint file{hint}")
 
 
 def read_checkpoint(path: str | Path, map_location: Any = "cpu") -> dict[str, Any]:

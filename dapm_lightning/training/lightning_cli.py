@@ -25,6 +25,7 @@ from dapm_lightning.training.checkpoint_files import (
     UnsafeCheckpointError,
     check_dapm_checkpoint,
     fetch_checkpoint,
+    is_lightning_checkpoint_word,
     is_remote,
     is_split_checkpoint,
     join_split_checkpoint_file,
@@ -129,18 +130,6 @@ class DAPMArgumentParser(LightningArgumentParser):
         if namespace is not None:
             loggers_follow_root_dir(namespace)
         super().validate(*args, **kwargs)
-
-
-LIGHTNING_CHECKPOINT_WORDS = ("best", "last", "hpc", "registry")
-"""``--ckpt_path`` values Lightning resolves itself (``registry:NAME:VERSION`` too); any other is a path."""
-
-
-def is_lightning_checkpoint_word(ckpt_path: str) -> bool:
-    """Whether ``ckpt_path`` is one of Lightning's own values (:data:`LIGHTNING_CHECKPOINT_WORDS`), not a path.
-
-    ``registry`` and ``registry:NAME`` count in any case, as Lightning matches them; ``registry_old.ckpt`` is a path.
-    """
-    return ckpt_path in LIGHTNING_CHECKPOINT_WORDS or re.match(r"registry(:.*|$)", ckpt_path.lower()) is not None
 
 
 def unreadable_yaml(paths: Sequence[str]) -> str | None:

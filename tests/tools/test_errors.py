@@ -113,7 +113,7 @@ def test_a_wrong_ckpt_path_stops_fit_and_test_before_their_log_folders_are_made(
         code, err = run_main([subcommand, "--config", str(QUICKSTART), *data, "--ckpt_path", "runs"], capsys)
         assert code == 1 and "runs: a folder, not a checkpoint file" in err, err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["runs"]  # no run folder, no logger's version_N
-    from dapm_lightning.training.lightning_cli import is_lightning_checkpoint_word
+    from dapm_lightning.training.checkpoint_files import is_lightning_checkpoint_word
     assert all(map(is_lightning_checkpoint_word, ("best", "last", "hpc", "registry", "REGISTRY:model:1")))
     assert not any(map(is_lightning_checkpoint_word, ("registry_old.ckpt", "lastest.ckpt", "runs/last")))
     assert not any(map(is_lightning_checkpoint_word, ("nope.ckpt", "runs", "lastly.ckpt", "best.ckpt")))
@@ -380,3 +380,14 @@ def test_one_line_predict_given_lightning_s_word_for_a_checkpoint_says_which_for
     (tmp_path / "last").write_bytes(b"not a checkpoint")  # a file of that name: read as one, and named if bad
     code, err = run_main(["predict", str(tmp_path / "photos"), "--ckpt_path", "last"], capsys)
     assert code == 1 and "last: not a readable checkpoint" in err and "Lightning's words" not in err, err
+
+
+def test_lightning_s_word_for_a_checkpoint_outside_the_lightning_form_says_where_it_works(tmp_path, capsys,
+                                                                                         monkeypatch):
+    """`export last` said only 'no such checkpoint file'; a file named so is read."""
+    monkeypatch.chdir(tmp_path)
+    code, err = run_main(["export", "last"], capsys)
+    assert code == 1 and "last: no such checkpoint file; `last` is Lightning's word for a checkpoint" in err, err
+    assert "Fix: give the checkpoint file" in err and "Traceback" not in err
+    code, err = run_main(["export", "lastly.ckpt"], capsys)  # not one of the words: no hint
+    assert code == 1 and "lastly.ckpt: no such checkpoint file" in err and "Lightning's word" not in err, err
