@@ -20,17 +20,28 @@ processes raise Lightning's ``SIGTERMException``, and one process sets Lightning
 batch). After a validation every process sets the flag, and Lightning stops right after it (at an epoch's end,
 after the epoch's end hooks and the checkpoints they save). ``CheckpointOnSigterm`` saves ``last.ckpt`` from that
 same state on each process; a run resumed from it neither repeats nor skips the validation.
+
+Lightning's SLURM auto-requeue (``SIGUSR1``, ``#SBATCH --signal=USR1@90``) has the same flaw: its handler saves
+``hpc_ckpt_N.ckpt`` from inside the handler, and under DDP that save's collectives (the module's gather of every
+process's RNG states, Lightning's barrier) met another process's collective of the step or of a metric sync: gloo
+aborted both processes ("collective mismatch"), and the job failed with status 1, not requeued. The agreement notes
+that signal too and runs Lightning's requeue handler (the save, then ``scontrol requeue`` on the first process) on
+every process after the same optimizer step, agreed in the same ``all_reduce``; training then goes on, as Lightning's
+does.
 """
 
 from __future__ import annotations
 
 import logging
 import signal
+from collections.abc import Callable
 from types import FrameType
+from typing import Any
 
 import lightning as L
 import torch
 import torch.distributed as dist
+from lightning.fabric.plugins.environments import SLURMEnvironment
 from lightning.pytorch.trainer.states import TrainerFn
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 from lightning_utilities.core.rank_zero import rank_prefixed_message
@@ -54,6 +65,11 @@ def _distributed(trainer: L.Trainer) -> bool:
     return trainer.world_size > 1 and dist.is_available() and dist.is_initialized()
 
 
+def _cluster_environment(trainer: L.Trainer) -> Any:
+    """The trainer's cluster environment, where Lightning's signal connector reads it (None if it cannot)."""
+    return getattr(getattr(trainer, "_accelerator_connector", None), "cluster_environment", None)
+
+
 def validation_follows(trainer: L.Trainer) -> bool:
     """Whether Lightning validates right after the current training batch (asked in ``on_train_batch_end``)."""
     loop = trainer.fit_loop.epoch_loop
@@ -73,6 +89,10 @@ class SigtermAgreement:
         self._trainer: L.Trainer | None = None
         self._after_validation = False
         """A stop agreed after a training batch that a validation follows: taken when that validation ends."""
+        self._requeue_handler: Callable[[int, FrameType | None], Any] | None = None
+        """Lightning's SLURM auto-requeue handler, taken over by :meth:`install` (run by :meth:`agree` instead)."""
+        self.requeue_signum: int | None = None
+        """The requeue signal this process received and :meth:`agree` has not acted on yet, if any."""
 
     def install(self, trainer: L.Trainer) -> None:
         """Replace Lightning's SIGTERM handler (call after Lightning installed it: sanity check, train start).
@@ -86,9 +106,26 @@ class SigtermAgreement:
         if self._trainer is trainer:
             return
         self._trainer, self.received, self._signum, self._after_validation = trainer, False, None, False
+        self._requeue_handler, self.requeue_signum = None, None
         if trainer.received_sigterm:  # Lightning's handler logged it
             trainer._signal_connector.received_sigterm, self.received = False, True
         signal.signal(signal.SIGTERM, self._on_sigterm)
+        self._take_over_requeue(trainer)
+
+    def _take_over_requeue(self, trainer: L.Trainer) -> None:
+        """Note Lightning's SLURM requeue signal instead of handling it there (its handler runs in :meth:`agree`)."""
+        environment = _cluster_environment(trainer)
+        if not isinstance(environment, SLURMEnvironment) or environment.requeue_signal is None:
+            return
+        current = signal.getsignal(environment.requeue_signal)
+        ours = trainer._signal_connector._slurm_sigusr_handler_fn
+        if not any(handler == ours for handler in getattr(current, "signal_handlers", ())):
+            return  # not Lightning's auto-requeue (off, or a handler of the user's that Lightning left alone)
+        self._requeue_handler = current
+        signal.signal(environment.requeue_signal, self._on_requeue)
+
+    def _on_requeue(self, signum: int, frame: FrameType | None) -> None:
+        self.requeue_signum = signum  # no save and no collective here: the processes act together in agree()
 
     def acts_for(self, trainer: L.Trainer) -> bool:
         """Whether this agreement handles ``trainer``'s stops (installed on it)."""
@@ -108,13 +145,28 @@ class SigtermAgreement:
 
     def _agreed(self, trainer: L.Trainer) -> bool:
         """Whether any process was told to stop (a stop already agreed counts, without a collective)."""
+        return self._agreed_with_requeue(trainer)[0]
+
+    def _agreed_with_requeue(self, trainer: L.Trainer) -> tuple[bool, bool]:
+        """Whether any process was told to stop, and whether any received the requeue signal (one ``all_reduce``).
+
+        A stop already agreed counts without a collective (and the requeue then waits for the next agreement).
+        """
         if self._after_validation:
-            return True
+            return True, False
+        requeue = self.requeue_signum is not None
         if not _distributed(trainer):
-            return self.received
-        flag = torch.tensor([int(self.received)], device=trainer.strategy.root_device)
-        dist.all_reduce(flag, op=dist.ReduceOp.MAX)
-        return bool(flag.item())
+            return self.received, requeue
+        flags = torch.tensor([int(self.received), int(requeue)], device=trainer.strategy.root_device)
+        dist.all_reduce(flags, op=dist.ReduceOp.MAX)
+        return bool(flags[0].item()), bool(flags[1].item())
+
+    def _requeue(self, trainer: L.Trainer) -> None:
+        """Lightning's auto-requeue, on every process at once: ``hpc_ckpt_N.ckpt`` saved, the job requeued."""
+        handler, signum = self._requeue_handler, self.requeue_signum
+        self.requeue_signum = None
+        if handler is not None:
+            handler(signum or signal.SIGUSR1, None)
 
     def _log(self, trainer: L.Trainer) -> None:
         if self._signum == signal.SIGTERM:
@@ -122,6 +174,9 @@ class SigtermAgreement:
 
     def agree(self, trainer: L.Trainer) -> None:
         """After a training batch, on every process: stop all if any was told to, when the batch ended a window.
+
+        When any process received Lightning's SLURM requeue signal, first runs Lightning's requeue handler on every
+        process (a checkpoint of this step, the job requeued); training goes on unless a stop is agreed too.
 
         When a validation follows the batch, the stop waits for its end (:meth:`after_validation`); if it did not
         run after all (Lightning skipped it), the stop is taken after the next window instead. Else under DDP
@@ -134,7 +189,12 @@ class SigtermAgreement:
         Raises:
             SIGTERMException: under DDP, when any process was told to stop.
         """
-        if self._trainer is not trainer or not between_optimizer_steps(trainer) or not self._agreed(trainer):
+        if self._trainer is not trainer or not between_optimizer_steps(trainer):
+            return
+        stop, requeue = self._agreed_with_requeue(trainer)
+        if requeue:  # SLURM's warning signal reached some process: Lightning's requeue, here, on every process
+            self._requeue(trainer)
+        if not stop:
             return
         if validation_follows(trainer) and not self._after_validation:  # set still: the last one did not run
             self._after_validation = True

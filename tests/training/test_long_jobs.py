@@ -4,6 +4,7 @@ import json
 import os
 import random
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -824,6 +825,72 @@ class WaitAtStep(L.Callback):
             deadline = time.time() + 60
             while not self.go.exists() and time.time() < deadline:
                 time.sleep(0.05)
+
+
+class WaitAtValidationEnd(L.Callback):
+    """On process ``rank`` only, at the end of the validation after step ``step`` (before its metrics are gathered):
+    writes ``marker`` and waits (60 s at most) for the file ``go``; the other processes run on into the gathering."""
+
+    def __init__(self, step: int, rank: int, marker: str, go: str) -> None:
+        self.step, self.rank, self.marker, self.go = step, rank, Path(marker), Path(go)
+
+    def on_validation_epoch_end(self, trainer, pl_module):  # callbacks' hook: before the module's metric sync
+        if trainer.sanity_checking or trainer.global_step != self.step or trainer.global_rank != self.rank:
+            return
+        self.marker.write_text(str(self.step))
+        deadline = time.time() + 60
+        while not self.go.exists() and time.time() < deadline:
+            time.sleep(0.05)
+
+
+@pytest.mark.slow
+def test_lightning_s_slurm_requeue_signal_under_ddp_saves_and_requeues_after_the_same_step(data16, tmp_path):
+    """``#SBATCH --signal=USR1@90`` to a job of two SLURM tasks (two processes, DDP) while rank 1 gathers a
+    validation's metrics and rank 0 has not started to: Lightning's requeue runs on both processes after the next
+    step (its hpc checkpoint of step 3, one ``scontrol requeue``) and training goes on to its end. Lightning's handler
+    saved from inside the signal handler: rank 0's gather of the RNG states met rank 1's metric gather, gloo aborted
+    both ("collective mismatch": status 1, and SIGABRT) and the job was not requeued."""
+    scontrol = tmp_path / "bin" / "scontrol"
+    scontrol.parent.mkdir()
+    scontrol.write_text(f"#!/bin/sh\necho \"$@\" >> {tmp_path / 'scontrol.calls'}\n")
+    scontrol.chmod(0o755)
+    marker, go, root = tmp_path / "at_validation", tmp_path / "go", tmp_path / "root"
+    config = job_config(tmp_path, "run")
+    job = yaml.safe_load((tmp_path / "run.yaml").read_text())
+    job["trainer"]["callbacks"].append({"class_path": f"{__name__}.WaitAtValidationEnd",
+                                        "init_args": {"step": 2, "rank": 0, "marker": str(marker), "go": str(go)}})
+    (tmp_path / "run.yaml").write_text(yaml.safe_dump(job))
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    slurm = {"SLURM_NTASKS": "2", "SLURM_NTASKS_PER_NODE": "2", "SLURM_NNODES": "1", "SLURM_NODEID": "0",
+             "SLURM_JOB_ID": "4242", "SLURM_JOB_NAME": "dapm", "SLURM_NODELIST": "127.0.0.1",
+             "MASTER_ADDR": "127.0.0.1", "MASTER_PORT": str(port)}
+    cmd = [sys.executable, "-m", "dapm_lightning", "fit", *config, "--data.class_path",
+           "dapm_lightning.data.datamodules.UAPDDataModule", "--data.init_args.root", str(data16), *TINY, *VALIDATE,
+           "--trainer.max_steps", "4", "--trainer.accelerator", "cpu", "--trainer.devices", "2",
+           "--trainer.strategy", "ddp", "--trainer.default_root_dir", str(root)]
+    tasks = [subprocess.Popen(cmd, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                              start_new_session=True,
+                              env={**os.environ, **slurm, "SLURM_PROCID": str(rank), "SLURM_LOCALID": str(rank),
+                                   "PATH": f"{scontrol.parent}{os.pathsep}{os.environ['PATH']}",
+                                   "PYTHONPATH": str(HERE.parents[1])}) for rank in (0, 1)]
+    try:
+        wait_for(marker, tasks[0])
+        for task in tasks:  # SLURM signals every process of the step
+            os.killpg(task.pid, signal.SIGUSR1)
+        time.sleep(1.0)
+        go.touch()
+        results = [finish(task) for task in tasks]
+    finally:
+        for task in tasks:
+            if _group_alive(task.pid):
+                os.killpg(task.pid, signal.SIGKILL)
+    assert [status for status, _ in results] == [0, 0], "\n".join(out[-3000:] for _, out in results)
+    assert "Requeued SLURM job: 4242" in results[0][1]
+    assert (tmp_path / "scontrol.calls").read_text().split() == ["requeue", "4242"]
+    assert weights(root / "hpc_ckpt_1.ckpt")["global_step"] == 3  # after the step that followed the signal
+    assert weights(tmp_path / "run" / "last.ckpt")["global_step"] == 4  # and training went on to its end
 
 
 @pytest.mark.slow
