@@ -15,7 +15,7 @@ import numpy as np
 import torch
 import torch.distributed as dist
 from lightning.pytorch.trainer.states import TrainerFn
-from lightning.pytorch.utilities import rank_zero_info, rank_zero_warn
+from lightning.pytorch.utilities import rank_zero_info
 from lightning.pytorch.utilities.types import LRSchedulerTypeUnion, OptimizerLRSchedulerConfig
 from torch import Tensor
 from torch.nn.parallel import DistributedDataParallel
@@ -455,14 +455,25 @@ class DAPMModule(L.LightningModule):
     def training_step(self, batch: dict[str, Any], batch_idx: int) -> Tensor | None:
         self.train_image_size = (int(batch["image"].shape[-2]), int(batch["image"].shape[-1]))
         loss, _ = self._shared_step(batch, "train")
-        if torch.isfinite(loss) or not self.skip_nonfinite_loss:
+        if not self.skip_nonfinite_loss:
+            return loss
+        finite = bool(torch.isfinite(loss))
+        distributed = self.trainer.world_size > 1 and dist.is_available() and dist.is_initialized()
+        everywhere = finite
+        if distributed:  # every process decides alike: the step, the count and its log are the whole job's
+            flag = torch.tensor([int(finite)], device=loss.device)
+            dist.all_reduce(flag, op=dist.ReduceOp.MIN)
+            everywhere = bool(flag.item())
+        if everywhere:
             return loss
         self.nonfinite_steps += 1
-        names = ", ".join(batch.get("name", [])[:8])
-        rank_zero_warn(f"non-finite training loss at step {self.global_step} (batch {batch_idx}: {names}); "
-                       f"step skipped, weights unchanged ({self.nonfinite_steps} so far)")
+        if not finite:  # the process whose batch it was names its files (under DDP, maybe not rank 0)
+            names = ", ".join(batch.get("name", [])[:8])
+            where = f"process {self.trainer.global_rank}, " if distributed else ""
+            warnings.warn(f"non-finite training loss at step {self.global_step} ({where}batch {batch_idx}: {names}); "
+                          f"step skipped, weights unchanged ({self.nonfinite_steps} so far)", UserWarning, stacklevel=2)
         self.log("train_nonfinite_steps", float(self.nonfinite_steps), on_step=True, on_epoch=False, batch_size=1)
-        if self.trainer.world_size > 1:  # every process must run backward under DDP: a zero-gradient step
+        if distributed:  # every process must run backward under DDP: a zero-gradient step, on every process
             return sum((p.sum() * 0.0 for p in self.parameters() if p.requires_grad), torch.zeros(()))
         return None  # Lightning skips backward and the optimiser step
 

@@ -549,6 +549,46 @@ def test_the_count_of_skipped_steps_goes_on_across_a_resume(tiny_uapd, tmp_path,
     assert resumed.model.nonfinite_steps == 2 and "(2 so far)" in said[-1], said
 
 
+class NonFiniteLossOn(L.Callback):
+    """Makes the training loss of process ``rank`` NaN at step ``step``, once (the other processes' stay finite)."""
+
+    def __init__(self, rank: int, step: int) -> None:
+        self.rank, self.step = rank, step
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+        if trainer.global_rank != self.rank or trainer.global_step != self.step:
+            return
+        criterion = pl_module.criterion
+        real = criterion.forward
+
+        def nan_once(out, targets):
+            del criterion.forward  # the class's forward again
+            return {**real(out, targets), "total": torch.tensor(float("nan"), requires_grad=True)}
+
+        criterion.forward = nan_once
+
+
+@pytest.mark.slow
+def test_a_nonfinite_loss_on_one_ddp_process_skips_the_step_on_every_process_and_is_counted(data16, tmp_path):
+    """Two processes, rank 1's loss NaN at step 1: every process takes the zero-gradient step, and the step is counted
+    (the checkpoint's count, the resumed run's "N so far") and its files named. Before, rank 1 alone zeroed its
+    gradients (rank 0's still stepped the weights), rank 1 alone counted the step and warned nowhere (rank_zero_warn),
+    and the checkpoint held rank 0's count: 0."""
+    out = tmp_path / "fit.json"
+    cmd = [sys.executable, str(HERE / "ddp_run.py"), str(out), "fit", *job_config(tmp_path, "run"),
+           "--data.class_path", "dapm_lightning.data.datamodules.UAPDDataModule", "--data.init_args.root",
+           str(data16), *TINY, *DDP, "--trainer.max_steps", "2", f"--trainer.callbacks+={__name__}.NonFiniteLossOn",
+           "--trainer.callbacks.rank", "1", "--trainer.callbacks.step", "1", "--data.init_args.num_workers", "0"]
+    run = subprocess.Popen(cmd, cwd=tmp_path, env={**os.environ, "PYTHONPATH": str(HERE.parents[1])},
+                           stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
+    code, log = finish(run, timeout=300)
+    assert code == 0, log[-3000:]
+    saved = torch.load(tmp_path / "run" / "last.ckpt", weights_only=True)
+    assert (saved["global_step"], saved["dapm_nonfinite_steps"]) == (2, 1)
+    assert "non-finite training loss at step 1 (process 1, batch 1: " in log, log[-3000:]
+    assert json.loads(out.read_text())["metrics"]["train_nonfinite_steps"] == 1.0  # logged by rank 0 too
+
+
 def test_bad_files_at_scale_are_all_listed_and_skippable(tmp_path, monkeypatch):
     root = generate_uapd(tmp_path / "big", train=1000, val=2, size=(8, 12), seed=1)
     rgb, depth = root / "train" / "rgb", root / "train" / "depth"
