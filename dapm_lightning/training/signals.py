@@ -41,7 +41,7 @@ from typing import Any
 import lightning as L
 import torch
 import torch.distributed as dist
-from lightning.fabric.plugins.environments import SLURMEnvironment
+from lightning.fabric.plugins.environments.slurm import SLURMEnvironment
 from lightning.pytorch.trainer.states import TrainerFn
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 from lightning_utilities.core.rank_zero import rank_prefixed_message
@@ -119,7 +119,7 @@ class SigtermAgreement:
             return
         current = signal.getsignal(environment.requeue_signal)
         ours = trainer._signal_connector._slurm_sigusr_handler_fn
-        if not any(handler == ours for handler in getattr(current, "signal_handlers", ())):
+        if not callable(current) or not any(handler == ours for handler in getattr(current, "signal_handlers", ())):
             return  # not Lightning's auto-requeue (off, or a handler of the user's that Lightning left alone)
         self._requeue_handler = current
         signal.signal(environment.requeue_signal, self._on_requeue)
