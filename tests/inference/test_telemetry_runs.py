@@ -334,3 +334,55 @@ def test_a_csv_names_the_frames_of_videos_found_by_a_pattern_as_their_outputs_ar
     assert first.provenance[0][0] == "flight.csv line 2"
     assert len(caught) == 1 and "1 of 3 name(s) match no frame of DJI_0005.avi or DJI_0005.avi (frames are named " \
         "as their outputs: 100MEDIA_DJI_0005_f000012): DJI_0005_f000002" in caught[0]
+
+
+def test_a_drone_video_s_frames_get_their_own_pose_camera_and_ground_from_its_srt(checkpoint, tmp_path, monkeypatch):
+    """The numbers of `predict FLIGHT.MP4` end to end, at 29.97 fps (DJI's millisecond timings), every 3rd frame, 3 of
+    them: each frame's row, K and point cloud come from its own subtitle (height, pitch, roll and the digital zoom
+    change every frame), on a non-square video; with the network's depth replaced by "far" and the IGD bound at margin
+    0, the depth is the flat ground of the SRT's pose, so every point lies on z = 0."""
+    from dapm_lightning.models import dapm
+    from tests.inference.test_predict import read_ply_independently
+
+    height_px, width_px, frames = 36, 60, 8
+    write_video(tmp_path / "DJI_0007.avi", frames=frames, size=(height_px, width_px), fps=29.97)
+    subtitles, truth = [], {}
+    for f in range(frames):
+        start, end = (round(k * 1001 / 30) for k in (f, f + 1))
+        height, pitch, roll, zoom = 30.0 + 1.5 * f, -55.0 + 0.8 * f, -9.0 + 2.4 * f, 1.0 + 0.05 * f
+        width_mm = math.hypot(36, 24) * width_px / math.hypot(width_px, height_px)
+        truth[f] = (height, pitch, roll, math.degrees(2 * math.atan(width_mm / (2 * 24.0 * zoom))))
+        subtitles.append(f"{f + 1}\n00:00:00,{start:03d} --> 00:00:00,{end:03d}\n<font size=\"28\">FrameCnt: {f + 1}\n"
+                         f"[fnum : 280] [focal_len : 240] [dzoom_ratio: {round(zoom * 10000)}, delta:0],"
+                         f"[latitude: 49.1] [rel_alt: {height:.3f} abs_alt: 500.000] "
+                         f"[gb_yaw: 1.0 gb_pitch: {pitch:.1f} gb_roll: {roll:.1f}] </font>\n")
+    (tmp_path / "DJI_0007.SRT").write_text("\n".join(subtitles))
+    network = dapm.DAPMOutput.inference_outputs
+
+    def far(self, spread=False):
+        out = network(self, spread)
+        return out.replace(depth_m=torch.full_like(out.depth_m, 999.0), sky_prob=torch.zeros_like(out.sky_prob))
+
+    monkeypatch.setattr(dapm.DAPMOutput, "inference_outputs", far)
+    out = tmp_path / "out"
+    main(["predict", str(tmp_path / "DJI_0007.avi"), "--ckpt_path", str(checkpoint), "--out", str(out), "--device",
+          "cpu", "--frame_step", "3", "--max_frames", "3", "--image_width", str(width_px), "--igd_bound", "0",
+          "--points_stride", "1", "--outputs", "camera,points"])
+    rows = json.loads((out / "poses.json").read_text())
+    assert [r["name"] for r in rows] == ["DJI_0007_f000000", "DJI_0007_f000003", "DJI_0007_f000006"]
+    for row in rows:
+        f = int(row["name"][-6:])
+        assert [row[k] for k in ("height_m", "pitch_deg", "roll_deg", "fov_deg")] == pytest.approx(truth[f], abs=1e-4)
+        assert row["height_m_provenance"] == f"DJI_0007.SRT subtitle {f + 1} rel_alt"
+        zoomed = " x dzoom_ratio" if f else ""  # frame 0: dzoom_ratio 10000, 1x
+        assert row["fov_deg_provenance"] == f"DJI_0007.SRT subtitle {f + 1} focal_len{zoomed}"
+        assert row["time_s"] == pytest.approx(f / 29.97, abs=2e-3)
+        camera = json.loads((out / f"{row['name']}_camera.json").read_text())
+        fx = width_px / (2 * math.tan(math.radians(truth[f][3]) / 2))
+        assert np.array(camera["K"]) == pytest.approx(np.array([[fx, 0, width_px / 2], [0, fx, height_px / 2],
+                                                                [0, 0, 1]]), abs=1e-3)
+        points = read_ply_independently(out / f"{row['name']}_points.ply")
+        xyz = np.stack([points["x"], points["y"], points["z"]], 1).astype(np.float64)
+        assert len(xyz) == height_px * width_px
+        distance = np.linalg.norm(xyz - [0.0, 0.0, truth[f][0]], axis=1)
+        assert np.abs(xyz[:, 2]).max() < 1e-5 * distance.max()
