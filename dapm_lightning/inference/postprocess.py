@@ -203,8 +203,8 @@ class Prediction:
         if self.pose is not None:
             network = self.pose_network or self.pose
             sources, given = self.pose_source or {}, self.pose_provenance or {}
-            pose = {pose_field(k): {"value": v, "source": sources.get(k, "network"),
-                                    "network": network.get(k)} for k, v in self.pose.items()}
+            pose = {pose_field(k): {"value": pose_value_text(v), "source": sources.get(k, "network"),
+                                    "network": pose_value_text(network.get(k))} for k, v in self.pose.items()}
             provenance = {pose_field(k): given.get(k) for k in self.pose}
         return {"name": self.name, **({} if self.time_s is None else {"time_s": round(self.time_s, 3)}),
                 "width": int(width), "height": int(height),
@@ -215,6 +215,12 @@ class Prediction:
                 "conventions": "pixel (i, j) centre at (j + 0.5, i + 0.5); camera x right, y down, z forward; world "
                                "origin on the ground under the camera, X horizontal along the optical axis, Y left, "
                                "Z up (docs/conventions.md)"}
+
+
+def pose_value_text(value: float | None) -> float | None:
+    """A pose value for ``camera.json``: to 1e-5 m or degree, below float32's arithmetic noise (the SRT's -42.0
+    pitch, carried in float32 through the network's normalised pose and back, is -42.0, not -42.000003814697266)."""
+    return None if value is None else round(float(value), 5)
 
 
 def _camera_pose(pose: Tensor | None) -> CameraPose | None:

@@ -378,6 +378,9 @@ def test_a_drone_video_s_frames_get_their_own_pose_camera_and_ground_from_its_sr
         assert row["fov_deg_provenance"] == f"DJI_0007.SRT subtitle {f + 1} focal_len{zoomed}"
         assert row["time_s"] == pytest.approx(f / 29.97, abs=2e-3)
         camera = json.loads((out / f"{row['name']}_camera.json").read_text())
+        # the SRT's values as it wrote them, not their float32 storage (-55.0, not -55.000003814697266)
+        assert camera["pose"]["pitch_deg"]["value"] == float(f"{truth[f][1]:.1f}")
+        assert camera["pose"]["height_m"]["value"] == float(f"{truth[f][0]:.3f}")
         fx = width_px / (2 * math.tan(math.radians(truth[f][3]) / 2))
         assert np.array(camera["K"]) == pytest.approx(np.array([[fx, 0, width_px / 2], [0, fx, height_px / 2],
                                                                 [0, 0, 1]]), abs=1e-3)
