@@ -157,6 +157,8 @@ def test_heights_on_the_ground_are_unknown_with_one_warning(tmp_path):
     assert frames[2].height_m == 1.5
     assert len(caught) == 1 and "1 subtitle(s) with a height <= 0" in caught[0]
     assert "1 subtitle(s) with a height below 1 m" in caught[0]
+    at_the_limit = read_srt(write_srt(tmp_path / "one.SRT", [neo2.format(k=1, h="1.000")]))
+    assert at_the_limit[0].height_m == 1.0  # 1 m itself is a height: only below it is "on the ground"
 
 
 def test_a_360_degree_video_gets_no_pinhole_fov(tmp_path):
@@ -201,6 +203,7 @@ def test_per_second_captions_are_interpolated_onto_frames_by_their_timing(tmp_pa
     frames, caught = record(read_srt, path, 3840, 2160, fps=10.0)
     assert not caught and sorted(frames) == list(range(30))  # 3 s at 10 fps
     assert_pose(frames[0], [85.8, -24.4, 0.0, NAN])  # the gimbal (G.PRY), not the aircraft (F.PRY 2.7, -7.0)
+    assert_pose(frames[2], [86.0, -24.8, 0.0, NAN])  # a fifth of the way: from subtitle 1 towards 2, not back
     assert_pose(frames[5], [86.3, -25.4, 0.0, NAN])  # half-way from subtitle 1 to 2
     assert_pose(frames[10], [86.8, -26.4, 0.0, NAN])
     assert_pose(frames[25], [86.0, -26.4, 0.0, NAN])  # the last subtitle is held to its end
@@ -208,6 +211,30 @@ def test_per_second_captions_are_interpolated_onto_frames_by_their_timing(tmp_pa
     assert frames[5].provenance[0] == "p4_rtk.SRT subtitles 1-2 H at 0.500 s"
     with pytest.raises(ValueError, match="frame rate"):
         read_srt(path)
+
+
+def test_per_second_captions_apart_in_time_are_held_not_interpolated(tmp_path):
+    """Two captions interpolate only when the second starts as the first ends; across a gap (the recording paused)
+    or an overlap, each holds its own value over the frames it covers."""
+    edges = [(0, 1000), (1500, 2500), (2300, 3300)]  # a 0.5 s gap, then a 0.2 s overlap
+    heights = (80.0, 90.0, 100.0)
+    (tmp_path / "gaps.SRT").write_text("".join(
+        f"{k}\n00:00:0{a // 1000},{a % 1000:03d} --> 00:00:0{b // 1000},{b % 1000:03d}\n{p4_rtk(h, -30.0)}\n\n"
+        for k, ((a, b), h) in enumerate(zip(edges, heights), 1)))
+    frames = read_srt(tmp_path / "gaps.SRT", fps=10.0)
+    assert [frames[f].height_m for f in (0, 5, 9)] == [80.0, 80.0, 80.0]  # held to its end, across the gap
+    assert 10 not in frames and 14 not in frames  # the gap: no subtitle
+    assert frames[15].height_m == 90.0 and frames[19].height_m == 90.0  # not towards the overlapping third
+    assert frames[9].provenance[0] == "gaps.SRT subtitle 1 H"
+
+
+def test_srt_timings_with_fewer_fraction_digits_are_read_as_decimals(tmp_path):
+    """`00:00:00,5` is half a second (the fraction is a decimal one, not milliseconds)."""
+    (tmp_path / "cs.srt").write_text("".join(f"{k}\n00:00:0{k - 1},0 --> 00:00:0{k - 1},5\n[rel_alt: {10 * k}.0]\n\n"
+                                             for k in (1, 2)))
+    frames = read_srt(tmp_path / "cs.srt", fps=10.0)  # subtitle k from k - 1 s to k - 0.5 s: 5 frames each
+    assert sorted(frames) == [0, 1, 2, 3, 4, 10, 11, 12, 13, 14]
+    assert frames[4].height_m == 10.0 and frames[10].height_m == 20.0
 
 
 def test_barometer_hb_and_h_captions(tmp_path):
