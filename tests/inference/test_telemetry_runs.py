@@ -149,6 +149,36 @@ def test_an_srt_with_fewer_subtitles_than_frames_warns_once_and_a_csv_names_fram
     assert report.total == 9 and report.with_telemetry == 6
 
 
+def test_a_subtitle_that_knows_nothing_still_covers_its_frame(tmp_path):
+    """The coverage warning is about frames no subtitle covers (a wrong or cut SRT), not frames whose subtitle left
+    everything unknown (the drone on the ground): those have the on-ground warning alone."""
+    srt = tmp_path / "v.SRT"  # subtitle 1: rel_alt 0, on the ground, and no other field
+    srt.write_text("".join(f"{k}\n00:00:00,{100 * (k - 1):03d} --> 00:00:00,{100 * k:03d}\n"
+                           f"[rel_alt: {20 * (k - 1)}.000 abs_alt: 300.000]\n\n" for k in range(1, 10)))
+    (frames, _), caught = record(video_telemetry, tmp_path / "v.avi", range(9), srt, fps=10.0)
+    assert sorted(frames) == list(range(1, 9)) and frames[1].height_m == 20.0
+    assert len(caught) == 1 and "height <= 0" in caught[0] and "cover frames" not in caught[0]
+
+
+def test_frames_named_only_by_the_csv_are_given_when_the_frame_count_is_unknown(tmp_path):
+    srt = per_frame_srt(tmp_path / "v.SRT", 3)
+    table = tmp_path / "frames.csv"
+    table.write_text("name,height_m\nv_f000001,55.5\nv_f000040,70\n")
+    (frames, report), _ = record(video_telemetry, tmp_path / "v.avi", None, srt, table, fps=10.0)
+    assert sorted(frames) == [0, 1, 2, 40] and frames[40].height_m == 70.0 and frames[1].height_m == 55.5
+    assert report.total == 4
+
+
+def test_a_python_api_prior_wins_over_the_csv_row_and_the_csv_fills_in(tmp_path):
+    Image.new("RGB", (60, 40)).save(tmp_path / "a.png")
+    table = tmp_path / "flight.csv"
+    table.write_text("name,height_m,pitch_deg,roll_deg,fov_deg\na.png,30,-40,,\n")
+    prior = PoseTelemetry(height_m=50.0, source="API")
+    (telemetry,), _ = images_telemetry([tmp_path / "a.png"], table, priors=[prior])
+    assert telemetry.values()[:3].tolist()[:2] == [50.0, -40.0] and math.isnan(telemetry.roll_deg)
+    assert telemetry.provenance[:2] == ("API", "flight.csv line 2")
+
+
 def test_a_broken_srt_falls_back_and_strict_stops(tmp_path):
     video = write_video(tmp_path / "v.avi")
     srt = tmp_path / "v.SRT"
