@@ -80,6 +80,41 @@ def test_the_verdict_passes_within_the_tolerances_and_names_what_fails():
     assert better.passed
     broken = Int8Verdict((64, 64), 256, scores(0.5), scores(float("nan")))
     assert not broken.passed
+    lost_pose = Int8Verdict((64, 64), 256, scores(0.5), scores(0.5, height=float("nan")))  # a NaN pose median
+    assert lost_pose.failures == ["the height median grows by nan m (> 0.5)"]
+    worse_fov = Scores(0.5, {"height": 5.0, "pitch": 3.0, "roll": 2.0, "fov": 4.6}, [0.01])  # every component counts
+    assert Int8Verdict((64, 64), 256, scores(0.5), worse_fov).failures == ["the fov median grows by 0.60 deg (> 0.5)"]
+
+
+@pytest.mark.parametrize("passes", [False, True])
+def test_the_export_keeps_an_int8_file_only_when_its_verdict_passes_or_forced(tmp_path, monkeypatch, capsys, passes):
+    """An int8 model that fails the verdict is not written and an earlier export's int8 file is removed (it is not
+    this model's); --force keeps it; one that passes replaces the earlier file. No partial file is left."""
+    import dapm_lightning.inference.quantize as quantize
+    import dapm_lightning.tools.export as export_tool
+
+    monkeypatch.setattr(quantize, "quantize_int8", lambda float_path, path, images: path.write_bytes(b"new int8"))
+    monkeypatch.setattr(quantize, "calibration_images", lambda *args, **kwargs: [])
+    monkeypatch.setattr(quantize, "render_set", lambda *args, **kwargs: [])
+    monkeypatch.setattr(export_tool, "write_metadata", lambda path, metadata: None)
+    verdict = Int8Verdict((32, 32), 4, scores(0.5), scores(0.5 if passes else 0.4))
+    monkeypatch.setattr(int8_check, "compare_int8", lambda *args, **kwargs: verdict)
+    float_out, out = tmp_path / "model.onnx", tmp_path / "model_int8.onnx"
+    float_out.write_bytes(b"float")
+
+    def run(force):
+        out.write_bytes(b"an int8 file of an earlier export")
+        export_tool._int8(float_out, out, (32, 32), (32, 32), 4, 4, force, 1, {})
+        return capsys.readouterr().out
+
+    if passes:
+        assert "verdict: PASS" in run(force=False) and out.read_bytes() == b"new int8"
+    else:
+        with pytest.raises(export_tool.Int8Refused, match="int8 model not kept .d1 drops by 0.100"):
+            run(force=False)
+        assert not out.exists()
+        assert "kept anyway (--force true)" in run(force=True) and out.read_bytes() == b"new int8"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["model.onnx", "model_int8.onnx"]  # no partial file left
 
 
 def test_renders_are_held_out_from_the_calibration():

@@ -1,5 +1,6 @@
 from pathlib import Path
 
+import numpy as np
 import onnxruntime
 import pytest
 import torch
@@ -290,6 +291,49 @@ def test_export_mismatches_name_what_exceeds_its_tolerance():
     assert export_mismatches([good, odd], fp16=True) == []  # half precision is allowed more
     assert export_mismatches([{**good, DEPTH_SHARE_OFF: 0.02}], fp16=True) == [
         "depth_share_off_1pct 0.02 > 0.01 at (1, 64, 64)"]
+
+
+def test_every_output_is_held_to_its_float32_tolerance():
+    """float32 is held tighter than float16: a share of 0.2 % of depth pixels off, or the network's own pose off by
+    0.06, fails it."""
+    good = {"shape": (1, 64, 64), "depth_m": 0.01, "sky_prob": 1e-5, "pose": 1e-4, "pose_network": 1e-4,
+            DEPTH_SHARE_OFF: 0.0}
+    assert export_mismatches([{**good, DEPTH_SHARE_OFF: 2e-3}]) == ["depth_share_off_1pct 0.002 > 0.001 at (1, 64, 64)"]
+    assert export_mismatches([{**good, "pose_network": 0.06}]) == ["pose_network 0.06 > 0.05 at (1, 64, 64)"]
+    assert export_mismatches([{**good, DEPTH_SHARE_OFF: 2e-3, "pose_network": 0.06}], fp16=True) == []
+
+
+def test_the_depth_check_counts_the_pixels_off_by_more_than_one_percent_of_their_depth(tmp_path, monkeypatch):
+    """The share of depth pixels off is relative to each pixel's depth: onnxruntime's depth 2 % off on the first
+    tenth of the pixels (and 0.5 % off elsewhere, within the limit) is that tenth, at each checked size."""
+    import dapm_lightning.inference.onnx as onnx_module
+    from dapm_lightning.inference.onnx import ExportWrapper
+
+    net = tiny_net()
+    reference = ExportWrapper(net)
+
+    class Session:  # onnxruntime's outputs: PyTorch's, the depth a little off
+        def __init__(self, *args, **kwargs):
+            pass
+
+        def run(self, names, feed):
+            with torch.no_grad():
+                outputs = [o.numpy() for o in reference(*(torch.from_numpy(feed[n]) for n in reference.input_names))]
+            depth = outputs[reference.names.index("depth_m")]
+            off = np.full(depth.size, 1.005, np.float32)
+            off[: depth.size // 10] = 1.02
+            outputs[reference.names.index("depth_m")] = depth * off.reshape(depth.shape)
+            return outputs
+
+    monkeypatch.setattr(torch.onnx, "export", lambda model, args, path, **kwargs: Path(path).write_bytes(b"graph"))
+    monkeypatch.setattr(onnx_module, "write_metadata", lambda path, metadata: None)
+    monkeypatch.setattr(onnxruntime, "InferenceSession", Session)
+    rows = export_onnx(net, tmp_path / "m.onnx", (32, 32), checks=1)
+    assert [row["shape"] for row in rows] == [(1, 32, 32), (2, 32, 53)]
+    for row in rows:
+        assert row[DEPTH_SHARE_OFF] == pytest.approx(0.1, abs=0.01) and row["sky_prob"] == 0.0
+    (failure,) = export_mismatches(rows)
+    assert failure.startswith("depth_share_off_1pct 0.0") and "> 0.001 at" in failure
 
 
 def test_an_output_that_is_nan_in_onnxruntime_alone_fails_the_check():
