@@ -221,6 +221,20 @@ def test_poses_json_keeps_names_that_look_like_numbers_as_names(tmp_path):
     assert table[0]["time_s"] is None and table[-1]["time_s"] == 1.5  # an empty number is null, not ""
 
 
+def test_a_telemetry_row_gives_the_networks_own_pose_beside_the_pose_used():
+    from dapm_lightning.inference.poses_table import pose_row
+    from dapm_lightning.inference.postprocess import CameraPose, Prediction
+
+    used, own = CameraPose(45.5, -35.0, 2.5, 70.0), CameraPose(38.25, -31.0, 1.0, 66.5)
+    row = pose_row(Prediction(None, None, used, name="a", pose_network=own,
+                              pose_source={"height": "telemetry", "pitch": "fused", "roll": "network",
+                                           "fov": "network"}, pose_provenance={"height": "f.csv line 2"}))
+    assert [row[k] for k in ("height_m", "height_m_network", "pitch_deg", "pitch_deg_network")] == [
+        45.5, 38.25, -35.0, -31.0]
+    assert row["height_m_source"] == "telemetry" and row["height_m_provenance"] == "f.csv line 2"
+    assert row["roll_deg_source"] == "network" and row["roll_deg_provenance"] == ""
+
+
 # --------------------------------------------------------------------------------------------------- a full disk
 def test_a_full_disk_fails_the_run_naming_the_file_and_keeps_the_table(checkpoint, flight, small_disk, capsys,
                                                                         monkeypatch):

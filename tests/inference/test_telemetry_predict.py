@@ -171,6 +171,27 @@ def test_both_mode_leaves_conditioned_metric_depth_alone_and_depth_only_models_t
     assert unchanged.pose is None and methods == ["none"]
 
 
+def test_without_ground_in_view_the_scale_is_the_known_over_the_predicted_height():
+    spec = IGDSpec()
+    own = torch.tensor([[50.0, -90.0, 0.0, 60.0]])  # nadir: ground everywhere, but the depth is a roof's
+    depth = spec.depth(own, (32, 48)) * 0.3
+    outputs = InferenceOutput(depth_m=depth, sky_prob=torch.zeros_like(depth), pose=own)
+    prior = PosePrior(torch.tensor([[100.0, NAN, NAN, NAN]]), torch.zeros(4))
+    fixed, _, methods = apply_pose_prior(outputs, prior, "scale", spec)
+    assert methods == ["height"] and fixed.pose[0, 0] == 100.0
+    torch.testing.assert_close(fixed.depth_m, depth * 2.0)  # 100 m known / 50 m predicted
+
+
+def test_the_ground_scale_is_the_median_ratio_over_the_ground():
+    """The median, not the mean: a few pixels farther off (within the ground band) do not move it."""
+    igd = torch.full((1, 1, 10, 10), 100.0)
+    depth = torch.full_like(igd, 50.0)
+    depth[..., :3, :] = 45.0  # 30 % of the ground at a ratio of 2.22 instead of 2
+    scale, methods = ground_scale(depth, torch.zeros_like(igd, dtype=torch.bool), igd, None,
+                                  torch.tensor([NAN]), 1000.0)
+    assert methods == ["ground"] and scale.tolist() == pytest.approx([2.0])
+
+
 def test_csv_telemetry_through_the_documented_config_form(checkpoint, flight, tmp_path, monkeypatch):
     folder, table = flight
     monkeypatch.chdir(tmp_path)  # configs/predict.yaml: the package's own
