@@ -146,6 +146,15 @@ def test_dji_xmp_attributes_and_exif_35mm(tmp_path):
     assert t.source == "DJI_0001.JPG XMP/EXIF"
 
 
+def test_a_focal_length_written_in_the_main_ifd_is_read_too(tmp_path):
+    """Some tools write the Exif focal lengths into IFD0 rather than the Exif sub-IFD: read there as well."""
+    exif = Image.Exif()
+    exif[ExifTags.Base.FocalLengthIn35mmFilm] = 24
+    Image.new("RGB", (400, 300)).save(tmp_path / "ifd0.jpg", exif=exif)
+    t = telemetry_from_image(tmp_path / "ifd0.jpg")
+    assert t.fov_deg == pytest.approx(FOV_24MM_4_3) and t.provenance[3] == "ifd0.jpg EXIF FocalLengthIn35mmFilm"
+
+
 def test_dji_xmp_child_elements(tmp_path):
     path = write_jpeg(tmp_path / "DJI_0002.jpg", (342, 228), f35=24, xmp=xmp_elements(
         RelativeAltitude="+30.0", GimbalPitchDegree="-45.0", GimbalRollDegree="-1.5"))
@@ -232,6 +241,9 @@ def test_relative_altitude_at_or_below_zero_is_unknown_with_a_warning(tmp_path):
     t, caught = record(telemetry_from_image, path)
     assert_pose(t, [NAN, -30.0, NAN, NAN])
     assert len(caught) == 1 and "low.jpg" in str(caught[0].message) and "-3.10" in str(caught[0].message)
+    one_metre = write_jpeg(tmp_path / "one.jpg", xmp=xmp_attributes(RelativeAltitude="+1.00"))
+    t, caught = record(telemetry_from_image, one_metre)
+    assert t.height_m == 1.0 and not caught  # only below 1 m is "on the ground", as in an SRT
 
 
 def test_dji_roll_sign_equals_project_roll_sign(tmp_path):

@@ -42,3 +42,18 @@ def test_ground_split_scores_the_ground_and_what_stands_on_it_apart():
     split = GroundSplit()
     split.update(pred, depth, ground)
     assert split.compute() == pytest.approx({"d1_ground": 1.0, "d1_objects": 0.0, "ground_share": 8 / 15})
+
+
+def test_scale_errors_are_medians_that_one_wild_image_does_not_move():
+    true = torch.tensor([[10.0, -60.0, 0.0, 60.0]] * 3, dtype=torch.float64)
+    pred = true.clone()
+    pred[:, 0] = torch.tensor([11.0, 11.0, 30.0])  # two 10 % high, one three times too high
+    assert scale_errors(pred, true) == pytest.approx({"height_rel": 0.1, "footprint_rel": 0.1})
+
+
+def test_the_ground_share_counts_valid_pixels_only():
+    depth = torch.full((1, 1, 2, 2), 50.0)
+    depth[..., 0, 0], depth[..., 0, 1] = float("inf"), 0.0  # sky and no depth, both inside the ground mask
+    split = GroundSplit()
+    split.update(depth.clone(), depth, torch.ones_like(depth, dtype=torch.bool))
+    assert split.compute()["ground_share"] == 1.0
