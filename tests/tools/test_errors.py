@@ -141,8 +141,9 @@ def test_bad_setting_and_debug_flag(capsys, monkeypatch, tmp_path):
     with pytest.raises(ValueError, match="head_stride"):
         main(args)
     assert debug_requested(["fit", "--debug"]) == (True, ["fit"])
-    monkeypatch.setenv("DAPM_DEBUG", "0")
-    assert debug_requested(["fit"]) == (False, ["fit"])
+    for off in ("0", "false", "No", " "):  # as a shell user writes "off"
+        monkeypatch.setenv("DAPM_DEBUG", off)
+        assert debug_requested(["fit"]) == (False, ["fit"]), off
 
 
 def test_messages_of_wrapped_and_unexpected_errors():
