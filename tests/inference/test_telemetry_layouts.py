@@ -355,6 +355,10 @@ def test_xmp_on_the_ground_upside_down_other_namespaces_and_360(tmp_path):
     t, caught = record(telemetry_from_image, jpeg(tmp_path / "rev.jpg", dji_packet(
         RelativeAltitude="20", GimbalPitchDegree="30", GimbalRollDegree="1", GimbalReverse="1")))
     assert_pose(t, [20.0, NAN, NAN, NAN]) and len(caught) == 1 and "GimbalReverse = 1" in caught[0]
+    for upright in ("0", "false", "False"):  # XMP writes a Boolean as True / False
+        t, caught = record(telemetry_from_image, jpeg(tmp_path / "up.jpg", dji_packet(
+            GimbalPitchDegree="30", GimbalRollDegree="1", GimbalReverse=upright, CamReverse=upright)))
+        assert_pose(t, [NAN, 30.0, 1.0, NAN]) and not caught, upright
     other = dji_packet(RelativeAltitude="20").replace(b"http://www.dji.com/drone-dji/1.0/", b"http://example.org/")
     assert telemetry_from_image(jpeg(tmp_path / "other.jpg", other)) == PoseTelemetry()
     sphere = tmp_path / "pano.jpg"
