@@ -109,6 +109,8 @@ def test_video_frames_in_order_with_step_limit_and_workers(tmp_path):
     frames = list(VideoFramesDataset(video, 32, frame_step=2, max_frames=4))
     assert [f.name for f in frames] == ["flight_f000000", "flight_f000002", "flight_f000004", "flight_f000006"]
     assert frames[0].size == (36, 48) and frames[0].prior.isnan().all()
+    assert VideoFramesDataset(video, 32, frame_step=2, max_frames=4).expected_frames() == 4  # the progress bar's
+    assert VideoFramesDataset(video, 32, frame_step=2).expected_frames() == 5
     # 2 workers, chunks of the batch size: the loader gives the frames back in video order
     loader = torch.utils.data.DataLoader(VideoFramesDataset(video, 32, chunk=2), batch_size=2, num_workers=2,
                                          collate_fn=lambda items: [i.name for i in items])

@@ -161,6 +161,12 @@ def test_names_of_a_large_survey_are_made_unique_in_linear_time():
     assert [name for _, name in named[-3:]] == ["DJI_59999", "day1_X", "day2_X"]
 
 
+def test_names_alike_in_their_folder_take_the_folder_above_it_too():
+    found = [(Path("/cards/A/100MEDIA/DJI_0001.JPG"), "DJI_0001"), (Path("/cards/B/100MEDIA/DJI_0001.JPG"), "DJI_0001"),
+             (Path("/cards/A/100MEDIA/DJI_0002.JPG"), "DJI_0002")]
+    assert [name for _, name in _unique_names(found)] == ["A_100MEDIA_DJI_0001", "B_100MEDIA_DJI_0001", "DJI_0002"]
+
+
 def test_an_image_named_as_a_video_frame_is_refused_beside_that_video(tmp_path):
     """``clip_f000000.png`` beside ``clip.mp4``: the image and the video's first frame wrote the same files."""
     for name in ("clip.mp4", "clip_f000000.png", "clip_f12.png", "other_f000001.png"):
