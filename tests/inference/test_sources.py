@@ -48,6 +48,8 @@ def test_patterns_match_extensions_in_any_case(sd_card):
     assert [(f.name, f.kind) for f in files] == [("100MEDIA_DJI_0003", "video")]
     with pytest.raises(FileNotFoundError, match=r"\*\.gif: the pattern matches no image or video"):
         resolve_sources(f"{sd_card}/*.gif")
+    files, _ = resolve_sources(f"{sd_card}/DCIM/10[1]MEDIA/DJI_0001.JPG")  # a bracket alone makes a pattern
+    assert [f.name for f in files] == ["101MEDIA_DJI_0001"]  # named below the pattern's root, as any pattern
 
 
 def test_several_sources_and_lists_keep_names_unique(sd_card, tmp_path):
