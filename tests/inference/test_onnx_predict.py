@@ -211,3 +211,19 @@ def test_a_fixed_size_export_predicts_batches_and_refuses_another_size_in_one_li
     assert info.value.code == 1 and "Traceback" not in err and "possibly a bug" not in err, err
     assert f"{fixed}: exported at the fixed size 48x80 (--dynamic false); this image's network size is" in err
     assert "Fix: export it again with dynamic sizes" in err
+
+
+@pytest.mark.parametrize("takes_prior", [False, True])
+def test_a_model_that_takes_no_prior_applies_the_known_pose_afterwards(tmp_path, monkeypatch, takes_prior):
+    """An exported model without the prior inputs cannot be conditioned: the telemetry is fitted to its depth
+    afterwards (``scale``), whatever mode was asked for; one that takes them keeps the mode asked for."""
+    import dapm_lightning.inference.predictor as predictor_module
+
+    class Exported:  # an OnnxRuntime, as far as the predictor looks at one
+        def __init__(self, path):
+            self.takes_prior, self.train_image_size, self.config = takes_prior, (32, 32), DAPMConfig()
+
+    monkeypatch.setattr(predictor_module, "OnnxRuntime", Exported)
+    predictor = DAPMPredictor(None, onnx_path=tmp_path / "model.onnx", telemetry_mode="both", igd_bound=0.3)
+    assert predictor.prior_settings.mode == ("both" if takes_prior else "scale")
+    assert predictor.prior_settings.igd_bound == 0.3
