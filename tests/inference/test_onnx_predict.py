@@ -227,3 +227,21 @@ def test_a_model_that_takes_no_prior_applies_the_known_pose_afterwards(tmp_path,
     predictor = DAPMPredictor(None, onnx_path=tmp_path / "model.onnx", telemetry_mode="both", igd_bound=0.3)
     assert predictor.prior_settings.mode == ("both" if takes_prior else "scale")
     assert predictor.prior_settings.igd_bound == 0.3
+
+
+def test_the_onnx_feed_puts_no_nan_in_the_graph_and_each_image_keeps_its_own_prior():
+    """Unknown components enter as 0 with prior_known false (a NaN would spread through the fused pose); a model
+    exported for one image at a time is given each image's own row of the batch's prior."""
+    from dapm_lightning.inference.onnx import PRIOR_INPUTS, onnx_feed
+    from dapm_lightning.inference.prior import as_prior
+    from dapm_lightning.inference.runtime import _prior_row
+
+    nan = float("nan")
+    prior = as_prior([[50.0, nan, nan, 70.0], [nan, -40.0, 1.0, nan]], sigma=(2.0, 0.0, 0.0, 1.0))
+    feed = onnx_feed(np.zeros((2, 3, 8, 8), np.float32), ["image", *PRIOR_INPUTS], prior)
+    assert feed["prior"].tolist() == [[50.0, 0.0, 0.0, 70.0], [0.0, -40.0, 1.0, 0.0]]
+    assert feed["prior_known"].tolist() == [[True, False, False, True], [False, True, True, False]]
+    assert feed["prior_sigma"].tolist() == [[2.0, 0.0, 0.0, 1.0]] * 2
+    second = _prior_row(prior, 1)
+    assert second.value.shape == (1, 4) and second.known.tolist() == [[False, True, True, False]]
+    assert second.value[0, 1:3].tolist() == [-40.0, 1.0]
