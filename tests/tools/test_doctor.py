@@ -14,7 +14,7 @@ from dapm_lightning.data import parse_uapd_filename
 from dapm_lightning.data.synthetic import FAMILIES, generate_uapd, render_sample
 from dapm_lightning.data.uapd import read_depth_grey
 from dapm_lightning.geometry import POSE_RANGES
-from dapm_lightning.tools.argv import flag_options, list_options
+from dapm_lightning.tools.argv import flag_options, list_options, whole_number
 from dapm_lightning.tools.doctor import check_sample, doctor_main
 from tests.conftest import QUICKSTART
 from tests.data.test_bad_files import damage
@@ -269,6 +269,16 @@ def test_list_options_rewrites_only_plain_lists():
     assert list_options(["--splits=a,b"], ["--splits"]) == ["--splits=[a,b]"]
     assert list_options(["--splits", "[a]", "--other", "c"], ["--splits"]) == ["--splits", "[a]", "--other", "c"]
     assert list_options(["--splits+", "a", "--other", "a,b"], ["--splits"]) == ["--splits+", "a", "--other", "a,b"]
+
+
+def test_whole_numbers_take_their_least_value_itself():
+    import argparse
+
+    assert whole_number(1)("1") == 1 and whole_number(0)("0") == 0
+    for least, text, match in ((1, "0", "must be at least 1, got 0"), (2, "1", "must be 2 or more, got 1"),
+                               (1, "1.5", "'1.5' is not a whole number")):
+        with pytest.raises(argparse.ArgumentTypeError, match=match):
+            whole_number(least)(text)
 
 
 def test_flag_options_take_bare_booleans():
