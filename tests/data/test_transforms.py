@@ -82,6 +82,29 @@ def test_centre_zoom_keeps_the_fov_range_and_leaves_images_without_a_pose():
     assert [type(t) for t in train_transform(Augmentation(zoom_p=0.3)).transforms][0] is PoseAwareCentreZoom
 
 
+def test_centre_zoom_moves_a_depth_edge_without_blending_its_two_depths():
+    """A roof edge (two grey levels, nothing between) stays two grey levels: no made-up depth along the edge."""
+    grey = np.full((16, 20), 40, np.uint8)
+    grey[:, 10:] = 200
+    zoom = PoseAwareCentreZoom(max_zoom=1.5, p=1.0)
+    for factor in (1.1, 1.37, 1.5):
+        assert set(np.unique(zoom.apply_to_mask(grey, zoom=factor)).tolist()) == {40, 200}
+    out = A.Compose([zoom])(image=np.zeros((16, 20, 3), np.uint8), mask=grey,
+                            pose=np.array([30, -50, 0, 80.0], np.float32))
+    assert set(np.unique(out["mask"]).tolist()) == {40, 200}
+
+
+def test_centre_zoom_leaves_a_pose_narrower_than_the_fov_range_as_it_is():
+    """A FoV already below the range's lower end cannot be zoomed further: image and FoV stay, never widened."""
+    zoom = PoseAwareCentreZoom(max_zoom=1.5, p=1.0)  # min_fov: the range's 30 degrees
+    image = np.random.default_rng(0).integers(0, 255, (16, 16, 3), dtype=np.uint8)
+    pose = np.array([30, -50, 0, 20.0], np.float32)
+    for _ in range(10):
+        out = A.Compose([zoom])(image=image, mask=image[..., 0], pose=pose)
+        np.testing.assert_array_equal(out["image"], image)
+        np.testing.assert_array_equal(out["pose"], pose)
+
+
 def test_train_pipeline_is_photometric_plus_pose_aware_flip_only():
     pipeline = train_transform()
     geometric = [t for t in pipeline.transforms if isinstance(t, A.DualTransform)]
@@ -145,6 +168,19 @@ def test_ground_recolour_recolours_ground_and_objects_apart_and_keeps_sky_depth_
     assert len(_colours(wrong(image=image, mask=grey, pose=pose)["image"], ~sky & ~box)) > 1
 
 
+def test_ground_recolour_rounds_the_changed_colours_to_the_nearest_level():
+    """The recoloured levels are rounded, not truncated (which darkens every changed pixel by half a level)."""
+    pose = np.array([40.0, -50.0, 0.0, 70.0], np.float32)
+    grey, _ = _ground_and_box(pose, (16, 16))
+    image = np.random.default_rng(0).integers(0, 170, (16, 16, 3), dtype=np.uint8)
+    brighter = A.Compose([GroundRecolour(hue=0.0, saturation=(1.0, 1.0), brightness=(1.3, 1.3), p=1.0)])
+    out = brighter(image=image, mask=grey, pose=pose)["image"].astype(np.float64)
+    expected = image.astype(np.float64) @ colour_matrix(0.0, 1.0, 1.3).T  # both regions: the same change
+    below = grey < 255
+    assert below.mean() > 0.5
+    np.testing.assert_allclose(out[below], np.clip(expected[below], 0, 255), atol=0.5 + 1e-3)
+
+
 def test_ground_recolour_leaves_images_without_a_pose_or_grey_depth():
     pose = np.array([40.0, -50.0, 0.0, 70.0], np.float32)
     grey, _ = _ground_and_box(pose, (16, 16))
@@ -185,3 +221,15 @@ def test_a_samples_transforms_draw_apart():
     agree = sum(a == b for a, b in zip(inverted, flipped, strict=True))
     assert 60 < sum(flipped) < 140 and 60 < sum(inverted) < 140
     assert 60 < agree < 140  # one shared seed per transform made them agree on every sample
+
+
+def test_the_centre_zoom_draws_alike_with_or_without_a_pose():
+    """The zoom's draw is made for an image without a pose too: the transforms after it draw the same either way."""
+    pipeline = A.Compose([PoseAwareCentreZoom(p=1.0), A.GaussNoise(std_range=(0.1, 0.1), p=1.0)])
+    image = np.full((6, 8, 3), 100, np.uint8)  # a zoom keeps a uniform image as it is
+    noisy = []
+    for pose in (np.array([30, -50, 0, 80.0], np.float32), np.full(4, np.nan, np.float32)):
+        seed_augmentation(pipeline, 5, 0, 3)
+        noisy.append(pipeline(image=image, mask=np.zeros((6, 8), np.uint8), pose=pose)["image"])
+    assert not (noisy[0] == image).all()
+    np.testing.assert_array_equal(noisy[0], noisy[1])
