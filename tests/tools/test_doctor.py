@@ -321,6 +321,57 @@ def test_depth_of_the_other_kind_is_named_with_the_fix(synthetic, tmp_path, caps
     assert "depth kind" not in capsys.readouterr().out
 
 
+def test_a_pixel_is_on_the_flat_ground_within_two_grey_levels_and_never_in_the_sky():
+    from dapm_lightning.data.depth_kind import AGREE_LEVELS, on_flat_ground
+
+    igd = np.array([[100, 100, 100, 100, 100, 253, 254, 255]], np.int16)
+    depth = np.array([[100, 98, 102, 97, 103, 255, 255, 255]], np.uint8)
+    assert AGREE_LEVELS == 2
+    np.testing.assert_array_equal(on_flat_ground(depth, igd), [[True, True, True, False, False, False, False, False]])
+
+
+def test_the_other_kind_is_named_only_when_it_agrees_twice_as_well_and_by_0_3_more():
+    from dapm_lightning.data.depth_kind import depth_kind_mismatch
+
+    assert depth_kind_mismatch("range", 0.5, 0.85) is None  # 0.3 more, but not twice
+    assert depth_kind_mismatch("range", 0.1, 0.35) is None  # twice, but not 0.3 more
+    assert "they look planar" in depth_kind_mismatch("range", 0.3, 0.95)
+    assert "they look range" in depth_kind_mismatch("planar", 0.0, 0.3)
+
+
+def test_depth_maps_are_checked_at_128_pixels_wide_keeping_their_aspect_and_grey_levels():
+    from dapm_lightning.data.depth_kind import CHECK_WIDTH, at_check_width
+
+    wide = np.random.default_rng(0).integers(0, 256, (100, 256), dtype=np.uint8)
+    narrowed = at_check_width(wide)
+    assert CHECK_WIDTH == 128 and narrowed.shape == (50, 128)
+    np.testing.assert_array_equal(narrowed, wide[1::2, 1::2])  # the pixel at each new pixel's centre
+    small = wide[:60, :100]
+    assert at_check_width(small) is small
+
+
+def test_the_sampled_depth_kind_check_reads_each_file_against_its_own_pose():
+    import torch
+
+    from dapm_lightning.data.depth_kind import sampled_mismatch
+    from dapm_lightning.geometry import ideal_ground_depth
+    from dapm_lightning.geometry.depth_codec import depth_to_grey
+
+    def flat_ground(poses):  # range depth, each of its own pose
+        return [depth_to_grey(ideal_ground_depth(torch.from_numpy(pose), (48, 64))[0, 0].numpy(), 1000.0).round()
+                .astype(np.uint8) for pose in poses]
+
+    poses = np.array([[40, -30, 0, 70], [60, -50, 10, 90], [25, -70, -15, 60], [80, -85, 5, 100], [50, -40, 20, 80]],
+                     np.float64)
+    greys = flat_ground(poses)
+    assert "they look range" in sampled_mismatch(lambda index: greys[index], poses, "planar")
+    assert sampled_mismatch(lambda index: greys[index], poses, "range") is None
+    nadir = np.array([[height, -88, 0, 35] for height in (20, 40, 80, 160, 300)], np.float64)  # both kinds agree
+    greys = flat_ground(nadir)
+    assert sampled_mismatch(lambda index: greys[index], nadir, "range") is None
+    assert sampled_mismatch(lambda index: greys[index], nadir, "planar") is None
+
+
 def test_a_set_without_val_is_checked_and_the_missing_split_noted(synthetic, tmp_path, capsys):
     root = shutil.copytree(synthetic, tmp_path / "noval")
     shutil.rmtree(root / "val")
