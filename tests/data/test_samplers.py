@@ -60,3 +60,26 @@ def test_resume_sets_the_epoch_before_lightning_does():
     sampler = EpochShuffleSampler(8, seed=2)
     sampler.resume(epoch=3, samples_seen=2)
     assert {epoch for epoch, _ in keys(sampler)} == {3} and len(keys(sampler)) == 6
+
+
+def test_no_two_seeds_share_an_order_in_any_epoch():
+    """The order of (seed, epoch) is not that of another seed in another epoch (seed 1 epoch 0 vs seed 0 epoch 1)."""
+    orders = set()
+    for seed in range(4):
+        for epoch in range(4):
+            sampler = EpochShuffleSampler(12, seed=seed)
+            sampler.set_epoch(epoch)
+            orders.add(tuple(i for _, i in keys(sampler)))
+    assert len(orders) == 16
+
+
+def test_a_position_between_ranks_resumes_each_rank_on_its_own_share():
+    """Resumed at a position that is not a multiple of the processes: rounded down, no rank takes another's keys."""
+    full = [EpochShuffleSampler(16, seed=2, num_replicas=2, rank=r) for r in (0, 1)]
+    resumed = [EpochShuffleSampler(16, seed=2, num_replicas=2, rank=r) for r in (0, 1)]
+    for sampler in full:
+        sampler.set_epoch(1)
+    for sampler in resumed:
+        sampler.resume(epoch=1, samples_seen=7)
+    for f, r in zip(full, resumed):
+        assert keys(r) == keys(f)[3:]
