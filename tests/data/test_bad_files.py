@@ -154,6 +154,16 @@ def test_other_images_in_the_folders_are_named_not_ignored(uapd_copy):
         "it to NAME.png, or move it out of the folder)"])
 
 
+def test_a_stray_copy_beside_a_whole_pair_is_named_without_calling_the_pair_unpaired(uapd_copy):
+    name = first_name(uapd_copy)
+    stray = uapd_copy / "train" / "depth" / name.replace(".png", ".jpg")
+    cv2.imwrite(str(stray), np.zeros((24, 40, 3), np.uint8))
+    with pytest.raises(DatasetError) as info:
+        UAPDDataset(uapd_copy, "train")
+    assert info.value.problems == [f"{stray}: not a PNG image by its name: UAPD reads NAME.png pairs only, so this "
+                                   "file is not read (convert it to NAME.png, or move it out of the folder)"]
+
+
 def overflowing(name: str) -> str:
     height = parse_uapd_filename(name)["height"]
     token = f"z_{height:.2f}"

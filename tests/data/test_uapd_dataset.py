@@ -7,6 +7,7 @@ import torch
 from PIL import Image
 
 from dapm_lightning.data import DatasetError, UAPDDataset, parse_uapd_filename
+from dapm_lightning.data.errors import BadFileError
 from dapm_lightning.data.sample import depth_masks
 from dapm_lightning.data.uapd import read_depth_grey
 from dapm_lightning.geometry import grey_to_depth
@@ -35,6 +36,20 @@ def test_shuffled_name_and_sky(tiny_uapd):
     assert above["pose"].tolist() == [30.0, 5.0, 4.0, 90.0]
     assert depth_masks(above["depth"])[0].float().mean() > 0.3  # looking above the horizon
     assert above["image"].dtype == torch.uint8
+
+
+def test_evaluation_loaders_keep_the_set_order_at_their_own_batch_size(tiny_uapd):
+    """validate and test read their splits whole, in the set's order, in batches of eval_batch_size."""
+    from dapm_lightning.data.datamodules import UAPDDataModule
+
+    module = UAPDDataModule(tiny_uapd, test_split="train", batch_size=3, eval_batch_size=2, num_workers=0)
+    module.setup("validate")
+    assert set(module.datasets) == {"val"}
+    module.setup("test")
+    for split, loader in (("val", module.val_dataloader()), ("test", module.test_dataloader())):
+        batches, count = [batch["name"] for batch in loader], len(module.datasets[split])  # val 3, train 4
+        assert [len(names) for names in batches] == [min(2, count - start) for start in range(0, count, 2)]
+        assert [name for names in batches for name in names] == [Path(n).stem for n in module.datasets[split].names]
 
 
 def _name(root: Path) -> str:
@@ -112,6 +127,40 @@ def test_depth_with_unequal_channels_names_carlas_raw_encoding(uapd_copy):
     text = str(info.value)
     assert str(path) in text and "CARLA's raw 24-bit depth" in text and "decode_carla_depth" in text
     assert "depth_to_grey" in text and "docs/conventions.md, Depth encoding" in text
+
+
+def test_depth_whose_third_channel_alone_differs_is_refused(uapd_copy):
+    """Every colour channel is compared with the first, the last one too (alpha aside)."""
+    name = _name(uapd_copy)
+    path = uapd_copy / "train" / "depth" / name
+    grey = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    cv2.imwrite(str(path), np.dstack([grey, grey, grey // 2]))
+    dataset = UAPDDataset(uapd_copy, "train")
+    with pytest.raises(ValueError, match="colours differ"):
+        dataset[dataset.names.index(name)]
+
+
+def test_an_rgb_changed_to_another_size_after_the_scan_is_named_when_read(uapd_copy):
+    name = _name(uapd_copy)
+    dataset = UAPDDataset(uapd_copy, "train")
+    path = uapd_copy / "train" / "rgb" / name
+    cv2.imwrite(str(path), np.zeros((TINY_HW[0] + 2, TINY_HW[1], 3), np.uint8))
+    with pytest.raises(BadFileError, match="differs from its depth") as info:
+        dataset[dataset.names.index(name)]
+    assert str(path) in str(info.value)
+
+
+def test_a_grey_rgb_image_is_refused(uapd_copy):
+    path = uapd_copy / "train" / "rgb" / _name(uapd_copy)
+    cv2.imwrite(str(path), cv2.imread(str(path), cv2.IMREAD_GRAYSCALE))
+    with pytest.raises(DatasetError, match="rgb must be 8-bit RGB or RGBA, got 8-bit grey"):
+        UAPDDataset(uapd_copy, "train")
+
+
+def test_a_samples_meta_holds_the_other_tokens_not_the_pose(tiny_uapd):
+    dataset = UAPDDataset(tiny_uapd, "train")
+    meta = dataset[dataset.names.index(next(n for n in dataset.names if "Town03" in n))]["meta"]
+    assert meta == {"yaw": 12.5, "x": -3.0, "tokens": ["Town03", "000777"]}
 
 
 def test_size_mismatch(uapd_copy):
