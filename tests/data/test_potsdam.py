@@ -69,6 +69,30 @@ def test_isprs_download_without_renaming(tmp_path):
     assert np.allclose(dsm[0]["depth"].numpy(), 42.5)
 
 
+def test_the_split_is_drawn_by_its_seed_and_rounds_the_val_fraction(tiny_potsdam):
+    """12 crops: val_fraction 0.3 gives round(3.6) = 4 val crops; train and val part the crops; seeds split apart."""
+    splits = {seed: [PotsdamDataset(tiny_potsdam, split, crop_size=32, val_fraction=0.3, seed=seed).names
+                     for split in ("train", "val")] for seed in (0, 1)}
+    for train, val in splits.values():
+        assert (len(train), len(val)) == (8, 4) and not set(train) & set(val)
+    assert set(splits[0][1]) != set(splits[1][1])
+
+
+def test_the_ndsm_grey_level_is_the_authors_normalised_log_depth_and_depths_stop_below_the_limit(tmp_path):
+    import torch
+
+    from dapm_lightning.geometry import MAX_DEPTH_M, MIN_DEPTH_M, decode_log_depth
+
+    root = isprs_download(tmp_path / "isprs")  # grey 128 exactly (a JPEG's uniform blocks keep it)
+    depths = np.stack([s["depth"].numpy() for s in PotsdamDataset(root, "train", crop_size=32)])
+    grey128 = decode_log_depth(torch.tensor(128 / 255.0, dtype=torch.float64)).item()
+    np.testing.assert_allclose(depths[depths > 0], grey128, rtol=1e-5)
+    for a, b in ((2, 10), (3, 11)):  # a DSM beyond the limit (metres above datum): the limit, not past it
+        cv2.imwrite(str(root / "1_DSM" / f"dsm_potsdam_{a:02d}_{b:02d}.tif"), np.full((64, 96), 1500, np.float32))
+    dsm = PotsdamDataset(root, "val", crop_size=32, product="dsm")
+    assert np.allclose(dsm[0]["depth"].numpy(), MAX_DEPTH_M - MIN_DEPTH_M)
+
+
 def test_isprs_unpaired_and_missing_product_are_named(tmp_path):
     root = isprs_download(tmp_path / "a", product_tiles=((2, 10),), rgb_tiles=((2, 10), (4, 12)))
     with pytest.raises(DatasetError, match="top_potsdam_4_12_RGB.tif: no height tile"):
