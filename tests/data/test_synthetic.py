@@ -76,6 +76,32 @@ def test_changed_settings_rerender_and_are_recorded(tmp_path):
         generate_uapd(out, train=2, val=1, size=16, seed=2, workers=1, shard=(0, 2))
 
 
+def test_the_depth_limit_is_recorded_and_a_set_of_another_limit_is_not_current(tmp_path):
+    """Rendered at 500 m: synth.json says so (the data set refuses a 1000 m read) and a 1000 m render replaces it."""
+    from dapm_lightning.data import DatasetError
+
+    out = generate_uapd(tmp_path / "d", train=1, val=1, size=16, seed=1, workers=1, max_depth=500.0)
+    assert json.loads((out / "synth.json").read_text())["max_depth"] == 500.0
+    assert is_current(out, train=1, val=1, size=16, seed=1, max_depth=500.0)
+    assert not is_current(out, train=1, val=1, size=16, seed=1)
+    with pytest.raises(DatasetError, match="rendered with a depth limit of 500 m"):
+        UAPDDataset(out, "train")
+
+
+def test_train_and_val_images_are_drawn_apart():
+    """The same index in another split is another image: its generator depends on the split too."""
+    for index in range(3):
+        train, val = (sample_pose(image_seed(5, split, index)) for split in ("train", "val"))
+        assert not np.array_equal(train, val)
+
+
+def test_the_rendered_pose_is_the_one_its_file_name_reads_back():
+    """Poses are drawn to the 2 decimals the name holds: the depth is rendered for the pose a reader parses."""
+    for index in range(10):
+        pose = sample_pose(image_seed(0, "train", index))
+        assert [float(f"{value:.2f}") for value in pose] == pose.tolist()
+
+
 def test_a_folder_of_other_images_is_not_rendered_into(tmp_path, capsys):
     """A real UAPD set (images, no synth.json) given as --out: refused, nothing added, no usage text."""
     real = tmp_path / "uapd"
