@@ -120,3 +120,28 @@ def test_an_igd_feature_told_the_telemetry_changes_the_depth_and_not_the_pose():
     assert not torch.allclose(told.depth_m, plain.depth_m)  # the depth head read what is known
     with pytest.raises(ValueError, match="depth_prior_input needs the IGD feature"):
         DAPMConfig(**TINY, use_igd_feature=False, depth_prior_input=True)
+
+
+def test_a_prior_is_made_when_any_component_is_known_and_none_when_nothing_is():
+    from dapm_lightning.models.prior import PosePrior
+
+    partial = PosePrior.from_rows(torch.tensor([[NAN, NAN, NAN, NAN], [NAN, -40.0, NAN, NAN]]), (0.0, 1.0, 1.0, 2.0))
+    assert partial is not None and partial.known.tolist() == [[False] * 4, [False, True, False, False]]
+    assert PosePrior.from_rows(torch.full((2, 4), NAN), (0.0, 1.0, 1.0, 2.0)) is None
+
+
+def test_the_network_is_told_a_prior_far_outside_the_range_clamped():
+    spec = IGDSpec()
+    prior = PosePrior(torch.tensor([[5000.0, -40.0, NAN, NAN]]), torch.tensor([0.0, 0.0, 0.0, 0.0]))
+    features = prior_features(prior, spec, torch.zeros(1, 3))
+    value = features[0, 4:8]
+    assert value[0] == 1.5 and value[1] == pytest.approx(float(spec.normalize(torch.tensor([[50.0, -40, 0, 60]]))[0, 1]))
+    assert value[2:].tolist() == [0.0, 0.0]
+
+
+def test_prior_settings_refuse_a_negative_sigma():
+    from dapm_lightning.models.prior import PriorSettings
+
+    with pytest.raises(ValueError, match="four standard deviations >= 0"):
+        PriorSettings(sigma=(3.0, -1.0, 1.0, 2.0))
+    assert PriorSettings(sigma=(0, 0, 0, 0)).sigma == (0.0, 0.0, 0.0, 0.0)
