@@ -56,3 +56,34 @@ def test_viewpoint_median_error_of_an_even_count_is_numpy_s():
                             [51.0, -61.0, 1.0, 81.0, 1.0, 1.5, 1.5, 3.0, 1.5]])
     rows = [r for r in viewpoint_table(records) if r["count"] == 2]
     assert {r["component"]: r["error"] for r in rows} == {"height": 1.0, "pitch": 1.0, "roll": 2.0, "fov": 1.0}
+
+
+def test_viewpoint_bins_are_half_open_and_the_range_ends_count_in_the_end_bins():
+    """Bins [low, high): a pose on an inner edge is in the bin it starts; the range's ends (and beyond) in the end
+    bins, so that every image is counted once per component."""
+    from dapm_lightning.geometry.constants import POSE_KEYS, POSE_RANGES
+
+    lows, highs = ([POSE_RANGES[key][end] for key in POSE_KEYS] for end in (0, 1))
+    edge = [lo + (hi - lo) / 5 for lo, hi in zip(lows, highs)]  # the first inner edge of 5 bins
+    beyond = [hi + 1 for hi in highs]
+    records = torch.tensor([[*pose, 1.0, 0.0, 0.0, 0.0, 0.0] for pose in (lows, highs, edge, beyond)])
+    rows = viewpoint_table(records, bins=5)
+    for key in POSE_KEYS:
+        counts = [r["count"] for r in rows if r["component"] == key]
+        assert counts == [1, 1, 0, 0, 2], key
+
+
+def test_viewpoint_d1_is_the_mean_of_the_bins_images():
+    records = torch.tensor([[50.0, -60.0, 0.0, 80.0, d1, 0.0, 0.0, 0.0, 0.0] for d1 in (0.0, 0.0, 0.9)])
+    assert {round(r["d1"], 6) for r in viewpoint_table(records) if r["count"] == 3} == {0.3}
+
+
+def test_igd_maps_give_the_true_pose_s_only_when_every_image_has_one():
+    from dapm_lightning.training.evaluation_outputs import igd_maps
+
+    module, out, batch = sky_and_ground()
+    assert set(igd_maps(out, batch, module.net_config.igd)) == {"igd_pred", "igd_true"}
+    mixed = {**batch, "has_pose": torch.tensor([True, False]),
+             "pose": torch.tensor([[50.0, -60.0, 0.0, 80.0], [float("nan")] * 4])}
+    assert set(igd_maps(out, mixed, module.net_config.igd)) == {"igd_pred"}
+
