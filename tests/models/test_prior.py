@@ -135,7 +135,8 @@ def test_the_network_is_told_a_prior_far_outside_the_range_clamped():
     prior = PosePrior(torch.tensor([[5000.0, -40.0, NAN, NAN]]), torch.tensor([0.0, 0.0, 0.0, 0.0]))
     features = prior_features(prior, spec, torch.zeros(1, 3))
     value = features[0, 4:8]
-    assert value[0] == 1.5 and value[1] == pytest.approx(float(spec.normalize(torch.tensor([[50.0, -40, 0, 60]]))[0, 1]))
+    pitch = float(spec.normalize(torch.tensor([[50.0, -40.0, 0.0, 60.0]]))[0, 1])
+    assert value[0] == 1.5 and value[1] == pytest.approx(pitch)
     assert value[2:].tolist() == [0.0, 0.0]
 
 
