@@ -485,6 +485,61 @@ def test_restored_batch_counters_count_the_batches_the_loader_resumes_after():
     assert not count_batches_as_resumed(same, epoch=0, batches=3) and counts(same) == [(3, 3, 3, 3)] * 2
 
 
+def test_an_epoch_not_yet_started_is_not_closed():
+    from dapm_lightning.training.resume import epoch_closed
+
+    def progress(ready, started, processed):
+        return {"current": {"ready": ready, "started": started, "processed": processed, "completed": 0}}
+
+    assert not epoch_closed(progress(0, 0, 0))  # a fit before its first epoch
+    assert epoch_closed(progress(1, 1, 1)) and not epoch_closed(progress(1, 1, 0))
+
+
+def test_the_saved_position_counts_the_samples_of_every_process_and_the_epoch_limit_rounds_down():
+    """The data module's checkpoint state: batches x batch size x processes (DDP), the next epoch from its start once
+    the epoch's batches are all done; a share limit_train_batches cuts an epoch as Lightning does (rounded down)."""
+    from lightning.pytorch.trainer.states import TrainerFn
+
+    from dapm_lightning.data.datamodules import DAPMDataModule
+
+    module = DAPMDataModule(batch_size=3, num_workers=0)
+    current = SimpleNamespace(processed=2)
+    module.trainer = SimpleNamespace(
+        state=SimpleNamespace(fn=TrainerFn.FITTING), num_training_batches=5, world_size=4, limit_train_batches=0.5,
+        fit_loop=SimpleNamespace(epoch_loop=SimpleNamespace(batch_progress=SimpleNamespace(current=current)),
+                                 epoch_progress=SimpleNamespace(current=SimpleNamespace(started=2))))
+    assert module.state_dict() == {"epoch": 1, "samples_seen": 2 * 3 * 4}
+    current.processed = 5
+    assert module.state_dict() == {"epoch": 2, "samples_seen": 0}
+    assert module._epoch_batches(7) == 3  # int(3.5), as Lightning counts
+    module.trainer.limit_train_batches = 4
+    assert module._epoch_batches(7) == 4 and module._epoch_batches(3) == 3
+
+
+def test_a_training_set_smaller_than_a_batch_still_trains_on_one_batch(tiny_uapd):
+    from dapm_lightning.data.datamodules import UAPDDataModule
+
+    module = UAPDDataModule(tiny_uapd, batch_size=8, num_workers=0)  # 4 training images
+    module.setup("fit")
+    assert [len(batch["name"]) for batch in module.train_dataloader()] == [4]
+
+
+def test_rng_states_packed_for_ddp_restore_python_s_gauss_cache_alike():
+    """Packed into tensors (per-rank checkpoints) and back: the draws after the restore are the same, with Python's
+    cached second Gaussian present or not."""
+    from dapm_lightning.training.rng import pack_rng_states, rng_states, set_rng_states, unpack_rng_states
+
+    for cached in (False, True):
+        random.seed(3)
+        if cached:
+            random.gauss(0.0, 1.0)  # leaves the pair's second value cached
+        saved = rng_states()
+        expected = [random.gauss(0.0, 1.0) for _ in range(3)], np.random.rand(2).tolist(), torch.rand(2).tolist()
+        set_rng_states(unpack_rng_states(pack_rng_states(saved)))
+        drawn = [random.gauss(0.0, 1.0) for _ in range(3)], np.random.rand(2).tolist(), torch.rand(2).tolist()
+        assert drawn == expected, cached
+
+
 def test_truncated_and_foreign_checkpoints_are_clear(checkpoint, tmp_path, tiny_uapd, monkeypatch):
     truncated = tmp_path / "truncated.ckpt"
     truncated.write_bytes(checkpoint.read_bytes()[:5000])
