@@ -90,3 +90,14 @@ def test_data_and_model_depth_kinds_must_agree():
         module.setup("fit")
     module._trainer = SimpleNamespace(datamodule=SimpleNamespace(depth_kind="range"))
     module.setup("fit")
+
+
+def test_training_priors_are_drawn_anew_each_epoch_and_only_for_the_chosen_images():
+    pose = torch.tensor([[50.0, -60.0, 0.0, 80.0]] * 8)
+    has_pose, names = torch.ones(8, dtype=torch.bool), [f"img{k}" for k in range(8)]
+    priors = PriorTraining(enabled=True, image_fraction=0.5, component_probability=0.9)
+    epochs = [priors.sample(pose, has_pose, names, epoch) for epoch in (0, 1)]
+    assert not torch.equal(epochs[0].known, epochs[1].known)
+    assert torch.equal(priors.sample(pose, has_pose, names, 1).known, epochs[1].known)  # the same draws again
+    none = PriorTraining(enabled=True, image_fraction=0.0, component_probability=1.0)
+    assert not none.sample(pose, has_pose, names, 0).known.any()
