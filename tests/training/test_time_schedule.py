@@ -12,7 +12,7 @@ import yaml
 from dapm_lightning.models import DAPMConfig
 from dapm_lightning.training import module as module_file
 from dapm_lightning.training.lightning_cli import run_lightning_cli
-from dapm_lightning.training.module import DAPMModule, OptimizerConfig, warmup_cosine
+from dapm_lightning.training.module import DAPMModule, OptimizerConfig, TimeBudgetLR, warmup_cosine
 from tests.conftest import QUICKSTART, run_main
 
 TINY = {"backbone": "resnet18", "decoder_channels": 16, "head_channels": 8, "igd_channels": 4, "pose_hidden": 16,
@@ -125,3 +125,11 @@ def test_a_resumed_run_goes_on_from_the_time_spent(tiny_uapd, tmp_path, monkeypa
     assert [lr for _, lr, _ in resumed] == pytest.approx(
         [LR * warmup_cosine(100 * seconds, 1000, WARMUP, MIN_LR) for seconds in (3, 4, 5, 6)])
     assert [share for _, _, share in resumed] == pytest.approx([0.3, 0.3, 0.4, 0.5])  # set before each step
+
+
+def test_the_time_budget_counts_whole_thousandths_rounded_down():
+    optimizer = torch.optim.SGD([torch.nn.Parameter(torch.zeros(1))], lr=1.0)
+    scheduler = TimeBudgetLR(optimizer, budget=10.0, warmup_fraction=0.1, min_lr_ratio=0.0)
+    for seconds, ticks in ((0.0, 0), (0.0196, 1), (9.9999, 999), (10.0, 1000), (25.0, 1000)):
+        scheduler.seconds = seconds
+        assert scheduler.ticks == ticks, seconds
