@@ -82,3 +82,26 @@ def test_an_evaluation_cut_short_leaves_nothing_to_the_next(tiny_uapd, tmp_path,
     assert again.keys() == expected.keys() and "val_loss" in again and "val_depth_d1" in again
     for key, value in expected.items():
         assert again[key] == pytest.approx(value, rel=1e-6, nan_ok=True), key
+
+
+def test_an_evaluation_s_losses_are_summed_per_image_across_batches_of_unequal_size():
+    """Batches of 2 and 1 images: the epoch's loss is the mean over the 3 images, not over the 2 batches."""
+    from dapm_lightning.models import DAPMConfig
+    from dapm_lightning.training.module import DAPMModule
+
+    module = DAPMModule(DAPMConfig(backbone="resnet18", pretrained=False, decoder_channels=16, head_channels=8,
+                                   igd_channels=4, pose_hidden=16)).eval()
+    depth = torch.full((3, 1, 32, 48), 80.0)
+    depth[:, :, :4] = 1000.0  # some sky
+    batch = {"image": torch.rand(3, 3, 32, 48), "depth": depth, "has_pose": torch.ones(3, dtype=torch.bool),
+             "pose": torch.tensor([[40.0, -50.0, 5.0, 70.0], [60.0, -70.0, -5.0, 90.0], [30.0, -30.0, 0.0, 60.0]]),
+             "name": ["a", "b", "c"]}
+    parts = [{k: v[:2] for k, v in batch.items()}, {k: v[2:] for k, v in batch.items()}]
+    with torch.no_grad():
+        losses = [module._shared_step(part, "test")[0] for part in parts]
+        module.eval_losses.clear()
+        for part in parts:
+            module._shared_step(part, "val")
+    sums, images = module.eval_losses["val"]
+    assert images == 3 and losses[0] != losses[1]
+    torch.testing.assert_close(sums["val_loss"] / images, (2 * losses[0] + losses[1]) / 3)
