@@ -218,8 +218,11 @@ class Prediction:
 
 
 def pose_value_text(value: float | None) -> float | None:
-    """A pose value for ``camera.json``: to 1e-5 m or degree, below float32's arithmetic noise (the SRT's -42.0
-    pitch, carried in float32 through the network's normalised pose and back, is -42.0, not -42.000003814697266)."""
+    """A pose value for ``camera.json``, to 1e-5 m or degree: below that is float32's arithmetic noise.
+
+    An SRT's -42.0 pitch, carried in float32 through the network's normalised pose and back, is -42.0, not
+    -42.000003814697266.
+    """
     return None if value is None else round(float(value), 5)
 
 
