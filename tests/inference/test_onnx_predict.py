@@ -245,3 +245,33 @@ def test_the_onnx_feed_puts_no_nan_in_the_graph_and_each_image_keeps_its_own_pri
     second = _prior_row(prior, 1)
     assert second.value.shape == (1, 4) and second.known.tolist() == [[False, True, True, False]]
     assert second.value[0, 1:3].tolist() == [-40.0, 1.0]
+
+
+def test_the_onnx_runtime_reports_the_network_s_own_pose_only_when_it_was_given_a_prior():
+    """Without a prior the pose used is the network's own, as PyTorch reports it: no `pose_network` output (the
+    graph always has one). With a prior it is kept, and a one-image-at-a-time model is run image by image."""
+    from dapm_lightning.inference.onnx import PRIOR_INPUTS
+    from dapm_lightning.inference.prior import as_prior
+    from dapm_lightning.inference.runtime import OnnxRuntime
+
+    class Session:  # an exported model's outputs, one image a row; what it was fed is kept
+        def __init__(self):
+            self.feeds = []
+
+        def run(self, _names, feed):
+            self.feeds.append(feed)
+            batch = feed["image"].shape[0]
+            pose = np.tile(np.float32([[40.0, -45.0, 1.0, 70.0]]), (batch, 1))
+            return [np.ones((batch, 1, 4, 4), np.float32), pose, pose + 1]
+
+    runtime = object.__new__(OnnxRuntime)
+    runtime.path, runtime.session = "model.onnx", Session()
+    runtime.input_names, runtime.names = ["image", *PRIOR_INPUTS], ["depth_m", "pose", "pose_network"]
+    runtime.takes_prior, runtime.fixed_batch, runtime.fixed_size = True, None, None
+    images = torch.rand(2, 3, 4, 4)
+    alone = runtime(images)
+    assert alone.pose_network is None and alone.pose.shape == (2, 4)
+    given = runtime(images, as_prior([[50.0, float("nan"), float("nan"), 60.0]] * 2, sigma=(2.0, 0.0, 0.0, 1.0)))
+    assert given.pose_network is not None and given.pose_network[0].tolist() == [41.0, -44.0, 2.0, 71.0]
+    runtime.fixed_batch = 1
+    assert runtime(images).pose_network is None and [f["image"].shape[0] for f in runtime.session.feeds[-2:]] == [1, 1]
