@@ -38,7 +38,7 @@ from dapm_lightning.training.resume import (
     start_next_epoch_as_any_other,
 )
 from dapm_lightning.training.rng import pack_rng_states, rng_states, set_rng_states, unpack_rng_states
-from dapm_lightning.training.signals import SigtermAgreement
+from dapm_lightning.training.signals import SigtermAgreement, is_distributed
 
 Stage = Literal["train", "val", "test"]
 
@@ -429,7 +429,7 @@ class DAPMModule(L.LightningModule):
         sums, images = self.eval_losses.pop(stage, ({}, 0))
         metrics = {name: cast(Metric, m) for name, m in self.metrics.items() if name.startswith(stage + "_")}
         names, updated = list(sums), {name for name, metric in metrics.items() if metric.update_called}
-        distributed = self._trainer is not None and self.trainer.world_size > 1 and dist.is_initialized()
+        distributed = self._trainer is not None and is_distributed(self.trainer)
         if distributed:
             parts: list[Any] = [None] * self.trainer.world_size
             dist.all_gather_object(parts, (names, updated))
@@ -458,7 +458,7 @@ class DAPMModule(L.LightningModule):
         if not self.skip_nonfinite_loss:
             return loss
         finite = bool(torch.isfinite(loss))
-        distributed = self.trainer.world_size > 1 and dist.is_available() and dist.is_initialized()
+        distributed = is_distributed(self.trainer)
         everywhere = finite
         if distributed:  # every process decides alike: the step, the count and its log are the whole job's
             flag = torch.tensor([int(finite)], device=loss.device)

@@ -61,7 +61,8 @@ def between_optimizer_steps(trainer: L.Trainer) -> bool:
     return not trainer.fit_loop.epoch_loop._should_accumulate()
 
 
-def _distributed(trainer: L.Trainer) -> bool:
+def is_distributed(trainer: L.Trainer) -> bool:
+    """Whether ``trainer`` runs several processes with a process group up (collectives are due on every one)."""
     return trainer.world_size > 1 and dist.is_available() and dist.is_initialized()
 
 
@@ -155,13 +156,13 @@ class SigtermAgreement:
         if self._after_validation:
             return True, False
         requeue = self.requeue_signum is not None
-        if not _distributed(trainer):
+        if not is_distributed(trainer):
             return self.received, requeue
         flags = torch.tensor([int(self.received), int(requeue)], device=trainer.strategy.root_device)
         dist.all_reduce(flags, op=dist.ReduceOp.MAX)
         return bool(flags[0].item()), bool(flags[1].item())
 
-    def _requeue(self, trainer: L.Trainer) -> None:
+    def _requeue(self) -> None:
         """Lightning's auto-requeue, on every process at once: ``hpc_ckpt_N.ckpt`` saved, the job requeued."""
         handler, signum = self._requeue_handler, self.requeue_signum
         self.requeue_signum = None
@@ -193,7 +194,7 @@ class SigtermAgreement:
             return
         stop, requeue = self._agreed_with_requeue(trainer)
         if requeue:  # SLURM's warning signal reached some process: Lightning's requeue, here, on every process
-            self._requeue(trainer)
+            self._requeue()
         if not stop:
             return
         if validation_follows(trainer) and not self._after_validation:  # set still: the last one did not run
@@ -201,7 +202,7 @@ class SigtermAgreement:
             return
         self._after_validation = False  # no validation follows, or the one expected did not run: stop here
         self._log(trainer)
-        if _distributed(trainer):
+        if is_distributed(trainer):
             raise SIGTERMException
         trainer._signal_connector.received_sigterm = True
 
