@@ -21,9 +21,10 @@ $(STAMP): pyproject.toml constraints.txt
 
 install: $(STAMP)
 
-# CKPT=models/dapm-synthetic-r18-256 (or any checkpoint): test that model instead of training one
+# CKPT=models/dapm-synthetic-r18-256 (or any checkpoint): test that model instead of training one;
+# DEMO_ARGS="--train-size 2000 --max-epochs 12": a shorter training (about 5 min on 2 cores, docs/quickstart.md)
 demo: $(STAMP)
-	$(BIN)/python -m dapm_lightning.tools.quickstart $(if $(CKPT),--out $(CKPT_OUT) --checkpoint $(CKPT),--out $(OUT))
+	$(BIN)/python -m dapm_lightning.tools.quickstart $(if $(CKPT),--out $(CKPT_OUT) --checkpoint $(CKPT),--out $(OUT)) $(DEMO_ARGS)
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --maxprocesses 4

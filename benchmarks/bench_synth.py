@@ -352,15 +352,24 @@ def figure(args: argparse.Namespace) -> dict[str, Any]:
     return {"figure": str(args.out)}
 
 
+def _quickstart_data() -> dict[str, Any]:
+    """The quickstart's data settings (``data.init_args`` of dapm_lightning/configs/quickstart.yaml)."""
+    import yaml
+
+    init: dict[str, Any] = yaml.safe_load(QUICKSTART_CONFIG.read_text())["data"]["init_args"]
+    return init
+
+
 def _training_arguments(p: argparse.ArgumentParser, out: str) -> None:
     """The data and training arguments of ``transfer`` and ``grid``."""
     p.add_argument("--out", type=Path, default=Path(out))
-    p.add_argument("--train", type=int, default=2000)
-    p.add_argument("--val", type=int, default=200)
+    data = _quickstart_data()
+    p.add_argument("--train", type=int, default=data["train_size"], help="default: the quickstart's")
+    p.add_argument("--val", type=int, default=data["val_size"], help="default: the quickstart's")
     p.add_argument("--test", type=int, default=200, help="test images per family")
-    p.add_argument("--size", type=int, default=64)
+    p.add_argument("--size", type=int, default=data["image_size"], help="default: the quickstart's")
     p.add_argument("--epochs", type=int, default=None, help="default: the quickstart's")
-    p.add_argument("--batch-size", type=int, default=32)
+    p.add_argument("--batch-size", type=int, default=data["batch_size"], help="default: the quickstart's")
     p.add_argument("--bound-margins", type=float, nargs="+", default=[IGD_BOUND_MARGIN],
                    help="margins of the IGD bound rows (default: the prediction default)")
     p.add_argument("--teacher-forcing", type=float, nargs=2, default=None, metavar=("START", "END"),

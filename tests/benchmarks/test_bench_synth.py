@@ -105,3 +105,18 @@ def test_speed_prints_a_row_per_size_and_worker_count(capsys):
     assert all(r["images_per_s"] > 0 for r in rows)
     printed = capsys.readouterr().out
     assert "steady" in printed and "start s" in printed
+
+
+@pytest.mark.parametrize("command", ["transfer", "grid"])
+def test_the_transfer_benchmarks_default_to_the_quickstart_s_data_and_batch(command, monkeypatch):
+    """Without --train/--val/--size/--batch-size, `transfer` and `grid` train on what `make demo` trains on, so
+    their figures are the quickstart's whatever its config says."""
+    import yaml
+
+    seen = {}
+    monkeypatch.setattr(bench_synth, command, lambda args: seen.update(vars(args)))
+    main([command])
+    data = yaml.safe_load(bench_synth.QUICKSTART_CONFIG.read_text())["data"]["init_args"]
+    assert (seen["train"], seen["val"], seen["size"], seen["batch_size"]) == (
+        data["train_size"], data["val_size"], data["image_size"], data["batch_size"])
+    assert seen["epochs"] is None  # the quickstart's trainer.max_epochs (_quickstart_config keeps it)
