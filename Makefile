@@ -22,7 +22,7 @@ $(STAMP): pyproject.toml constraints.txt
 install: $(STAMP)
 
 # CKPT=models/dapm-synthetic-r18-256 (or any checkpoint): test that model instead of training one;
-# DEMO_ARGS="--train-size 2000 --max-epochs 12": a shorter training (about 5 min on 2 cores, docs/quickstart.md)
+# DEMO_ARGS="--train-size 6000 --max-epochs 10": the longer training measured in docs/transfer.md (about 14 min on 2 cores)
 demo: $(STAMP)
 	$(BIN)/python -m dapm_lightning.tools.quickstart $(if $(CKPT),--out $(CKPT_OUT) --checkpoint $(CKPT),--out $(OUT)) $(DEMO_ARGS)
 
