@@ -105,11 +105,19 @@ def speed(args: argparse.Namespace) -> dict[str, Any]:
     return {"speed": rows}
 
 
+def _quickstart() -> dict[str, Any]:
+    """dapm_lightning/configs/quickstart.yaml as a dict (read anew: tests point :data:`QUICKSTART_CONFIG` elsewhere)."""
+    import yaml
+
+    config: dict[str, Any] = yaml.safe_load(QUICKSTART_CONFIG.read_text())
+    return config
+
+
 def _quickstart_config(train_root: Path, out: Path, epochs: int | None, batch_size: int,
                        teacher_forcing: Sequence[float] | None = None, seed: int = 0) -> Path:
     import yaml
 
-    config = yaml.safe_load(QUICKSTART_CONFIG.read_text())
+    config = _quickstart()
     config["seed_everything"] = seed  # the training's randomness follows the data's seed (0: the quickstart's)
     trainer = config["trainer"]
     trainer["default_root_dir"] = str(out)
@@ -352,18 +360,10 @@ def figure(args: argparse.Namespace) -> dict[str, Any]:
     return {"figure": str(args.out)}
 
 
-def _quickstart_data() -> dict[str, Any]:
-    """The quickstart's data settings (``data.init_args`` of dapm_lightning/configs/quickstart.yaml)."""
-    import yaml
-
-    init: dict[str, Any] = yaml.safe_load(QUICKSTART_CONFIG.read_text())["data"]["init_args"]
-    return init
-
-
 def _training_arguments(p: argparse.ArgumentParser, out: str) -> None:
     """The data and training arguments of ``transfer`` and ``grid``."""
     p.add_argument("--out", type=Path, default=Path(out))
-    data = _quickstart_data()
+    data = _quickstart()["data"]["init_args"]
     p.add_argument("--train", type=int, default=data["train_size"], help="default: the quickstart's")
     p.add_argument("--val", type=int, default=data["val_size"], help="default: the quickstart's")
     p.add_argument("--test", type=int, default=200, help="test images per family")
