@@ -108,7 +108,7 @@ class DepthMetrics(Metric):
 
     def compute(self) -> dict[str, Tensor]:
         return {name: (getattr(self, f"sum_{name}") / self.images).float() if self.images > 0
-                else torch.tensor(math.nan) for name in DEPTH_METRIC_NAMES}
+                else torch.tensor(math.nan, device=self.device) for name in DEPTH_METRIC_NAMES}
 
 
 AUTHORS_DEPTH_METRIC_NAMES = ("d1", "d2", "d3", "abs_rel", "sq_rel", "rmse_grey", "rmse_unit", "rmse_log",
@@ -170,7 +170,7 @@ class AuthorsDepthMetrics(Metric):
 
     def compute(self) -> dict[str, Tensor]:
         if self.pixels == 0:
-            return {name: torch.tensor(math.nan) for name in AUTHORS_DEPTH_METRIC_NAMES}
+            return {name: torch.tensor(math.nan, device=self.device) for name in AUTHORS_DEPTH_METRIC_NAMES}
         mean = {name: getattr(self, f"sum_{name}") / self.pixels for name in _POOLED_SUMS}
         rmse_grey = torch.sqrt(mean["sq_err"])
         result = {"d1": mean["d1"], "d2": mean["d2"], "d3": mean["d3"], "abs_rel": mean["abs_rel"],

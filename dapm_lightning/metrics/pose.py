@@ -26,10 +26,11 @@ def auc_of_recall(errors: Tensor, threshold: float, min_error: float | None = No
     errors equal to it. ``min_error``: as GeoCalib's option, the errors at or below it count as perfect: the curve
     starts at their share ``m`` and runs ``(0, m)``, ``(min_error, m)``, then on through the larger errors.
     """
+    device = errors.device
     errors = torch.sort(errors.detach().double().cpu()).values
     count = errors.numel()
     if count == 0:
-        return torch.tensor(math.nan)
+        return torch.tensor(math.nan, device=device)
     recall = torch.arange(1, count + 1, dtype=torch.float64) / count
     if min_error is None:
         start_error, start_recall = torch.zeros(1, dtype=torch.float64), torch.zeros(1, dtype=torch.float64)
@@ -42,7 +43,7 @@ def auc_of_recall(errors: Tensor, threshold: float, min_error: float | None = No
     last = int(torch.searchsorted(errors, torch.tensor(threshold, dtype=torch.float64), right=True))
     curve_recall = torch.cat([recall[:last], recall[last - 1:last]])
     curve_error = torch.cat([errors[:last], torch.tensor([threshold], dtype=torch.float64)])
-    return torch.trapezoid(curve_recall, curve_error) / threshold
+    return (torch.trapezoid(curve_recall, curve_error) / threshold).to(device)
 
 
 class PoseMetrics(Metric):
@@ -88,12 +89,12 @@ class PoseMetrics(Metric):
     def compute(self) -> dict[str, Tensor]:
         errors = self.errors
         if isinstance(errors, list):
-            errors = dim_zero_cat(errors) if errors else torch.zeros(0, 4, dtype=torch.float64)
+            errors = dim_zero_cat(errors) if errors else torch.zeros(0, 4, dtype=torch.float64, device=self.device)
         result: dict[str, Tensor] = {}
         for k, key in enumerate(POSE_KEYS):
             component = errors[:, k]
             result[f"{key}_median"] = (torch.quantile(component, 0.5) if component.numel()
-                                       else torch.tensor(math.nan)).float()
+                                       else torch.tensor(math.nan, device=self.device)).float()
             for t in self.thresholds:
                 result[f"{key}_auc{t:g}"] = auc_of_recall(component, t, self.min_error).float()
         return result

@@ -78,6 +78,7 @@ class DepthPanelLogger(L.Callback):
 
     def __init__(self, every_n_steps: int = 500, max_images: int = 4, output_dir: str | None = None) -> None:
         self.every_n_steps, self.max_images, self.output_dir = every_n_steps, max_images, output_dir
+        self._last_train_step: int | None = None
         self.written: list[Path] = []
         self._test_log_dir: str | None = None
 
@@ -109,7 +110,10 @@ class DepthPanelLogger(L.Callback):
 
     def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any,
                            batch_idx: int) -> None:
-        if self.every_n_steps > 0 and trainer.global_step % self.every_n_steps == 0:
+        # once per optimizer step: under gradient accumulation global_step stands still for the window's micro-batches
+        step = trainer.global_step
+        if self.every_n_steps > 0 and step % self.every_n_steps == 0 and step != self._last_train_step:
+            self._last_train_step = step
             # a broadcast under DDP: every rank asks (all train every step), or rank 0 waits for the others forever
             self._render(trainer, pl_module, batch, "train", trainer.log_dir)
 

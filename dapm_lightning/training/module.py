@@ -449,7 +449,8 @@ class DAPMModule(L.LightningModule):
                 with warnings.catch_warnings():  # compute() on a process without images: its sync is still due
                     warnings.filterwarnings("ignore", "The ``compute`` method of metric", UserWarning)
                     values = metric.compute()  # reduced over processes
-                self.log_dict({f"{name}_{k}": v for k, v in values.items()}, sync_dist=True)
+                # on the module's device: NCCL, the backend of multi-GPU runs, reduces no CPU tensor
+                self.log_dict({f"{name}_{k}": v.to(self.device) for k, v in values.items()}, sync_dist=True)
                 metric.reset()
 
     def training_step(self, batch: dict[str, Any], batch_idx: int) -> Tensor | None:
@@ -470,8 +471,10 @@ class DAPMModule(L.LightningModule):
         if not finite:  # the process whose batch it was names its files (under DDP, maybe not rank 0)
             names = ", ".join(batch.get("name", [])[:8])
             where = f"process {self.trainer.global_rank}, " if distributed else ""
+            done = ("a zero-gradient step on every process (AdamW's momentum and weight decay still apply)"
+                    if distributed else "step skipped, weights unchanged")
             warnings.warn(f"non-finite training loss at step {self.global_step} ({where}batch {batch_idx}: {names}); "
-                          f"step skipped, weights unchanged ({self.nonfinite_steps} so far)", UserWarning, stacklevel=2)
+                          f"{done} ({self.nonfinite_steps} so far)", UserWarning, stacklevel=2)
         self.log("train_nonfinite_steps", float(self.nonfinite_steps), on_step=True, on_epoch=False, batch_size=1)
         if distributed:  # every process must run backward under DDP: a zero-gradient step, on every process
             return sum((p.sum() * 0.0 for p in self.parameters() if p.requires_grad), torch.zeros(()))

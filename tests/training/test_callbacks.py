@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from dapm_lightning.models import DAPMConfig
-from dapm_lightning.training.callbacks import IGDTeacherForcing
+from dapm_lightning.training.callbacks import DepthPanelLogger, IGDTeacherForcing
 from dapm_lightning.training.module import DAPMModule, OptimizerConfig, PriorTraining, warmup_cosine
 
 
@@ -101,3 +101,16 @@ def test_training_priors_are_drawn_anew_each_epoch_and_only_for_the_chosen_image
     assert torch.equal(priors.sample(pose, has_pose, names, 1).known, epochs[1].known)  # the same draws again
     none = PriorTraining(enabled=True, image_fraction=0.0, component_probability=1.0)
     assert not none.sample(pose, has_pose, names, 0).known.any()
+
+
+def test_panels_are_rendered_once_per_optimizer_step_under_gradient_accumulation(monkeypatch):
+    """global_step stands still over an accumulation window: before, each of its micro-batches rendered (an eval
+    forward and, under DDP, a broadcast each) and overwrote the same PNG."""
+    logger = DepthPanelLogger(every_n_steps=2)
+    rendered: list[int] = []
+    trainer = SimpleNamespace(global_step=0, log_dir=None)
+    monkeypatch.setattr(logger, "_render", lambda trainer, *args: rendered.append(trainer.global_step))
+    for step in (0, 0, 0, 1, 1, 1, 2, 2, 2, 3, 3, 3, 4, 4, 4):  # accumulate_grad_batches=3
+        trainer.global_step = step
+        logger.on_train_batch_end(trainer, None, None, {}, 0)
+    assert rendered == [0, 2, 4]

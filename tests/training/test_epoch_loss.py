@@ -1,4 +1,5 @@
-"""The epoch's training losses are the mean over the steps that trained: a step skipped as non-finite weighs 0."""
+"""The epoch's losses and metrics as logged: the training losses are the mean over the steps that trained (a step
+skipped as non-finite weighs 0), every figure on the module's device."""
 
 import math
 
@@ -6,7 +7,9 @@ import lightning as L
 import pytest
 import torch
 
+from dapm_lightning.models import DAPMConfig
 from dapm_lightning.training.lightning_cli import run_lightning_cli
+from dapm_lightning.training.module import DAPMModule
 from tests.conftest import QUICKSTART
 
 TINY = ["--model.net.backbone", "mobilenetv3_small_050", "--model.net.decoder_channels", "16",
@@ -105,3 +108,19 @@ def test_an_evaluation_s_losses_are_summed_per_image_across_batches_of_unequal_s
     sums, images = module.eval_losses["val"]
     assert images == 3 and losses[0] != losses[1]
     torch.testing.assert_close(sums["val_loss"] / images, (2 * losses[0] + losses[1]) / 3)
+
+
+def test_epoch_metrics_are_logged_on_the_module_s_device():
+    """NCCL, the backend of multi-GPU DDP, reduces no CPU tensor. Before, the pose AUCs (computed on the CPU) were
+    logged there with ``sync_dist`` and a GPU run under DDP stopped at its first validation's end. No GPU here: the
+    module's device is faked (meta), and every logged figure must be on it."""
+    module = DAPMModule(DAPMConfig(backbone="resnet18"))
+    pose = torch.tensor([[50.0, -40, 0, 60], [80.0, -60, 5, 70]])
+    module.metrics["val_pose"].update(pose + 1, pose)
+    module.metrics["val_depth"].update(torch.full((2, 1, 8, 8), 40.0), torch.full((2, 1, 8, 8), 50.0))
+    logged: dict[str, torch.Tensor] = {}
+    module.log_dict = lambda values, **kwargs: logged.update(values)
+    module._device = torch.device("meta")
+    module._log_metrics("val")
+    assert {"val_pose_pitch_auc5", "val_depth_d1"} <= set(logged)
+    assert {name: value.device.type for name, value in logged.items() if value.device.type != "meta"} == {}
