@@ -18,7 +18,7 @@ from dapm_lightning.data.errors import SkippedFile
 from dapm_lightning.data.potsdam import PotsdamCrops, PotsdamDataset
 from dapm_lightning.data.sample import Sample
 from dapm_lightning.data.samplers import EpochShuffleSampler
-from dapm_lightning.data.synthetic import generate_uapd, settings_changes
+from dapm_lightning.data.synthetic import SynthFolderError, generate_uapd, is_cache, settings_changes
 from dapm_lightning.data.transforms import Augmentation, train_transform
 from dapm_lightning.data.uapd import UAPDDataset, read_depth_grey
 from dapm_lightning.data.workers import loader_context, loader_workers
@@ -269,6 +269,9 @@ class UAPDDataModule(DAPMDataModule):
 class SyntheticDataModule(UAPDDataModule):
     """Synthetic UAPD-format data, rendered into ``root`` on first use (and re-rendered if any setting changes).
 
+    A set it rendered is marked a cache in ``root/synth.json``; it replaces no other set (one ``dapm-lightning synth``
+    rendered, of other settings, stops it with an error naming the folder).
+
     Args:
         root: cache folder.
         train_size, val_size: image counts.
@@ -298,12 +301,18 @@ class SyntheticDataModule(UAPDDataModule):
             return
         what = f"{settings['train']} + {settings['val']} synthetic images at {settings['size']} px"
         if (Path(self.root) / "synth.json").is_file():
+            if not is_cache(self.root):  # made with `dapm-lightning synth` (or before caches were marked): kept
+                raise SynthFolderError(
+                    f"{self.root}: holds a synthetic set of other settings ({changes}), not one this module "
+                    "rendered, so it is not replaced.\nFix: give data.init_args.root another folder, give the data "
+                    f"module the set's settings ({Path(self.root) / 'synth.json'}), or remove the folder to have "
+                    "it rendered anew")
             warnings.warn(f"{self.root}: rendering it again ({what}): it holds a synthetic set of other settings "
                           f"({changes}), whose images are replaced. To keep a set, give this run another "
                           "data.init_args.root.", stacklevel=2)
         else:
             print(f"{self.root}: rendering {what}", flush=True)
-        generate_uapd(self.root, workers=self.render_workers, **settings)
+        generate_uapd(self.root, workers=self.render_workers, cache=True, **settings)
 
 
 class PotsdamDataModule(DAPMDataModule):

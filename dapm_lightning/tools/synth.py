@@ -12,7 +12,14 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from dapm_lightning.data.files import WriteError, check_folder_writable
-from dapm_lightning.data.synthetic import FAMILIES, SynthFolderError, generate_uapd, normalize_families, shard_range
+from dapm_lightning.data.synthetic import (
+    FAMILIES,
+    SynthFolderError,
+    generate_uapd,
+    normalize_families,
+    settings_changes,
+    shard_range,
+)
 from dapm_lightning.geometry.constants import MAX_DEPTH_M, MIN_DEPTH_LIMIT_M
 from dapm_lightning.tools.progress import progress_bar
 
@@ -42,8 +49,8 @@ def build_parser() -> argparse.ArgumentParser:
         prog="dapm-lightning synth",
         description="Render a synthetic data set in UAPD layout and naming: OUT/{train,val}/{rgb,depth}/NAME.png "
                     "(depth: range in metres, 8-bit log encoded, grey 255 = at or beyond 1000 m). Scene families: "
-                    f"{', '.join(FAMILIES)}. The settings go to OUT/synth.json; rendering into a folder made "
-                    "with other settings first removes its images. See docs/synthetic.md.")
+                    f"{', '.join(FAMILIES)}. The settings go to OUT/synth.json; a folder holding a set of other "
+                    "settings is refused unless --replace is given. See docs/synthetic.md.")
     parser.add_argument("--out", type=Path, required=True, help="output root folder")
     parser.add_argument("--train", type=int, default=200, help="training images (default 200)")
     parser.add_argument("--val", type=int, default=50, help="validation images (default 50)")
@@ -63,6 +70,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--max_depth", type=float, default=MAX_DEPTH_M, metavar="M",
                         help=f"depth limit of the log encoding, grey 255 (default {MAX_DEPTH_M:g}, UAPD's); train "
                              "with the same model.net.igd.max_depth and data.init_args.max_depth")
+    parser.add_argument("--replace", action="store_true",
+                        help="render over a set of other settings in OUT (its images are deleted)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar (there is none off a terminal)")
     parser.add_argument("--no-effects", dest="effects", action="store_false",
                         help="no camera processing (exposure, white balance, blur, noise, JPEG artefacts)")
@@ -95,6 +104,12 @@ def synth_main(argv: Sequence[str]) -> None:
     size = args.size[0] if len(args.size) == 1 else (args.size[0], args.size[1])
     part = shard_range(args.train + args.val, args.shard)
     check_folder_writable(args.out, "--out")
+    changes = settings_changes(args.out, train=args.train, val=args.val, size=size, seed=args.seed,
+                               families=args.families, effects=args.effects, distortion=args.distortion,
+                               max_depth=args.max_depth)
+    if (args.out / "synth.json").is_file() and changes and not args.replace and args.shard[1] == 1:
+        raise SynthFolderError(f"{args.out}: holds a data set of other settings ({changes}), whose images this "
+                               "render would delete.\nFix: add --replace to render over it, or give another --out")
     start = time.perf_counter()
     previous = signal.signal(signal.SIGTERM, _stop_on_sigterm)  # as Ctrl-C: the worker processes end with the run
     try:

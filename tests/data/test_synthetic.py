@@ -19,6 +19,7 @@ from dapm_lightning.data.synthetic import (
     SynthFolderError,
     generate_uapd,
     image_seed,
+    is_cache,
     is_current,
     normalize_families,
     render_scene,
@@ -323,6 +324,26 @@ def test_the_synthetic_module_says_what_it_renders_and_what_it_replaces(tmp_path
     assert len(replaced) == 1 and "rendering it again (2 + 1 synthetic images at 16 px)" in replaced[0]
     assert "(train 1 -> 2)" in replaced[0] and "another data.init_args.root" in replaced[0]
     assert len(list((tmp_path / "s" / "train" / "rgb").iterdir())) == 2
+
+
+def test_a_set_the_synth_command_rendered_is_never_replaced_unasked(tmp_path, capsys):
+    """Before, the module pointed at a set `synth` rendered, or `synth` over a set of other settings, deleted its images
+    with a warning at most: the module replaces only its own caches, and `synth` only with --replace."""
+    from dapm_lightning.data.datamodules import SyntheticDataModule
+
+    out = tmp_path / "s"
+    synth_main(["--out", str(out), "--train", "2", "--val", "1", "--size", "16", "--workers", "1", "--quiet"])
+    kept = sorted(p.name for p in (out / "train" / "rgb").iterdir())
+    dm = SyntheticDataModule(root=str(out), train_size=3, val_size=1, image_size=16, render_workers=1, num_workers=0)
+    with pytest.raises(SynthFolderError, match=r"other settings \(train 2 -> 3\), not one this module rendered"):
+        dm.prepare_data()
+    with pytest.raises(SynthFolderError, match="Fix: add --replace"):
+        synth_main(["--out", str(out), "--train", "3", "--val", "1", "--size", "16", "--workers", "1", "--quiet"])
+    assert sorted(p.name for p in (out / "train" / "rgb").iterdir()) == kept
+    SyntheticDataModule(root=str(out), train_size=2, val_size=1, image_size=16, num_workers=0).prepare_data()  # same
+    synth_main(["--out", str(out), "--train", "3", "--val", "1", "--size", "16", "--workers", "1", "--quiet",
+                "--replace"])
+    assert len(list((out / "train" / "rgb").iterdir())) == 3 and not is_cache(out)
 
 
 def test_an_image_that_cannot_be_written_stops_the_render_naming_it(tmp_path, monkeypatch):

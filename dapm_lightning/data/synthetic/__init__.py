@@ -15,6 +15,7 @@ from dapm_lightning.data.synthetic.generate import (
     SynthFolderError,
     generate_uapd,
     image_seed,
+    is_cache,
     is_current,
     render_sample,
     sample_pose,
@@ -40,6 +41,6 @@ from dapm_lightning.data.synthetic.scene import (
 )
 
 __all__ = ["BUILDING", "CLASS_NAMES", "FAMILIES", "GENERATOR_VERSION", "GROUND", "PERSON", "SKY", "TREE", "VEHICLE",
-           "WATER", "Scene", "SynthFolderError", "generate_uapd", "image_seed", "is_current", "normalize_families",
-           "render_sample", "settings_changes",
+           "WATER", "Scene", "SynthFolderError", "generate_uapd", "image_seed", "is_cache", "is_current",
+           "normalize_families", "render_sample", "settings_changes",
            "render_scene", "sample_pose", "sample_scene", "settings", "shard_range", "uapd_name"]

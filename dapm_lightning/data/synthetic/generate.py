@@ -109,12 +109,24 @@ def settings_changes(root: str | Path, **kwargs: Any) -> str:
         have = json.loads((Path(root) / "synth.json").read_text())
     except (json.JSONDecodeError, OSError):
         return "no readable synth.json"
+    have.pop("cache", None)  # who rendered it, not what (is_cache)
     have.setdefault("distortion", False)  # written before the option existed: undistorted
     want = json.loads(json.dumps(settings(**kwargs)))
     absent = object()
     keys = [*want, *(key for key in have if key not in want)]
     return ", ".join(f"{key} {have.get(key)} -> {want.get(key)}" for key in keys
                      if have.get(key, absent) != want.get(key, absent))
+
+
+def is_cache(root: str | Path) -> bool:
+    """Whether ``root/synth.json`` marks the set a cache, one that other settings may replace.
+
+    ``generate_uapd(cache=True)`` marks it, as ``SyntheticDataModule`` renders; ``dapm-lightning synth`` does not.
+    """
+    try:
+        return json.loads((Path(root) / "synth.json").read_text()).get("cache") is True
+    except (json.JSONDecodeError, OSError, AttributeError):
+        return False
 
 
 def shard_range(count: int, shard: tuple[int, int]) -> range:
@@ -169,7 +181,8 @@ def _refuse_foreign_images(out: Path) -> None:
 def generate_uapd(out: str | Path, *, train: int = 200, val: int = 50, size: int | tuple[int, int] = 128,
                   seed: int = 0, workers: int | None = None, families: dict[str, float] | str | None = None,
                   effects: bool = True, shard: tuple[int, int] = (0, 1), distortion: bool = False,
-                  max_depth: float = MAX_DEPTH_M, progress: Callable[[int], object] | None = None) -> Path:
+                  max_depth: float = MAX_DEPTH_M, progress: Callable[[int], object] | None = None,
+                  cache: bool = False) -> Path:
     """Write a synthetic UAPD-format data set ``out/{train,val}/{rgb,depth}/NAME.png``.
 
     Args:
@@ -187,6 +200,8 @@ def generate_uapd(out: str | Path, *, train: int = 200, val: int = 50, size: int
             array jobs; the union of all shards is byte-identical to one run.
         max_depth: the depth limit of the log encoding (grey 255); the model's ``igd.max_depth`` must match.
         progress: called with the number of images rendered since its last call (a progress bar's ``update``).
+        cache: mark the set a cache in ``synth.json`` (:func:`is_cache`): ``SyntheticDataModule`` replaces only
+            its own caches when its settings change.
 
     Returns:
         ``out``; it also holds ``synth.json`` with the settings (:func:`settings`). A folder holding a
@@ -257,6 +272,6 @@ def generate_uapd(out: str | Path, *, train: int = 200, val: int = 50, size: int
                 progress(1)
     # last, so that a crashed run is not "current"; atomically, as shards of an array job finish side by side
     partial = out / f".synth.json.{os.getpid()}"
-    partial.write_text(json.dumps(info, indent=2) + "\n")
+    partial.write_text(json.dumps({**info, "cache": True} if cache else info, indent=2) + "\n")
     os.replace(partial, out / "synth.json")
     return out
