@@ -122,8 +122,21 @@ class OptimizerConfig:
     schedule_seconds: float | None = None
 
     def __post_init__(self) -> None:
-        if self.schedule_seconds is not None and not self.schedule_seconds > 0:
-            raise ValueError(f"model.optimizer.schedule_seconds must be > 0 (or null), got {self.schedule_seconds}")
+        """Refuse settings that cannot train (a negative ``min_lr_ratio`` ascended the gradient), naming them."""
+        checks = {"lr": (self.lr, 0 < self.lr < math.inf, "> 0"),
+                  "weight_decay": (self.weight_decay, 0 <= self.weight_decay < math.inf, ">= 0"),
+                  "betas": (list(self.betas), len(self.betas) == 2 and all(0 <= b < 1 for b in self.betas),
+                            "two numbers in [0, 1)"),
+                  "warmup_fraction": (self.warmup_fraction, 0 <= self.warmup_fraction <= 1, "in [0, 1]"),
+                  "min_lr_ratio": (self.min_lr_ratio, 0 <= self.min_lr_ratio <= 1, "in [0, 1]"),
+                  "schedule_steps": (self.schedule_steps, self.schedule_steps is None or self.schedule_steps >= 1,
+                                     ">= 1 (or null)"),
+                  "schedule_seconds": (self.schedule_seconds,
+                                       self.schedule_seconds is None or 0 < self.schedule_seconds < math.inf,
+                                       "> 0 (or null)")}
+        for name, (value, ok, wanted) in checks.items():
+            if not ok:
+                raise ValueError(f"model.optimizer.{name} must be {wanted}, got {value}")
 
 
 @dataclass(frozen=True)

@@ -1,3 +1,5 @@
+import math
+import re
 import warnings
 from types import SimpleNamespace
 
@@ -114,3 +116,28 @@ def test_panels_are_rendered_once_per_optimizer_step_under_gradient_accumulation
         trainer.global_step = step
         logger.on_train_batch_end(trainer, None, None, {}, 0)
     assert rendered == [0, 2, 4]
+
+
+@pytest.mark.parametrize(("setting", "value", "wanted"), [
+    ("lr", -1.0, "> 0"), ("lr", math.nan, "> 0"), ("weight_decay", -0.1, ">= 0"),
+    ("betas", (0.9, 1.0), "two numbers in [0, 1)"), ("warmup_fraction", 1.5, "in [0, 1]"),
+    ("min_lr_ratio", -1.0, "in [0, 1]"), ("schedule_steps", 0, ">= 1"), ("schedule_seconds", -1.0, "> 0")])
+def test_optimizer_settings_that_cannot_train_are_refused_naming_them(setting, value, wanted):
+    """Before, a negative lr failed inside torch after the data was rendered and a log folder made, naming no
+    setting, and min_lr_ratio -1 trained at a negative learning rate (gradient ascent) and exited 0."""
+    with pytest.raises(ValueError, match=rf"model\.optimizer\.{setting} must be {re.escape(wanted)}"):
+        OptimizerConfig(**{setting: value})
+    OptimizerConfig(lr=1e-3, weight_decay=0.0, betas=(0.0, 0.999), warmup_fraction=1.0, min_lr_ratio=1.0,
+                    schedule_steps=1, schedule_seconds=1.0)  # the bounds themselves pass
+
+
+def test_a_bad_optimizer_setting_stops_fit_before_anything_is_written(tmp_path, monkeypatch, capsys):
+    from tests.conftest import QUICKSTART, run_main
+
+    monkeypatch.chdir(tmp_path)
+    code, err = run_main(["fit", "--config", str(QUICKSTART), "--data.init_args.root", "data",  # were it not refused:
+                          "--data.init_args.train_size", "2", "--data.init_args.val_size", "1",  # a short run
+                          "--data.init_args.image_size", "16", "--data.init_args.render_workers", "1",
+                          "--trainer.max_steps", "1", "--model.optimizer.min_lr_ratio", "-1"], capsys)
+    assert code == 1 and "model.optimizer.min_lr_ratio must be in [0, 1], got -1.0" in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == []  # no data rendered, no log folder
