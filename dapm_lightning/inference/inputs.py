@@ -10,6 +10,7 @@ one-line command, the Lightning ``predict`` subcommand and the Python API alike.
 
 from __future__ import annotations
 
+import os
 import warnings
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
@@ -37,7 +38,7 @@ from dapm_lightning.inference.pixels import resize_images as resize_images
 from dapm_lightning.inference.pixels import to_rgb8 as to_rgb8
 from dapm_lightning.inference.pixels import upscale_note as upscale_note
 from dapm_lightning.inference.sources import VIDEO_SUFFIXES as VIDEO_SUFFIXES
-from dapm_lightning.inference.sources import SourceFile, Sources, resolve_sources
+from dapm_lightning.inference.sources import SourceFile, Sources, permission_denied, resolve_sources
 from dapm_lightning.inference.sources import resolve_source as resolve_source
 from dapm_lightning.inference.telemetry.gather import first_few
 from dapm_lightning.models.prior import PriorSettings
@@ -187,6 +188,8 @@ class VideoFramesDataset(IterableDataset[PredictInput]):
     def _open(self) -> Any:
         capture = cv2.VideoCapture(str(self.path))
         if not capture.isOpened():
+            if self.path.exists() and not os.access(self.path, os.R_OK):
+                raise permission_denied(self.path)
             raise ValueError(f"{self.path}: OpenCV cannot open it as a video (damaged, or a codec its FFmpeg "
                              "lacks: convert it, e.g. ffmpeg -i IN -c:v libx264 OUT.mp4, or extract frames)")
         return capture

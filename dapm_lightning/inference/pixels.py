@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import math
+import os
+import re
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
@@ -13,12 +15,17 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from dapm_lightning.inference.sources import permission_denied
+
 SIZE_MULTIPLE = 32
 """The encoder's total stride: the shortest network input side, and what exported ONNX sizes are multiples of."""
 DEFAULT_NETWORK_SIZE = (512, 512)
 """The network size for checkpoints that do not record their training size (the paper's 512 x 512)."""
 MAX_UPSCALE = 4.0
 """An input enlarged more than this for the network is warned about (little detail to see)."""
+MAX_PIXELS = 2 * 89_478_485
+"""The most pixels an input image may have: what Pillow opens (twice ``PIL.Image.MAX_IMAGE_PIXELS``, above which it
+refuses a decompression bomb; 100-megapixel mapping cameras are below it)."""
 
 NetworkSize = tuple[int, int] | int | None
 """How big the network input is: ``(H, W)`` (the pixel count kept, each image's aspect), a width (height
@@ -100,7 +107,14 @@ def resize_images(images: Tensor, size: tuple[int, int]) -> Tensor:
 
 def read_image(path: Path) -> np.ndarray:
     """``[H, W, 3]`` uint8 RGB from any 8/16-bit grey, colour or RGBA image file (named in errors)."""
-    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if path.exists() and not os.access(path, os.R_OK):
+        raise permission_denied(path)
+    try:
+        raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    except cv2.error as error:  # OpenCV refuses to decode more than CV_IO_MAX_IMAGE_PIXELS
+        if "CV_IO_MAX_IMAGE_PIXELS" in str(error):
+            raise too_large(path, "more pixels than OpenCV decodes (CV_IO_MAX_IMAGE_PIXELS)") from None
+        raw = None
     if raw is None:
         raise ValueError(f"{path}: cannot be decoded as an image (damaged, cut short, or not an image)\n"
                          "Fix: replace it with an intact copy, or move it out of the source (predict has no option "
@@ -109,6 +123,13 @@ def read_image(path: Path) -> np.ndarray:
         warnings.warn(f"{path}: the JPEG stops before its end marker (cut short while copying?): the picture below "
                       "the cut is grey and its depth means nothing. Fix: copy the file again.", stacklevel=2)
     return to_rgb8(raw, str(path))
+
+
+def too_large(path: Path, size: str) -> ValueError:
+    """The error for an image of more than :data:`MAX_PIXELS` pixels (``size``: what its header claims)."""
+    return ValueError(f"{path}: {size}, more than the {MAX_PIXELS:,} pixels predict reads (a damaged header, a "
+                      "decompression bomb, or a huge mosaic)\nFix: downscale it or cut it into tiles below that size "
+                      "(predict sees each image at its network size anyway)")
 
 
 def jpeg_cut_short(path: Path) -> bool:
@@ -126,12 +147,24 @@ def jpeg_cut_short(path: Path) -> bool:
 
 
 def image_size(path: Path) -> tuple[int, int]:
-    """``(H, W)`` of an image file from its header (Pillow reads no pixels), else by decoding it."""
-    try:
-        from PIL import Image
+    """``(H, W)`` of an image file from its header (Pillow reads no pixels), else by decoding it (formats Pillow lacks).
 
-        with Image.open(path) as image:
-            return int(image.height), int(image.width)
-    except Exception:  # a format Pillow lacks (OpenCV may still read it), or a damaged file named later
+    Raises:
+        ValueError: the header claims more than :data:`MAX_PIXELS` pixels (:func:`too_large`), or the file cannot
+            be read or decoded (:func:`read_image`).
+    """
+    from PIL import Image
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)  # below MAX_PIXELS: only the header read
+            with Image.open(path) as image:
+                height, width = int(image.height), int(image.width)
+    except Image.DecompressionBombError as error:
+        claimed = re.search(r"\((\d+) pixels\)", str(error))  # Pillow's message: "Image size (N pixels) exceeds..."
+        raise too_large(path, f"{int(claimed[1]):,} pixels by its header" if claimed else "too large") from None
+    except Exception:  # a format Pillow lacks (OpenCV may still read it), or a damaged file named by read_image
         height, width = read_image(path).shape[:2]
-        return int(height), int(width)
+    if height * width > MAX_PIXELS:
+        raise too_large(path, f"{width}x{height} pixels")
+    return int(height), int(width)

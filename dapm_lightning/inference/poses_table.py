@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import io
 import json
 from collections.abc import Iterable
 from pathlib import Path
@@ -61,14 +62,11 @@ def write_poses(out: Path, rows: list[dict[str, Any]]) -> Path:
 
     Raises:
         WriteError: a table could not be written.
+        ValueError: the earlier ``poses.csv`` is not a whole poses table (:func:`read_poses`).
     """
     path = out / "poses.csv"
     with exclusive_lock(path):
-        merged: dict[str, dict[str, Any]] = {}
-        if path.is_file():
-            with path.open(newline="", encoding="utf-8") as handle:
-                merged = {row["name"]: {k: v for k, v in row.items() if k is not None}  # no cells past the header
-                          for row in csv.DictReader(handle) if row.get("name")}
+        merged = read_poses(path)
         merged.update({row["name"]: row for row in rows})
         columns = table_columns(merged.values())
         for row in merged.values():  # rows of images without telemetry: their pose is the network's
@@ -83,6 +81,54 @@ def write_poses(out: Path, rows: list[dict[str, Any]]) -> Path:
                    for column in columns} for row in merged.values()]  # every row with every column, as the CSV
         write_text(out / "poses.json", json.dumps(values, indent=2) + "\n")
     return path
+
+
+def read_poses(path: Path, option: str = "--out") -> dict[str, dict[str, Any]]:
+    """The rows of an earlier run's ``poses.csv`` by name, as text; {} when there is none.
+
+    Checked whole, so that a run adding to the folder (``--exist_ok``) refuses it before writing anything rather
+    than replace it and lose its rows.
+
+    Raises:
+        ValueError: the file cannot be read, is not UTF-8 text, is empty, is another table (no ``name`` and pose
+            columns), or is damaged or cut short (a row without all its cells or its name, no line end after the
+            last row); naming the file and the fix (``option``: the setting that names the folder).
+    """
+    if not path.exists():
+        return {}
+    try:
+        text = path.read_bytes().decode("utf-8-sig")  # a spreadsheet's byte-order mark allowed
+    except UnicodeDecodeError as error:
+        line = error.object[:error.start].count(b"\n") + 1
+        raise _earlier_table_error(path, f"not UTF-8 text (byte 0x{error.object[error.start]:02x} on line {line})",
+                                   option) from None
+    except OSError as error:
+        reason = "permission denied" if isinstance(error, PermissionError) else error.strerror or str(error)
+        raise _earlier_table_error(path, f"cannot be read ({reason})", option) from None
+    if not text.strip():
+        raise _earlier_table_error(path, "empty (cut short?)", option)
+    reader = csv.reader(io.StringIO(text, newline=""))
+    try:
+        header = next(reader)
+        if header[:1] != ["name"] or not set(POSE_FIELDS) <= set(header):
+            raise _earlier_table_error(path, f"not a poses table (its header {','.join(header)[:80]!r} lacks the "
+                                             f"columns {','.join(POSE_COLUMNS)})", option)
+        rows: dict[str, dict[str, Any]] = {}
+        for cells in filter(None, reader):  # blank lines skipped
+            if len(cells) != len(header) or not cells[0]:
+                got = "no name" if len(cells) == len(header) else f"{len(cells)} cells, its header {len(header)}"
+                raise _earlier_table_error(path, f"damaged or cut short (line {reader.line_num}: {got})", option)
+            rows[cells[0]] = dict(zip(header, cells))
+    except csv.Error as error:  # a field past the csv module's size limit, ...
+        raise _earlier_table_error(path, f"damaged (line {reader.line_num}: {error})", option) from None
+    if not text.endswith("\n"):
+        raise _earlier_table_error(path, "cut short (no line end after its last row)", option)
+    return rows
+
+
+def _earlier_table_error(path: Path, problem: str, option: str) -> ValueError:
+    return ValueError(f"{path}: {problem}; this run would replace that table and lose its rows\nFix: move it out "
+                      f"of the folder (or put back an intact copy), or give another {option}")
 
 
 def _text_column(column: str) -> bool:

@@ -4,15 +4,19 @@
 with an output name that is unique in the run and says where the file came from: a file found in a folder or by a
 pattern is named by its path below that folder (``100MEDIA/DJI_0001.JPG`` -> ``100MEDIA_DJI_0001``), a file given
 by itself by its stem. Extensions are matched regardless of case (``.JPG``), hidden files and folders (``.Trashes``,
-macOS's ``._DJI_0001.JPG``) are left out, and so are the pictures an earlier predict run wrote into a folder a
-folder or pattern reaches (a folder marked as a run's output, :func:`~dapm_lightning.inference.run_folder.
-is_output_folder`), with one note naming the folder.
+macOS's ``._DJI_0001.JPG``) are left out, a folder's broken links and the sub-folders it may not read too (with a
+warning naming them), and so are the pictures an earlier predict run wrote into a folder a folder or pattern reaches
+(a folder marked as a run's output, :func:`~dapm_lightning.inference.run_folder.is_output_folder`), with one note
+naming the folder.
 """
 
 from __future__ import annotations
 
+import codecs
 import glob
+import os
 import re
+import warnings
 from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -68,6 +72,13 @@ def case_free(pattern: str) -> str:
     return head + sep + "".join(out)
 
 
+def permission_denied(path: Path) -> ValueError:
+    """The error for a source file or folder this user may not read."""
+    how = "chmod -R u+rX" if path.is_dir() else "chmod u+r"
+    return ValueError(f"{path}: cannot be read (permission denied)\nFix: make it readable ({how} {path}), or leave "
+                      "it out of the source")
+
+
 def _hidden(path: Path, root: Path) -> bool:
     return any(part.startswith(".") for part in path.relative_to(root).parts)
 
@@ -107,12 +118,43 @@ def _output_folder_fix(folders: list[Path]) -> str:
             "images): give the folder of the images it was predicted from")
 
 
+def _folder_files(path: Path) -> list[Path]:
+    """The files in a folder and its sub-folders, sorted; hidden ones left out, links to folders not followed.
+
+    A sub-folder that cannot be listed, and a link to an image or video that is not there, are warned about by
+    name (their images are not predicted); a folder that cannot be listed itself is refused.
+    """
+    unlisted: list[OSError] = []
+    files: list[Path] = []
+    broken: list[Path] = []
+    for top, subfolders, names in os.walk(path, onerror=unlisted.append):
+        subfolders[:] = [name for name in subfolders if not name.startswith(".")]
+        for file in (Path(top, name) for name in names if not name.startswith(".")):
+            if file.is_file():
+                files.append(file)
+            elif file.is_symlink() and file_kind(file):
+                broken.append(file)
+    for error in unlisted:
+        folder = Path(error.filename)
+        if folder == path:
+            raise permission_denied(path) if isinstance(error, PermissionError) else error
+        reason = "permission denied" if isinstance(error, PermissionError) else error.strerror
+        warnings.warn(f"{folder}: this sub-folder of {path} cannot be read ({reason}): its images are not "
+                      f"predicted. Fix: make it readable (chmod -R u+rX {folder}) to predict them", stacklevel=2)
+    if broken:
+        links = ", ".join(f"{p.relative_to(path)} -> {os.readlink(p)}" for p in broken[:3])
+        warnings.warn(f"{path}: {len(broken)} broken link(s) not predicted (the file each names is not there): "
+                      f"{links}{', ...' if len(broken) > 3 else ''}. Fix: put the files back where the links point, "
+                      "or remove the links", stacklevel=2)
+    return sorted(files)
+
+
 def _folder(path: Path) -> tuple[list[tuple[Path, str]], list[str]]:
     """A folder's images, sub-folders included; notes on what it also holds.
 
     The videos it holds are noted, not predicted; so are the predict output folders in it (their pictures left out).
     """
-    files, notes, outputs = _run_outputs(sorted(p for p in path.rglob("*") if p.is_file() and not _hidden(p, path)))
+    files, notes, outputs = _run_outputs(_folder_files(path))
     images = [_named(p, path) for p in files if file_kind(p) == "image"]
     videos = [p.relative_to(path).as_posix() for p in files if file_kind(p) == "video"]
     if not images:
@@ -175,12 +217,29 @@ def is_list_file(source: str | Path) -> bool:
 def list_entries(path: Path) -> list[tuple[int, str, str]]:
     """A ``.txt`` list's entries: ``(line number, entry, path)``; a relative entry's path from the list's folder."""
     entries = []
-    for number, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
+    for number, line in enumerate(_list_text(path).splitlines(), 1):
         entry = line.strip()
         if entry and not entry.startswith("#"):
             target = Path(entry).expanduser()
             entries.append((number, entry, str(target if target.is_absolute() else path.parent / target)))
     return entries
+
+
+def _list_text(path: Path) -> str:
+    """A ``.txt`` list as text: UTF-8 (a byte-order mark allowed), or UTF-16 with its mark (Windows' "Unicode")."""
+    try:
+        data = path.read_bytes()
+    except PermissionError:
+        raise permission_denied(path) from None
+    utf16 = data.startswith((codecs.BOM_UTF16_LE, codecs.BOM_UTF16_BE))
+    try:
+        return data.decode("utf-16" if utf16 else "utf-8-sig")
+    except UnicodeDecodeError as error:
+        line = error.object[:error.start].decode(error.encoding, "replace").count("\n") + 1
+        raise ValueError(f"{path} line {line}: not {'UTF-16' if utf16 else 'UTF-8'} text (byte "
+                         f"0x{error.object[error.start]:02x}): a list of paths is read as UTF-8 (or UTF-16 with its "
+                         "byte-order mark)\nFix: save it as UTF-8 text (in an editor: Save as, encoding UTF-8), one "
+                         "path a line") from None
 
 
 def _list_file(path: Path) -> tuple[list[tuple[Path, str]], list[str]]:

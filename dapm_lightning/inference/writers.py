@@ -49,7 +49,7 @@ from dapm_lightning.geometry.constants import POSE_FIELDS, POSE_KEYS
 from dapm_lightning.geometry.igd import IGDSpec
 from dapm_lightning.inference.contact_sheet import CONTACT_MAX_IMAGES, contact_sheet, contact_tiles
 from dapm_lightning.inference.inputs import PredictSource
-from dapm_lightning.inference.poses_table import pose_row, write_poses
+from dapm_lightning.inference.poses_table import pose_row, read_poses, write_poses
 from dapm_lightning.inference.postprocess import Prediction, batch_predictions
 from dapm_lightning.inference.run_folder import (
     MARKER_TEXT,
@@ -217,12 +217,13 @@ class PredictionFiles:
     """One run's files: each prediction's as it comes, then the poses table, contact sheet and summary line.
 
     :meth:`add` writes a prediction's files, :meth:`finish` the run's. Used by :class:`PredictionWriter` and
-    the one-line ``predict`` command. The output folder is checked when this is made (before a model is loaded)
-    and created with the first file, so a run that writes nothing leaves no folder; as a context manager (or
-    through :meth:`close`) a folder it created goes again when the run fails before writing into it. A run that
-    stops after writing (a damaged image, Ctrl-C, a failed write) still writes its tables and sheet for the images
-    written so far when it is closed (:meth:`keep_written`), so that they describe the folder's files. Every
-    file is written whole and checked: a failed write raises
+    the one-line ``predict`` command. The output folder is checked when this is made (before a model is loaded),
+    an earlier ``poses.csv`` in it read whole (:func:`~dapm_lightning.inference.poses_table.read_poses`: a damaged
+    or foreign one is refused before anything is written), and created with the first file, so a run that writes
+    nothing leaves no folder; as a context manager (or through :meth:`close`) a folder it created goes again when
+    the run fails before writing into it. A run that stops after writing (a damaged image, Ctrl-C, a failed write)
+    still writes its tables and sheet for the images written so far when it is closed (:meth:`keep_written`), so
+    that they describe the folder's files. Every file is written whole and checked: a failed write raises
     :class:`~dapm_lightning.data.files.WriteError` naming the file and the fix.
 
     Args:
@@ -263,6 +264,7 @@ class PredictionFiles:
             raise ValueError(f"depth_range must be two depths in metres, 0 < MIN < MAX, got {list(depth_range)}")
         self.depth_range = None if depth_range is None else (float(depth_range[0]), float(depth_range[1]))
         check_folder_writable(self.output_dir, option)
+        read_poses(self.output_dir / "poses.csv", option or "output_dir")  # an earlier table it can add to, or none
         self.created: list[Path] = []
         """The folders this object created (outermost first)."""
         self.marked = False

@@ -314,6 +314,41 @@ def test_a_run_whose_first_write_fails_leaves_no_folder(checkpoint, flight, smal
 
 
 # ----------------------------------------------------------------------------------- runs that fail before writing
+@pytest.mark.parametrize(("table", "problem"), [
+    (b"\x1f\x8b\x08\x00\xb2\x9a\x00 random bytes", "not UTF-8 text (byte 0x8b on line 1)"),
+    (b"name,height_m,pitch_deg,roll_deg,fov_deg\r\nold0,50,-40,1,70\r\nold1,5", "damaged or cut short (line 3: 2 "
+     "cells, its header 5)"),
+    (b"name,height_m,pitch_deg,roll_deg,fov_deg\r\nold0,50,-40,1,70", "cut short (no line end after its last row)"),
+    (b"id,value\n1,2\n", "not a poses table (its header 'id,value' lacks the columns name,height_m,pitch_deg,"
+     "roll_deg,fov_deg)"),
+    (b"", "empty (cut short?)")], ids=["random bytes", "cut mid-row", "no line end", "another table", "empty"])
+def test_an_earlier_poses_table_that_is_damaged_or_foreign_stops_the_run_before_anything_is_written(
+        tmp_path, capsys, table, problem):
+    """--exist_ok into a folder whose poses.csv is damaged: the run failed after writing its images with "'utf-8'
+    codec can't decode byte 0xb2", naming no file; a table cut short, or another table, was replaced (rows lost)."""
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "poses.csv").write_bytes(table)
+    (out / "old0_camera.json").write_text("{}")
+    images = tmp_path / "images"
+    images.mkdir()
+    cv2.imwrite(str(images / "old0.png"), np.zeros((40, 60, 3), np.uint8))
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    code, err = run_main(["predict", str(images), "--ckpt_path", "missing.ckpt", "--out", str(out), "--exist_ok"],
+                         capsys)  # refused before the model loads
+    assert code == 1 and err.splitlines()[:2] == [
+        f"error: {out / 'poses.csv'}: {problem}; this run would replace that table and lose its rows",
+        "Fix: move it out of the folder (or put back an intact copy), or give another --out"]
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before  # nothing written
+    with pytest.raises(ValueError, match="--trainer.callbacks.output_dir$"):
+        PredictionWriter(str(out), exist_ok=True)
+    with pytest.raises(ValueError, match="this run would replace that table"):  # damaged while a run was under way
+        write_poses(out, [{"name": "new", "height_m": 50.0, "pitch_deg": -30.0, "roll_deg": 0.5, "fov_deg": 80.0}])
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+    (out / "poses.csv").write_bytes(b"\xef\xbb\xbfname,height_m,pitch_deg,roll_deg,fov_deg\r\nold0,50,-40,1,70\r\n")
+    PredictionFiles(out)  # an intact table (a spreadsheet's byte-order mark allowed) is added to
+
+
 def test_a_failed_run_leaves_no_output_folder(checkpoint, flight, tmp_path, capsys):
     out = tmp_path / "out"
     base = ["--ckpt_path", str(checkpoint), "--out", str(out), "--device", "cpu"]

@@ -1,7 +1,15 @@
 """Sources as users have them: an SD card's folders, .JPG, several SOURCE arguments, .txt lists, videos among them."""
 
+import codecs
 import json
+import os
+import shutil
+import struct
+import subprocess
+import sys
 import time
+import warnings
+import zlib
 from pathlib import Path
 
 import cv2
@@ -208,3 +216,139 @@ def test_a_run_written_inside_the_images_folder_is_not_read_back_as_images(sd_ca
     with pytest.raises(ValueError, match="no images .*\nFix: .*pred is a predict output folder"):
         resolve_sources(out)
     assert resolve_sources(out / "DJI_0001_depth_color.png")[0][0].name == "DJI_0001_depth_color"  # named: kept
+
+
+# ---------------------------------------------------------------------------------------- files predict cannot read
+def png_header(path, width, height):
+    """A PNG of one tiny IDAT whose header claims ``width x height`` pixels (its size is read, never decoded)."""
+    def chunk(kind, data):
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0))
+                     + chunk(b"IDAT", zlib.compress(b"\x00" * 8)) + chunk(b"IEND", b""))
+    return path
+
+
+def test_an_image_whose_header_claims_too_many_pixels_is_refused_by_name_without_decoding(tmp_path, monkeypatch):
+    """A 68-byte PNG claiming 100000 x 100000 pixels: Pillow's decompression-bomb refusal fell back to OpenCV,
+    whose own refusal ended in its assertion text, "error:" twice, no file named (and OpenCV decoded the images
+    of 179M to 1.07G pixels whole just to read their size). Now the size comes from the header alone."""
+    from dapm_lightning.inference.pixels import MAX_PIXELS, image_size, read_image
+    from dapm_lightning.tools.errors import describe
+
+    bomb, large = png_header(tmp_path / "bomb.png", 100_000, 100_000), png_header(tmp_path / "large.png", 11664, 8750)
+    with pytest.raises(ValueError) as info:
+        read_image(bomb)  # what OpenCV refuses to decode is named too
+    assert str(info.value).startswith(f"{bomb}: more pixels than OpenCV decodes")
+    monkeypatch.setattr(cv2, "imread", lambda *args: pytest.fail("decoded to read its size"))
+    with pytest.raises(ValueError) as info:
+        image_size(bomb)
+    message, expected = describe(info.value)
+    assert expected and message == (f"{bomb}: 10,000,000,000 pixels by its header, more than the {MAX_PIXELS:,} "
+                                    "pixels predict reads (a damaged header, a decompression bomb, or a huge mosaic)\n"
+                                    "Fix: downscale it or cut it into tiles below that size (predict sees each image "
+                                    "at its network size anyway)")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a 100-megapixel mapping camera's photo: no decompression-bomb warning
+        assert image_size(large) == (8750, 11664)
+
+
+@pytest.mark.parametrize("encoding", ["utf-8-sig", "utf-16", "utf-16-be"])
+def test_a_list_saved_as_unicode_with_a_byte_order_mark_is_read(tmp_path, encoding):
+    write_image(tmp_path / "vue_été.png")
+    listing = tmp_path / "list.txt"
+    text = "# vol\nvue_été.png\n"
+    listing.write_bytes((codecs.BOM_UTF16_BE + text.encode("utf-16-be")) if encoding == "utf-16-be"
+                        else text.encode(encoding))
+    assert [f.name for f in resolve_sources(listing)[0]] == ["vue_été"]
+
+
+@pytest.mark.parametrize(("data", "line", "byte"), [("# vol\nvue_été.png\n".encode("latin-1"), 2, "0xe9"),
+                                                    (bytes([0x17, 0x78, 0x62, 0x9a, 0x28, 0x1b]), 1, "0x9a")],
+                         ids=["latin-1", "binary"])
+def test_a_list_that_is_not_utf8_is_named_with_its_line_and_the_fix(tmp_path, capsys, data, line, byte):
+    """A list saved as Latin-1 (or a binary file named .txt) ended in "'utf-8' codec can't decode byte 0xe9 in
+    position 9", naming no file."""
+    listing = tmp_path / "list.txt"
+    listing.write_bytes(data)
+    with pytest.raises(SystemExit) as stop:
+        main(["predict", str(listing), "--ckpt_path", "missing.ckpt"])  # refused before the model loads
+    lines = capsys.readouterr().err.splitlines()
+    assert stop.value.code == 1 and lines[0] == (f"error: {listing} line {line}: not UTF-8 text (byte {byte}): a list "
+                                                 "of paths is read as UTF-8 (or UTF-16 with its byte-order mark)")
+    assert lines[1] == "Fix: save it as UTF-8 text (in an editor: Save as, encoding UTF-8), one path a line"
+
+
+def test_a_broken_link_in_a_folder_is_warned_about_by_name(tmp_path):
+    write_image(tmp_path / "flight" / "a.png")
+    (tmp_path / "flight" / "b.png").symlink_to(tmp_path / "gone" / "b.png")
+    (tmp_path / "flight" / "notes").symlink_to(tmp_path / "gone" / "notes")  # not an image: not a loss
+    with pytest.warns(UserWarning) as caught:
+        files, _ = resolve_sources(tmp_path / "flight")
+    assert [f.name for f in files] == ["a"] and [str(w.message) for w in caught] == [
+        f"{tmp_path / 'flight'}: 1 broken link(s) not predicted (the file each names is not there): b.png -> "
+        f"{tmp_path / 'gone' / 'b.png'}. Fix: put the files back where the links point, or remove the links"]
+
+
+UNREADABLE_CHECK = """
+import sys, warnings
+from pathlib import Path
+from dapm_lightning.inference.inputs import VideoFramesDataset
+from dapm_lightning.inference.pixels import image_size
+from dapm_lightning.inference.sources import resolve_sources
+
+warnings.simplefilter("always")
+warnings.showwarning = lambda message, *args: print("warning:", message)
+for source in sys.argv[1:]:
+    try:
+        files, _ = resolve_sources(source)
+        for file in files:
+            image_size(file.path) if file.kind == "image" else VideoFramesDataset(file.path)
+        print("predicted", [file.name for file in files])
+    except ValueError as error:
+        print("error:", error)
+"""
+
+
+def run_where_permissions_hold(code, *args):
+    """``python -c code ARGS``'s output where file permissions hold: as root, without the capabilities that let it
+    read any file (``setpriv``); skipped where that cannot be done."""
+    command = [sys.executable, "-c", code, *map(str, args)]
+    if os.geteuid() == 0:
+        if shutil.which("setpriv") is None:
+            pytest.skip("root, and no setpriv to drop the capabilities that read any file")
+        command = ["setpriv", "--bounding-set=-dac_override,-dac_read_search", "--", *command]
+    done = subprocess.run(command, capture_output=True, text=True, cwd=Path(__file__).parents[2])
+    if done.returncode and done.stderr.startswith("setpriv"):
+        pytest.skip(f"capabilities cannot be dropped here: {done.stderr.strip()}")
+    assert done.returncode == 0, done.stderr
+    return done.stdout.splitlines()
+
+
+def test_unreadable_sources_are_named_as_such_with_the_fix(tmp_path):
+    """Without read permission: a sub-folder of an input folder was skipped silently (exit 0), an image was called
+    damaged ("replace it with an intact copy"), a list or a video ended in a message that did not say why."""
+    flight, locked = tmp_path / "flight", tmp_path / "locked"
+    write_image(flight / "a.png")
+    write_image(flight / "day2" / "b.png")
+    write_image(flight / ".hidden" / "c.png")  # hidden, left out: not warned about
+    write_image(locked / "d.png")
+    listing = tmp_path / "list.txt"
+    listing.write_text("flight/a.png\n")
+    video = write_video(tmp_path / "clip.avi", frames=2)
+    for path in (flight / "day2", flight / ".hidden", locked, flight / "a.png", listing, video):
+        path.chmod(0)
+    try:
+        lines = run_where_permissions_hold(UNREADABLE_CHECK, flight, locked, listing, video)
+    finally:
+        for path in (flight / "day2", flight / ".hidden", locked):
+            path.chmod(0o755)
+
+    def denied(path):
+        how = "chmod -R u+rX" if path.is_dir() else "chmod u+r"
+        return [f"error: {path}: cannot be read (permission denied)",
+                f"Fix: make it readable ({how} {path}), or leave it out of the source"]
+
+    assert lines == [f"warning: {flight / 'day2'}: this sub-folder of {flight} cannot be read (permission denied): "
+                     f"its images are not predicted. Fix: make it readable (chmod -R u+rX {flight / 'day2'}) to "
+                     "predict them", *denied(flight / "a.png"), *denied(locked), *denied(listing), *denied(video)]
