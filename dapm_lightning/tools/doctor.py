@@ -6,11 +6,12 @@ the Ideal Ground Depth of its own pose: pixels that see flat ground match the IG
 and nothing is ever seen deeper than the ground. A sample is flagged when a plausible annotation
 mistake (roll or pitch sign, pitch and roll swapped, another FoV) explains clearly more of its depth
 as flat ground without being contradicted more by depth beyond its ground. Exit status 0 when no
-problem is found, 1 when a file is broken or a sample is flagged, 2 when ROOT is not a data set (or
-on a usage error). The report is printed, and written as JSON only where asked (--json FILE; nothing
-is written into the data set). Settings can come from a YAML file (--config FILE; --print_config
-shows one). Grey 255 of the depth files means --max_depth metres: by default the max_depth that ROOT/synth.json
-records (a set from `dapm-lightning synth --max_depth`), else UAPD's 1000.
+problem is found, 1 when a file is broken or a sample is flagged (or, ROOT checked whole, train/ has no
+val/ beside it, which fit needs), 2 when ROOT is not a data set (or on a usage error). The report is
+printed, and written as JSON only where asked (--json FILE; nothing is written into the data set).
+Settings can come from a YAML file (--config FILE; --print_config shows one). Grey 255 of the depth files
+means --max_depth metres: by default the max_depth that ROOT/synth.json records (a set from
+`dapm-lightning synth --max_depth`), else UAPD's 1000.
 """
 
 from __future__ import annotations
@@ -54,6 +55,10 @@ from dapm_lightning.tools.progress import progress_bar
 
 EXIT_CLEAN, EXIT_PROBLEMS, EXIT_NOT_A_DATA_SET = 0, 1, 2
 """Exit statuses: no problem; a broken file or a flagged sample; ROOT (or a split asked for) is not a data set."""
+NO_VAL_FIX = ("Fix: put a val split in ROOT/val/{rgb,depth}/NAME.png (e.g. move some train pairs there): "
+              "`dapm-lightning fit` validates on it and refuses to start without it (`test` reads it too unless "
+              "data.init_args.test_split names another); UAPD's layout: docs/data.md.")
+"""The fix of a set checked whole (no --splits) that has train/ but no val/ split."""
 BEYOND_LEVELS = 1
 """A pixel lies beyond the ground of a pose when it is deeper than the pose's IGD by more than one grey level
 (more than the 8-bit rounding). Nothing is seen through the ground: such pixels contradict the pose."""
@@ -317,7 +322,7 @@ def format_report(reports: list[dict[str, Any]]) -> str:
                                  f"{agree['median_other_kind']:.3f}")
         if r.get("depth_kind_problem"):
             lines.append(f"   PROBLEM depth kind: {r['depth_kind_problem']}")
-        lines += [f"   ERROR   {e}" for e in r["errors"]]
+        lines += [f"   ERROR   {e}" for e in r["errors"]] + ([f"   {r['fix']}"] if r.get("fix") else [])
         lines += [f"   FLAGGED {f['name']}: {f['reason']}" for f in r["flagged"]]
         if r.get("unchecked"):
             lines.append(f"   note: {len(r['unchecked'])} sample(s) show no flat ground (pose not checkable), "
@@ -377,13 +382,14 @@ def doctor(root: Path, splits: list[str] | None = None, depth_kind: DepthKind = 
         quiet: no progress bar (there is none off a terminal).
 
     Returns:
-        the exit status: 0 clean, 1 a broken file or a flagged sample, 2 no data set at ROOT (ROOT is not a
+        the exit status: 0 clean, 1 a broken file, a flagged sample or (``splits`` not given) a train split
+        without a val split, 2 no data set at ROOT (ROOT is not a
         folder, holds no split folder, or a split asked for has neither rgb/ nor depth/), a depth limit that is
         not finite or too small, or a ``json`` path that cannot be written (checked before the scan; a write that
         fails after it, e.g. on a full disk, leaves no partial file); the reason is then printed to stderr.
     """
     root = Path(root)
-    problem = None
+    problem, asked = None, splits
     if not root.is_dir():
         what = "a file, not a folder" if root.exists() else "no such folder"
         problem = f"{root}: {what} (give the data set's root, which holds train/ and val/)"
@@ -412,8 +418,11 @@ def doctor(root: Path, splits: list[str] | None = None, depth_kind: DepthKind = 
     print(f"depth limit: grey 255 = {limit:g} m, {limit_from}" + ("" if max_depth is not None else
                                                                    " (--max_depth METRES sets another)"))
     reports = [diagnose_split(root, split, depth_kind, quiet, limit) for split in splits]
+    no_val = "train" in splits and "val" not in found  # `fit` validates on ROOT/val and refuses to start without it
+    if no_val and not asked:  # the whole set checked: a problem (its missing folder), with the fix
+        reports.append({**diagnose_split(root, "val", depth_kind, quiet, limit), "fix": NO_VAL_FIX})
     print(format_report(reports))
-    if "train" in splits and "val" not in splits and not (root / "val").exists():
+    if no_val and asked:
         print(f"note: {root} has no val/ split: `dapm-lightning fit` validates on ROOT/val and refuses to start "
               "without it (`test` reads it too unless data.init_args.test_split names another)")
     bad = sum(len(r["errors"]) + len(r["flagged"]) + bool(r.get("depth_kind_problem")) for r in reports)

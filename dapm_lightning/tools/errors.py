@@ -97,6 +97,9 @@ def describe(error: BaseException) -> tuple[str, bool]:
         return f"{message}\n{fix}", True
     if getattr(error, "explained", False):  # says what happened and the fix itself (refused or unsaved checkpoints)
         return message, True
+    checkpoints = sys.modules.get("dapm_lightning.training.checkpoint_files")  # loaded where it was raised
+    if checkpoints is not None and isinstance(error, checkpoints.CheckpointReadError):  # damaged or not a checkpoint
+        return f"{message}\n{error.fix}", True
     if _is_download_error(error, message):
         return (f"{name}: {message}\nFix: the backbone's pretrained (ImageNet) weights could not be downloaded (no "
                 "internet here?): pass --model.net.weights_path FILE with the weights saved on a machine that has it, "
@@ -109,9 +112,6 @@ def describe(error: BaseException) -> tuple[str, bool]:
     if isinstance(error, _PATH_ERRORS):
         fix = f"Fix: check the path (relative paths start from the current directory, {os.getcwd()})."
         return (message if "Fix" in message else f"{message}\n{fix}"), True
-    if "not a readable checkpoint" in message:
-        return (f"{message}\nFix: copy the checkpoint again (a file cut short by a full disk or an interrupted "
-                "transfer cannot be read) or pick another one, e.g. the run's last.ckpt."), True
     if message.startswith("Expected more than 1 value per channel when training"):  # BatchNorm of a 1x1 map
         return (f"{message}: a training batch of one image whose deepest feature map is one pixel (the default "
                 "encoder divides each side by 32), on which batch normalisation cannot be computed.\nFix: batches of "

@@ -11,6 +11,7 @@ file size) with a manifest of their SHA-256 sums; :func:`read_checkpoint` reads 
 
 from __future__ import annotations
 
+import codecs
 import errno
 import hashlib
 import io
@@ -22,6 +23,7 @@ import shutil
 import socket
 import urllib.error
 import urllib.request
+import zipfile
 from collections.abc import Callable, Iterable, Iterator, Mapping
 from contextlib import suppress
 from pathlib import Path
@@ -42,8 +44,21 @@ _PARTIAL = re.compile(r"\.partial-(?P<host>.*)-(?P<pid>\d+)-[0-9a-f]{8}$")
 """The name of a save in progress: ``NAME.partial-HOST-PID-TOKEN`` next to ``NAME`` (see :func:`save_atomically`)."""
 
 
+COPY_AGAIN_FIX = ("Fix: copy the checkpoint again (a file cut short by a full disk or an interrupted transfer cannot "
+                  "be read) or pick another one, e.g. the run's last.ckpt.")
+NOT_A_CHECKPOINT_FIX = ("Fix: give a checkpoint written by `dapm-lightning fit` (a run's checkpoints/last.ckpt or "
+                        "best-*.ckpt) or a shipped model such as models/dapm-synthetic-r18-256.")
+
+
 class CheckpointReadError(RuntimeError):
-    """A checkpoint file that cannot be read: truncated, corrupt or not a PyTorch file (the message names it)."""
+    """A checkpoint file that cannot be read: cut short, damaged or not a checkpoint (the message names it).
+
+    ``fix`` says what to do (shown after the message by ``dapm-lightning``, tools/errors.py).
+    """
+
+    def __init__(self, message: str, fix: str = COPY_AGAIN_FIX) -> None:
+        super().__init__(message)
+        self.fix = fix
 
 
 class NotACheckpointFileError(CheckpointReadError):
@@ -411,31 +426,31 @@ def join_split_checkpoint(path: str | Path) -> bytes:
     """The checkpoint file a split folder holds, each part and the whole checked against the manifest.
 
     Raises FileNotFoundError (a part missing) or :class:`CheckpointReadError` (a part or the manifest damaged),
-    each naming the file and the fix.
+    each naming the file and the fix (a CheckpointReadError's in its ``fix``).
     """
     folder = local_path(path)
     fix = (f"Fix: restore the folder as it was published (e.g. `git checkout -- {folder}`, or copy it again "
-           "whole); every part listed in parts.json is needed")
+           "whole); every part listed in parts.json is needed.")
     try:
         manifest = json.loads((folder / SPLIT_MANIFEST).read_text())
         parts = [(str(p["name"]), int(p["bytes"]), str(p["sha256"])) for p in manifest["parts"]]
         whole = str(manifest["sha256"])
     except (ValueError, KeyError, TypeError) as error:
-        raise CheckpointReadError(f"{folder / SPLIT_MANIFEST}: not a split checkpoint manifest ({error}). {fix}"
+        raise CheckpointReadError(f"{folder / SPLIT_MANIFEST}: not a split checkpoint manifest ({error})", fix
                                   ) from error
     chunks = []
     for name, size, digest in parts:
         part = folder / name
         if not part.is_file():
-            raise FileNotFoundError(f"{part}: a part of the split checkpoint {folder} is missing. {fix}")
+            raise FileNotFoundError(f"{part}: a part of the split checkpoint {folder} is missing.\n{fix}")
         chunk = part.read_bytes()
         if len(chunk) != size or hashlib.sha256(chunk).hexdigest() != digest:
             raise CheckpointReadError(f"{part}: damaged ({len(chunk)} bytes, {size} expected, or another SHA-256 "
-                                      f"than parts.json lists). {fix}")
+                                      "than parts.json lists)", fix)
         chunks.append(chunk)
     data = b"".join(chunks)
     if hashlib.sha256(data).hexdigest() != whole:
-        raise CheckpointReadError(f"{folder}: the joined parts do not match parts.json's SHA-256. {fix}")
+        raise CheckpointReadError(f"{folder}: the joined parts do not match parts.json's SHA-256", fix)
     return data
 
 
@@ -471,12 +486,30 @@ def is_lightning_checkpoint_word(ckpt_path: str) -> bool:
     return ckpt_path in LIGHTNING_CHECKPOINT_WORDS or re.match(r"registry(:.*|$)", ckpt_path.lower()) is not None
 
 
+def _likeliest_checkpoint(path: Path) -> tuple[bool, bool, bool, int, float]:
+    """How likely ``path`` is the checkpoint meant, to sort by.
+
+    A complete checkpoint zip (as torch.save writes) first, then ``last.ckpt``, ``best-*``, the largest, the newest.
+    """
+    try:
+        with zipfile.ZipFile(path) as opened:
+            complete = any(name.endswith("data.pkl") for name in opened.namelist())
+    except (zipfile.BadZipFile, OSError, ValueError):
+        complete = False
+    stat = path.stat()
+    return complete, path.name == "last.ckpt", path.name.startswith("best"), stat.st_size, stat.st_mtime
+
+
 def _folder_not_checkpoint(folder: Path) -> str:
-    """What to say when a folder is given as a checkpoint: the checkpoints below it, the latest first."""
-    found = sorted(folder.rglob("*.ckpt"), key=lambda p: p.stat().st_mtime, reverse=True)
+    """What to say when a folder is given as a checkpoint: the checkpoints below it, the likeliest one first."""
+    ranked = sorted(((_likeliest_checkpoint(p), p) for p in folder.rglob("*.ckpt") if p.is_file()), reverse=True)
+    found = [p for _, p in ranked]
     if not found:
         return f"{folder}: a folder, not a checkpoint file, and no *.ckpt is below it.\nFix: give a checkpoint file."
     listed = ", ".join(str(p) for p in found[:3]) + (f" ({len(found)} in all)" if len(found) > 3 else "")
+    if not ranked[0][0][0]:
+        return (f"{folder}: a folder, not a checkpoint file; below it: {listed}, none of them a complete checkpoint."
+                f"\nFix: give a checkpoint file written by `dapm-lightning fit`.")
     return f"{folder}: a folder, not a checkpoint file; below it: {listed}.\nFix: give one of them, e.g. {found[0]}"
 
 
@@ -548,10 +581,52 @@ def read_checkpoint(path: str | Path, map_location: Any = "cpu") -> dict[str, An
         other = None if isinstance(source, bytes) else _not_a_checkpoint(path, source)
         if other:
             raise NotACheckpointFileError(other) from error
-        size = len(source) if isinstance(source, bytes) else source.stat().st_size
+        what, fix = _unloadable(path, source, error)
+        raise CheckpointReadError(f"{path}: not a readable checkpoint ({what})", fix) from error
+
+
+_IMAGE_HEADS = {b"\x89PNG": "a PNG image", b"\xff\xd8\xff": "a JPEG image", b"GIF8": "a GIF image",
+                b"II*\x00": "a TIFF image", b"MM\x00*": "a TIFF image"}
+_SETTINGS = re.compile(r"^(?:trainer|model|data|ckpt_path|seed_everything)\s*:", re.MULTILINE)
+
+
+def _unloadable(path: str | Path, source: Path | bytes, error: BaseException) -> tuple[str, str]:
+    """``(what, fix)`` for a file torch cannot load: empty, a checkpoint cut short or damaged, or no checkpoint at all.
+
+    ``torch.save`` writes a zip holding ``data.pkl`` (a bare pickle before torch 1.6): a file that starts so but does
+    not load is a checkpoint cut short or damaged; anything else (an image, a text or YAML file) is no checkpoint.
+    """
+    with io.BytesIO(source) if isinstance(source, bytes) else open(source, "rb") as stream:
+        head = stream.read(4096)
+        size = stream.seek(0, io.SEEK_END)
+        zipped = head.startswith(b"PK\x03\x04")
+        try:
+            names = zipfile.ZipFile(stream).namelist() if zipped else []
+        except (zipfile.BadZipFile, OSError, ValueError):  # no complete zip: cut short (or damaged)
+            names = ["data.pkl"]
+    if not size:
+        return "0 bytes: the file is empty", COPY_AGAIN_FIX
+    if head[:1] == b"\x80" or any(n.endswith("data.pkl") for n in names):
         first = str(error).strip().splitlines()[0].split(". ")[0] if str(error).strip() else type(error).__name__
-        raise CheckpointReadError(f"{path}: not a readable checkpoint ({size} bytes; truncated, corrupt or not a "
-                                  f"PyTorch file): {first}") from error
+        return f"{size} bytes, a checkpoint cut short or damaged: {first}", COPY_AGAIN_FIX
+    try:
+        text = codecs.getincrementaldecoder("utf-8")().decode(head)  # a character cut at the end is no error
+    except UnicodeDecodeError:
+        text = "\x00"
+    image = next((kind for start, kind in _IMAGE_HEADS.items() if head.startswith(start)), None)
+    fix = NOT_A_CHECKPOINT_FIX
+    if zipped:
+        kind = "a zip archive without the data.pkl of a PyTorch checkpoint"
+    elif image:
+        kind, fix = image, f"Fix: an image goes to predict as its SOURCE (`dapm-lightning predict IMAGE --ckpt_path " \
+            f"CKPT`); {fix.removeprefix('Fix: ')}"
+    elif "\x00" in text:
+        kind = "neither the zip nor the pickle that torch.save writes"
+    elif Path(str(path)).suffix.lower() in (".yaml", ".yml") or _SETTINGS.search(text):
+        kind, fix = "a YAML file of settings", f"Fix: settings go to --config {path}; {fix.removeprefix('Fix: ')}"
+    else:
+        kind = "a text file"
+    return f"{size} bytes, not a checkpoint at all: {kind}", fix
 
 
 class NotADAPMCheckpointError(ValueError):

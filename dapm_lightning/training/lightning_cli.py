@@ -93,6 +93,8 @@ _INIT_ARG = re.compile(_IN_CLASS + r"\s*(?:Option|Key) '(?P<name>\w+)' is not (?
 _KEY_VALUE = re.compile(r"Parser key \"(?P<key>[\w.]+)\":\s*Expected a <class '(?P<type>\w+)'>\. "
                         r"Got value: (?P<value>[^\n]*)")
 _INIT_VALUE = re.compile(_IN_CLASS + r"\s*Parser key \"(?P<name>\w+)\":\s*(?P<problem>[^\n]+)")
+_NO_CLASS = re.compile(_IN_CLASS + r"\s*module '(?P<module>[\w.]+)' has no attribute '(?P<name>\w+)'")
+"""A ``class_path`` that cannot be imported: a typo in the class' (or a module's) name."""
 
 
 class DAPMArgumentParser(LightningArgumentParser):
@@ -221,8 +223,18 @@ def closest(option: str, options: Sequence[str], count: int = 3) -> list[str]:
     return [o for ratio, o in scored[:count] if ratio >= max(0.6, best - 0.05)]
 
 
-def files_setting(key: str, config_files: Sequence[str]) -> list[str]:
-    """The config files among ``config_files`` that set the dotted ``key`` (``trainer.max_stpes``)."""
+def _holds(node: Any, value: str) -> bool:
+    """Whether a YAML ``node`` is ``value`` (as text) or holds it in its lists and mappings."""
+    if isinstance(node, dict):
+        node = list(node.values())
+    return any(_holds(n, value) for n in node) if isinstance(node, list) else str(node) == value
+
+
+def files_setting(key: str, config_files: Sequence[str], value: str | None = None) -> list[str]:
+    """The config files among ``config_files`` that set the dotted ``key`` (``trainer.max_stpes``).
+
+    With ``value``: only those whose setting is or holds it (a value the parser refused, a class path).
+    """
     found = []
     for path in config_files:
         try:
@@ -234,8 +246,31 @@ def files_setting(key: str, config_files: Sequence[str]) -> list[str]:
                 break
             node = node[part]
         else:
-            found.append(path)
+            if value is None or _holds(node, value):
+                found.append(path)
     return found
+
+
+def _class_candidates(module_name: str, class_path: str, name: str) -> list[str]:
+    """``class_path`` with ``name`` (the part of it ``module_name`` lacks) replaced by the nearest importable names.
+
+    Those are the public classes of that module and of its loaded submodules, or its submodules where ``name`` is
+    a module's.
+    """
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError:
+        return []
+    rest = class_path.removeprefix(f"{module_name}.{name}")
+    paths: dict[Any, str] = {}  # each class (or submodule) once, by its shortest path
+    loaded = [module, *(m for k, m in sorted(sys.modules.items()) if k.startswith(f"{module_name}.") and m)]
+    for each in loaded if not rest else [module]:
+        prefix = each.__name__.removeprefix(module_name)
+        for n, v in vars(each).items():
+            if not n.startswith("_") and (inspect.ismodule(v) if rest else inspect.isclass(v)):
+                paths.setdefault(v, f"{module_name}{prefix}.{n}")
+    best = closest(name, sorted({p.rpartition(".")[2] for p in paths.values()}))
+    return sorted(f"{p}{rest}" for p in paths.values() if p.rpartition(".")[2] in best)[:3]
 
 
 def short_parse_error(message: str, options: Sequence[str], subcommand: str | None,
@@ -246,6 +281,8 @@ def short_parse_error(message: str, options: Sequence[str], subcommand: str | No
     """
     unknown: list[str] = []
     options = list(options)
+    suggestions: dict[str, list[str]] = {}
+    set_in = ""  # the config file(s) that set a value the parser refused
     if match := _UNKNOWN.search(message):
         unknown = [word.split("=", 1)[0] for word in match.group("args").split() if word.startswith("-")]
         message = (f"unknown option{'s' if len(unknown) > 1 else ''} {', '.join(unknown)}" if unknown
@@ -256,6 +293,12 @@ def short_parse_error(message: str, options: Sequence[str], subcommand: str | No
         holders = files_setting(unknown[0][2:], config_files)
         where = f"set in {', '.join(holders)}" if holders else "in a config file or on the command line"
         message = f"unknown setting {unknown[0][2:]} ({where})"
+    elif match := _NO_CLASS.search(message):  # a typo in a class path: the module's nearest classes
+        key, class_path, name = match.group("key"), match.group("class_path"), match.group("name")
+        holders = files_setting(key, config_files, class_path)
+        set_in = f" (set in {', '.join(holders)})" if holders else ""
+        message = f"{key}: no class {class_path}: {match.group('module')} has no {name!r}"
+        suggestions[class_path] = _class_candidates(match.group("module"), class_path, name)
     elif match := _INIT_ARG.search(message):
         key, class_path, name = match.group("key"), match.group("class_path"), match.group("name")
         unknown = [f"--{key}.init_args.{name}"]
@@ -265,14 +308,20 @@ def short_parse_error(message: str, options: Sequence[str], subcommand: str | No
         message = f"{key}: {class_path.rpartition('.')[2]} has no setting {name!r} ({unknown[0]}{where})"
     elif match := _INIT_VALUE.search(message):  # a value of the wrong type under a class_path (data: the union)
         problem = re.sub(r"Expected a <class '(\w+)'>", r"expected \1", match.group("problem").strip())
-        message = f"--{match.group('key')}.init_args.{match.group('name')}: {problem}"
+        key = f"{match.group('key')}.init_args.{match.group('name')}"
+        got = re.search(r"Got value: (.*)$", problem)
+        holders = files_setting(key, config_files, got.group(1)) if got else []
+        set_in = f" (set in {', '.join(holders)})" if holders else ""
+        message = f"--{key}: {problem}"
     elif match := _KEY_VALUE.search(message):  # a value of the wrong type: one line, as the data module's
+        holders = files_setting(match.group("key"), config_files, match.group("value"))
+        set_in = f" (set in {', '.join(holders)})" if holders else ""
         message = f"--{match.group('key')}: expected {match.group('type')}. Got value: {match.group('value')}"
     if re.search(r"expected float\. Got value: [+-]?(inf(inity)?|nan)\s*$", message, re.IGNORECASE):
         message = message.replace("expected float.", "expected a finite number.")
-    lines = [f"error: {message.strip()}"]
-    for option in unknown:
-        found = closest(option, options)
+    lines = [f"error: {message.strip()}{set_in}"]
+    suggestions.update({option: closest(option, options) for option in unknown})
+    for option, found in suggestions.items():
         if found:
             lines.append(f"  {option}: did you mean {', '.join(found)}?")
     lines.append(f"see `dapm-lightning {subcommand or 'fit'} --help` for every option")
@@ -463,7 +512,8 @@ class DAPMCLI(LightningCLI):
                     raise
                 Path(ckpt_path).unlink(missing_ok=True)  # a refused download is not kept
                 where = f"{fetched_from} (fetched into {ckpt_path}, now removed)"
-                raise type(error)(str(error).replace(str(ckpt_path), where, 1)) from error
+                error.args = (str(error).replace(str(ckpt_path), where, 1),)  # the same error (its fix kept)
+                raise
         check_dapm_checkpoint(checkpoint, ckpt_path)  # another model's, a bare state dict: what it is, the fix
         if subcommand == "fit" and "optimizer_states" not in checkpoint:
             raise WeightsOnlyCheckpointError(

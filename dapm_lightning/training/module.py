@@ -123,7 +123,7 @@ class OptimizerConfig:
 
     def __post_init__(self) -> None:
         """Refuse settings that cannot train (a negative ``min_lr_ratio`` ascended the gradient), naming them."""
-        checks = {"lr": (self.lr, 0 < self.lr < math.inf, "> 0"),
+        checks = {"lr": (self.lr, 0 <= self.lr < math.inf, ">= 0"),  # 0: the weights kept (tests, a warm-up probe)
                   "weight_decay": (self.weight_decay, 0 <= self.weight_decay < math.inf, ">= 0"),
                   "betas": (list(self.betas), len(self.betas) == 2 and all(0 <= b < 1 for b in self.betas),
                             "two numbers in [0, 1)"),

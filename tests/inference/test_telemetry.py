@@ -409,6 +409,21 @@ def test_csv_header_errors(tmp_path):
         read_telemetry_csv(write_csv(tmp_path / "twice.csv", "name,height_m\n,40\n"))
 
 
+
+def test_a_csv_without_values_warns_and_a_row_longer_than_its_header_is_an_error(tmp_path):
+    """A header-only CSV was accepted silently (an empty SRT warns); cells beyond the header were dropped silently."""
+    for name, text, detail in (("header.csv", "name,height_m,pitch_deg,roll_deg,fov_deg\n", "no row under the header"),
+                               ("names.csv", "name,height_m\na.jpg,\nb.jpg\n", "every value cell is empty")):
+        rows, caught = record(read_telemetry_csv, write_csv(tmp_path / name, text))
+        assert len(caught) == 1 and f"{name}: no usable telemetry in the file: {detail}" in str(caught[0].message)
+    rows, caught = record(read_telemetry_csv, write_csv(tmp_path / "padded.csv", "name,height_m\na.jpg,40,,\n"))
+    assert_pose(rows["a"], [40.0, NAN, NAN, NAN])  # empty cells beyond the header (a spreadsheet's): no error
+    assert not caught
+    with pytest.raises(TelemetryError, match=r"extra.csv, line 3: 6 cells but the header has 3 columns "
+                                             r"\(name,height_m,pitch_deg\); remove the extra cells"):
+        read_telemetry_csv(write_csv(tmp_path / "extra.csv", "name,height_m,pitch_deg\nb,40,-40\na,40,-40,1,2,3\n"))
+
+
 # ---------------------------------------------------------------------------------- images + CSV
 
 

