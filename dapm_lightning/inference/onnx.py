@@ -287,13 +287,21 @@ def external_data_files(path: str | Path) -> list[str]:
     renaming or copying the ``.onnx`` does not change it. Empty when the weights are inside the file, or the file
     (or the ``onnx`` package) cannot be read.
     """
+    return list(external_data_extents(path))
+
+
+def external_data_extents(path: str | Path) -> dict[str, int]:
+    """Each weights file the graph names (:func:`external_data_files`, same order), with the bytes it must hold.
+
+    Those are the end of the last tensor the graph reads from it.
+    """
     try:
         import onnx
 
         model = onnx.load(str(path), load_external_data=False)
     except Exception:  # noqa: BLE001 - no onnx package, or not an ONNX file: nothing to say
-        return []
-    names: list[str] = []
+        return {}
+    extents: dict[str, int] = {}
 
     def tensors(graph: Any) -> Iterator[Any]:
         yield from graph.initializer
@@ -306,15 +314,25 @@ def external_data_files(path: str | Path) -> list[str]:
 
     for tensor in tensors(model.graph):
         if tensor.data_location == onnx.TensorProto.EXTERNAL:
-            location = next((entry.value for entry in tensor.external_data if entry.key == "location"), None)
-            if location and location not in names:
-                names.append(location)
-    return names
+            entries = {entry.key: entry.value for entry in tensor.external_data}
+            location = entries.get("location")
+            if location:
+                end = int(entries.get("offset", 0) or 0) + int(entries.get("length", 0) or 0)
+                extents[location] = max(extents.get(location, 0), end)
+    return extents
 
 
 def missing_weights_message(path: Path) -> str | None:
-    """Why ``path`` cannot load when a weights file its graph names is not beside it, with the fix; else None."""
-    missing = [name for name in external_data_files(path) if not (path.parent / name).is_file()]
+    """Why ``path`` cannot load, with the fix, when a weights file its graph names is missing or short; else None."""
+    extents = external_data_extents(path)
+    missing = [name for name in extents if not (path.parent / name).is_file()]
+    short = [(name, (path.parent / name).stat().st_size, end) for name, end in extents.items()
+             if name not in missing and (path.parent / name).stat().st_size < end]
+    if short:
+        name, size, end = short[0]
+        return (f"{path}: its weights file {path.parent / name} is cut short: {size:,} bytes, where the graph reads "
+                f"{end:,} (a copy or download that stopped, or a full disk).\nFix: copy the .onnx and its weights "
+                f"file again together, or export again: dapm-lightning export CKPT --out {path}")
     if not missing:
         return None
     wanted = path.parent / missing[0]

@@ -397,3 +397,28 @@ def test_the_docs_name_every_input_and_output_of_the_exported_model():
 
     for text in (export_tool.__doc__, onnx_module.__doc__):  # `export --help`, and the module's reference
         assert [name for name in PRIOR_INPUTS if name not in text] == [] and "NaN where unknown" not in text
+
+
+@pytest.mark.parametrize("kept", [0, 100])
+def test_a_weights_file_cut_short_is_named_with_its_size_and_the_fix(tmp_path, kept):
+    """Before, a .onnx.data cut short (or empty) gave onnxruntime's own message, never saying the file was short."""
+    import numpy as np
+    import onnx
+    from onnx import TensorProto, helper, numpy_helper
+
+    from dapm_lightning.inference.runtime import OnnxRuntime
+
+    graph = helper.make_graph([helper.make_node("MatMul", ["x", "w"], ["y"])], "g",
+                              [helper.make_tensor_value_info("x", TensorProto.FLOAT, [1, 64])],
+                              [helper.make_tensor_value_info("y", TensorProto.FLOAT, [1, 64])],
+                              [numpy_helper.from_array(np.ones((64, 64), np.float32), "w")])
+    model = tmp_path / "m.onnx"
+    onnx.save(helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)], ir_version=9), str(model),
+              save_as_external_data=True, location="m.onnx.data", size_threshold=0)
+    data = tmp_path / "m.onnx.data"
+    data.write_bytes(data.read_bytes()[:kept])
+    with pytest.raises(ValueError) as info:
+        OnnxRuntime(model)
+    assert str(info.value).startswith(f"{model}: its weights file {data} is cut short: {kept} bytes, where the graph "
+                                      f"reads {64 * 64 * 4:,}")
+    assert "\nFix: copy the .onnx and its weights file again together" in str(info.value)
