@@ -601,12 +601,12 @@ def _unloadable(path: str | Path, source: Path | bytes, error: BaseException) ->
         size = stream.seek(0, io.SEEK_END)
         zipped = head.startswith(b"PK\x03\x04")
         try:
-            names = zipfile.ZipFile(stream).namelist() if zipped else []
-        except (zipfile.BadZipFile, OSError, ValueError):  # no complete zip: cut short (or damaged)
-            names = ["data.pkl"]
+            saved_by_torch = zipped and any(n.endswith("data.pkl") for n in zipfile.ZipFile(stream).namelist())
+        except (zipfile.BadZipFile, OSError, ValueError):  # a zip without its directory: cut short (or damaged)
+            saved_by_torch = True
     if not size:
         return "0 bytes: the file is empty", COPY_AGAIN_FIX
-    if head[:1] == b"\x80" or any(n.endswith("data.pkl") for n in names):
+    if head[:1] == b"\x80" or saved_by_torch:
         first = str(error).strip().splitlines()[0].split(". ")[0] if str(error).strip() else type(error).__name__
         return f"{size} bytes, a checkpoint cut short or damaged: {first}", COPY_AGAIN_FIX
     try:
