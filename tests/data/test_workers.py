@@ -1,6 +1,7 @@
 """Loader workers start from a fork server and ignore a SIGTERM sent to the whole job, yet never keep their process
 from exiting."""
 
+import contextlib
 import multiprocessing
 import os
 import signal
@@ -413,7 +414,9 @@ def test_a_data_set_defined_in_a_notebook_is_loaded_by_forked_workers():
 
 
 FORKED = """
+import faulthandler
 import os
+import sys
 from torch.utils.data import DataLoader
 from dapm_lightning.data.workers import loader_workers
 from tests.data.test_workers import ParentPid
@@ -423,12 +426,35 @@ if __name__ == "__main__":
     child = os.fork()  # as Lightning's ddp_fork / ddp_notebook start their processes
     if child == 0:
         try:
+            faulthandler.dump_traceback_later(60, exit=True)  # a hang shows where it waits (the test waits 120 s)
             print("child", int(next(iter(DataLoader(ParentPid(), **loader_workers(1))))), flush=True)
         finally:
             os._exit(0)
+    faulthandler.dump_traceback_later(90, exit=True)  # armed after the fork: its thread is not forked
     os.waitpid(child, 0)
     print("parent", int(first[0]), flush=True)
 """
+
+
+def run_whole_session(command: list[str], folder: Path, timeout_s: float,
+                      env: dict[str, str]) -> subprocess.CompletedProcess:
+    """Run ``command`` in a session of its own, its output in files: a hang fails with what it printed, and the
+    processes of the session still running (a grandchild holding a pipe would keep ``subprocess.run`` waiting)."""
+    out, err = folder / "stdout.txt", folder / "stderr.txt"
+    with out.open("w") as stdout, err.open("w") as stderr:
+        process = subprocess.Popen(command, stdout=stdout, stderr=stderr, env=env, start_new_session=True)
+        try:
+            process.wait(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            left = subprocess.run(["ps", "-o", "pid,ppid,stat,wchan:20,args", "-s", str(process.pid)],
+                                  capture_output=True, text=True).stdout
+            os.killpg(process.pid, signal.SIGKILL)
+            process.wait()
+            pytest.fail(f"still running after {timeout_s} s; its processes:\n{left}\nstdout:\n"
+                        f"{out.read_text()[-2000:]}\nstderr:\n{err.read_text()[-6000:]}")
+    with contextlib.suppress(ProcessLookupError):  # what the session left running (none is expected)
+        os.killpg(process.pid, signal.SIGKILL)
+    return subprocess.CompletedProcess(command, process.returncode, out.read_text(), err.read_text())
 
 
 @pytest.mark.slow  # a process of its own
@@ -437,8 +463,7 @@ def test_a_process_forked_after_a_loader_starts_its_own_fork_server(tmp_path):
     parent's server: its first loader died with ``ChildProcessError: [Errno 10] No child processes``."""
     script = tmp_path / "forked.py"
     script.write_text(FORKED)
-    result = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120,
-                            env={**os.environ, "PYTHONPATH": str(REPO)})
-    assert result.returncode == 0, result.stderr[-2000:]
+    result = run_whole_session([sys.executable, str(script)], tmp_path, 120, {**os.environ, "PYTHONPATH": str(REPO)})
+    assert result.returncode == 0, result.stderr[-3000:]
     servers = dict(line.split() for line in result.stdout.splitlines() if line.startswith(("child", "parent")))
     assert set(servers) == {"child", "parent"} and servers["child"] != servers["parent"], result.stdout + result.stderr

@@ -447,6 +447,35 @@ def test_sigterm_mid_run_writes_the_tables_of_the_images_written_and_exits_143(c
     assert len(table) == len(cameras) == 3 and (out / "contact_sheet.png").is_file()
 
 
+@pytest.mark.parametrize("number, code", [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
+def test_a_stop_while_an_image_is_written_waits_for_its_row(checkpoint, flight, tmp_path, capsys, monkeypatch,
+                                                            number, code):
+    """SIGTERM or Ctrl-C arriving after an image's files were written but before its row was kept: the stop waits
+    for the row (before: the tables lacked the image whose ``_camera.json`` was in the folder; seen once in CI)."""
+    import dapm_lightning.inference.writers as writers
+
+    out, write, count = tmp_path / "out", writers.prediction_files, []
+
+    def write_then_signal(*args, **kwargs):
+        written = write(*args, **kwargs)
+        count.append(1)
+        if len(count) == 3:
+            os.kill(os.getpid(), number)
+        return written
+
+    monkeypatch.setattr(writers, "prediction_files", write_then_signal)
+    previous = signal.signal(signal.SIGTERM, signal.SIG_IGN)  # a stray one must not end pytest
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        got, err = run_main(["predict", str(flight), "--ckpt_path", str(checkpoint), "--out", str(out),
+                             "--device", "cpu", "--batch_size", "1", "--outputs", "camera"], capsys)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    assert got == code, err[-2000:]
+    table, cameras = table_describes_the_files(out)
+    assert len(table) == len(cameras) == 3, (sorted(table), sorted(cameras))
+
+
 @pytest.mark.slow
 def test_sigterm_to_the_whole_job_with_loader_workers_stops_cleanly(checkpoint, tmp_path):
     """A scheduler's SIGTERM reaches the loader workers too (the process group): they leave the stop to the main
