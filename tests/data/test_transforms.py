@@ -233,3 +233,29 @@ def test_the_centre_zoom_draws_alike_with_or_without_a_pose():
         noisy.append(pipeline(image=image, mask=np.zeros((6, 8), np.uint8), pose=pose)["image"])
     assert not (noisy[0] == image).all()
     np.testing.assert_array_equal(noisy[0], noisy[1])
+
+
+NO_NETWORK = """
+import urllib.request
+
+def refused(*args, **kwargs):
+    raise SystemExit("a network request at import: " + str(args[1:2]))
+
+urllib.request.OpenerDirector.open = refused
+import dapm_lightning.data.datamodules
+print("imported")
+"""
+
+
+def test_importing_the_data_code_asks_no_server_anything():
+    """albumentations asked PyPI for a newer version as each process imported it (every DDP rank, fork server and
+    spawned worker; a cluster node without internet waits on it)."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    env = {name: value for name, value in os.environ.items() if name != "NO_ALBUMENTATIONS_UPDATE"}
+    result = subprocess.run([sys.executable, "-c", NO_NETWORK], capture_output=True, text=True, timeout=120,
+                            cwd=Path(__file__).resolve().parents[2], env=env)
+    assert result.returncode == 0 and "imported" in result.stdout, result.stderr[-2000:]
