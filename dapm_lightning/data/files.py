@@ -11,6 +11,7 @@ by returning False instead of raising) raises :class:`WriteError` naming the fil
 (``fcntl.flock`` on a lock file beside it, removed again when released). :func:`check_folder_writable` finds an
 output folder that cannot be made or written before any work is done; :func:`make_folder` creates one when the
 first file is written, and :func:`remove_empty_folders` takes it back when nothing was written into it.
+:func:`stops_deferred` keeps SIGTERM and Ctrl-C out of writes that must agree (a file and its row in a table).
 """
 
 from __future__ import annotations
@@ -18,6 +19,8 @@ from __future__ import annotations
 import errno
 import os
 import secrets
+import signal
+import threading
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
@@ -30,6 +33,9 @@ try:
     import fcntl
 except ImportError:  # pragma: no cover  (Windows: no advisory locks; concurrent runs into one folder unguarded)
     fcntl = None  # type: ignore[assignment]
+
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+"""The signals :func:`stops_deferred` holds back: Ctrl-C and a scheduler's or ``docker stop``'s SIGTERM."""
 
 _FULL = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
 _DENIED = (errno.EROFS, errno.EACCES, errno.EPERM)
@@ -286,3 +292,30 @@ def remove_empty_folders(folders: Sequence[Path]) -> None:
             folder.rmdir()
         except OSError:
             return
+
+
+@contextmanager
+def stops_deferred() -> Iterator[None]:
+    """Meanwhile SIGTERM and Ctrl-C wait; as it ends, each one that arrived goes to the handler it would have reached.
+
+    For writes that must agree, such as an image's files and its row in the run's table: a stop raised between
+    the two (the one-line ``predict``'s SIGTERM, Ctrl-C's KeyboardInterrupt) left a file that the tables written on
+    stopping did not describe. A stop is held for as long as the writes take, never dropped; nested uses hold it
+    until the outermost ends. Outside the main thread (where Python runs no handler) or for a signal whose handler
+    was not set from Python, nothing is held.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    arrived: list[int] = []
+    previous = {number: signal.getsignal(number) for number in STOP_SIGNALS}
+    held = [number for number, handler in previous.items() if handler is not None]
+    for number in held:
+        signal.signal(number, lambda signum, frame: arrived.append(signum))
+    try:
+        yield
+    finally:
+        for number in held:
+            signal.signal(number, previous[number])
+        for signum in dict.fromkeys(arrived):  # each once, in the order they came
+            signal.raise_signal(signum)

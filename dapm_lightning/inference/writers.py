@@ -41,6 +41,7 @@ from dapm_lightning.data.files import (
     make_folder,
     open_atomic,
     remove_empty_folders,
+    stops_deferred,
     write_image,
     write_text,
 )
@@ -314,7 +315,14 @@ class PredictionFiles:
         return error
 
     def add(self, prediction: Prediction) -> None:
-        """Write one prediction's files (its ``rgb``, when kept, colours the points and the contact sheet)."""
+        """Write one prediction's files (its ``rgb``, when kept, colours the points and the contact sheet).
+
+        SIGTERM and Ctrl-C wait until the files and the image's row are both kept (:func:`stops_deferred`).
+        """
+        with stops_deferred():
+            self._add(prediction)
+
+    def _add(self, prediction: Prediction) -> None:
         try:
             written = prediction_files(self._folder(), prediction, self.outputs, self.points_stride,
                                        self.points_max_depth, self.depth_range)
@@ -344,8 +352,9 @@ class PredictionFiles:
         extra: list[str] = []
         self.finished = True
         try:
-            for _, step in self._run_files():
-                extra += step()
+            with stops_deferred():  # a stop meanwhile would leave the table half updated (poses.csv, no poses.json)
+                for _, step in self._run_files():
+                    extra += step()
         except BaseException as error:
             raised = self._failed(error)
             if raised is error:
@@ -384,12 +393,13 @@ class PredictionFiles:
         self.finished = True
         extra: list[str] = []
         failed: list[str] = []
-        for what, step in self._run_files():
-            try:
-                extra += step()
-            except Exception as error:  # noqa: BLE001 - the error that stopped the run is the one reported
-                self.previews.abandon()
-                failed.append(f"{what} ({getattr(error, 'reason', None) or error})")
+        with stops_deferred():  # a second Ctrl-C while the tables of a stopped run are written
+            for what, step in self._run_files():
+                try:
+                    extra += step()
+                except Exception as error:  # noqa: BLE001 - the error that stopped the run is the one reported
+                    self.previews.abandon()
+                    failed.append(f"{what} ({getattr(error, 'reason', None) or error})")
         self.kept = summary_line(self.images, [k for k in self.outputs if k in self.kinds], self.output_dir, extra)
         if failed:
             self.kept += f"; could not be updated: {', '.join(failed)}"
@@ -416,12 +426,13 @@ class PredictionFiles:
         """The end of a run, done or failed: the folders this run created go again if nothing was written there.
 
         A run closed before :meth:`finish` (it failed) first writes its tables for what it wrote
-        (:meth:`keep_written`).
+        (:meth:`keep_written`). A stop arriving meanwhile (a second Ctrl-C) waits until it is done.
         """
-        self.keep_written()
-        self.previews.abandon()
-        remove_empty_folders(self.created)
-        self.created = [folder for folder in self.created if folder.is_dir()]
+        with stops_deferred():
+            self.keep_written()
+            self.previews.abandon()
+            remove_empty_folders(self.created)
+            self.created = [folder for folder in self.created if folder.is_dir()]
 
     def __enter__(self) -> PredictionFiles:
         return self

@@ -24,9 +24,9 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 
+from dapm_lightning.data.files import write_image
 from dapm_lightning.data.uapd import format_uapd_filename
 from dapm_lightning.geometry.constants import MAX_DEPTH_M, POSE_RANGES
 from dapm_lightning.geometry.depth_codec import depth_to_grey
@@ -169,7 +169,7 @@ def done_indices(out: Path) -> set[int]:
             continue
         for path in rgb_dir.glob("*.png"):
             match = pattern.match(path.name)
-            if match and (depth_dir / path.name).is_file():
+            if match and path.is_file() and (depth_dir / path.name).is_file():
                 done.add(int(match.group(1)))
     return done
 
@@ -294,8 +294,9 @@ class CarlaCollector:
                     (self.out / params.split / sub).mkdir(parents=True, exist_ok=True)
                 name = params.name()
                 depth_path = self.out / params.split / "depth" / name
-                cv2.imwrite(str(depth_path), grey)
-                cv2.imwrite(str(self.out / params.split / "rgb" / name), bgr)  # rgb last: it marks the sample done
+                # each written whole or not at all (a kill mid-write left a cut PNG that resume took for done)
+                write_image(depth_path, grey)
+                write_image(self.out / params.split / "rgb" / name, bgr)  # rgb last: it marks the sample done
                 written += 1
                 time.sleep(cfg.pause_s)
         finally:

@@ -10,13 +10,12 @@ several GPUs) is the same command with a config instead of SOURCE.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import difflib
 import math
 import signal
 import sys
 import warnings
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 
 from dapm_lightning.options import (  # nothing heavy until the command line is parsed: --help answers at once
     DEFAULT_BATCH_SIZE,
@@ -36,45 +35,8 @@ EXIT_SIGTERM = 128 + signal.SIGTERM
 """Exit status of a run stopped by SIGTERM (143, as a process killed by it): a job script tells it from 0."""
 
 
-class _StopBetweenImages:
-    """SIGTERM and Ctrl-C stop a run at once, but never inside the writing of one image's files and its table row.
-
-    A stop raised there (after ``NAME_camera.json`` was written, before its row was kept) left a file that the
-    tables written on stopping did not describe; one arriving meanwhile is raised as that image is done.
-    """
-
-    def __init__(self) -> None:
-        self.writing = False
-        self.pending: BaseException | None = None
-
-    def handle(self, signum: int, frame: object) -> None:
-        stop: BaseException = SystemExit(EXIT_SIGTERM) if signum == signal.SIGTERM else KeyboardInterrupt()
-        if not self.writing:
-            raise stop
-        self.pending = self.pending or stop
-
-    @contextlib.contextmanager
-    def one_image(self) -> Iterator[None]:
-        """Meanwhile a stop waits; it is raised when the image's files and row are done (an error of theirs wins)."""
-        self.writing = True
-        try:
-            yield
-        finally:
-            self.writing = False
-        if self.pending is not None:
-            raise self.pending
-
-    @contextlib.contextmanager
-    def installed(self) -> Iterator[None]:
-        """SIGTERM handled so, and SIGINT where Python's own handler has it (not one another tool set)."""
-        previous = {signal.SIGTERM: signal.signal(signal.SIGTERM, self.handle)}
-        if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
-            previous[signal.SIGINT] = signal.signal(signal.SIGINT, self.handle)
-        try:
-            yield
-        finally:
-            for number, handler in previous.items():
-                signal.signal(number, handler)
+def _stop_on_sigterm(signum: int, frame: object) -> None:
+    raise SystemExit(EXIT_SIGTERM)
 
 
 def is_lightning_form(args: Sequence[str]) -> bool:
@@ -274,13 +236,12 @@ def predict_main(argv: Sequence[str]) -> None:
                            args.sensor_width_mm, args.strict_telemetry)
     # the pixels ride along (the points' colours, the contact sheet, a video's preview): one batch at a time
     loader = predictor.loader(source, keep_rgb=True, num_workers=args.num_workers)
-    stops = _StopBetweenImages()  # SIGTERM as Ctrl-C: the tables take the images written
+    previous = signal.signal(signal.SIGTERM, _stop_on_sigterm)  # as Ctrl-C: the tables take the images written
     try:
-        with stops.installed(), files, progress_bar(loader.expected_images(), args.quiet) as bar:
-            for batch in loader:  # no folder if nothing was written
+        with files, progress_bar(loader.expected_images(), args.quiet) as bar:  # no folder if nothing was written
+            for batch in loader:
                 for prediction in predictor.predict_batch(batch):
-                    with stops.one_image():
-                        files.add(prediction)
+                    files.add(prediction)
                     bar.update(1)
             bar.close()
             print(files.finish(), file=sys.stdout, flush=True)
@@ -291,3 +252,5 @@ def predict_main(argv: Sequence[str]) -> None:
         elif files.kept:
             print(f"stopped early by the error below: {files.kept}", file=sys.stderr, flush=True)
         raise
+    finally:
+        signal.signal(signal.SIGTERM, previous)

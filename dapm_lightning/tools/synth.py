@@ -16,6 +16,7 @@ from dapm_lightning.data.synthetic import (
     FAMILIES,
     SynthFolderError,
     generate_uapd,
+    is_current,
     normalize_families,
     settings_changes,
     shard_range,
@@ -83,8 +84,7 @@ EXIT_SIGTERM = 128 + signal.SIGTERM
 
 
 def _stop_on_sigterm(signum: int, frame: object) -> None:
-    print("\nstopped by SIGTERM: no synth.json written; rerun the same command to render the set", file=sys.stderr)
-    raise SystemExit(EXIT_SIGTERM)
+    raise SystemExit(EXIT_SIGTERM)  # what was rendered is told after the stop (synth_main), not from the handler
 
 
 def synth_main(argv: Sequence[str]) -> None:
@@ -104,9 +104,9 @@ def synth_main(argv: Sequence[str]) -> None:
     size = args.size[0] if len(args.size) == 1 else (args.size[0], args.size[1])
     part = shard_range(args.train + args.val, args.shard)
     check_folder_writable(args.out, "--out")
-    changes = settings_changes(args.out, train=args.train, val=args.val, size=size, seed=args.seed,
-                               families=args.families, effects=args.effects, distortion=args.distortion,
-                               max_depth=args.max_depth)
+    chosen = dict(train=args.train, val=args.val, size=size, seed=args.seed, families=args.families,
+                  effects=args.effects, distortion=args.distortion, max_depth=args.max_depth)
+    changes = settings_changes(args.out, **chosen)
     if (args.out / "synth.json").is_file() and changes and not args.replace and args.shard[1] == 1:
         raise SynthFolderError(f"{args.out}: holds a data set of other settings ({changes}), whose images this "
                                "render would delete.\nFix: add --replace to render over it, or give another --out")
@@ -117,6 +117,13 @@ def synth_main(argv: Sequence[str]) -> None:
             out = generate_uapd(args.out, train=args.train, val=args.val, size=size, seed=args.seed,
                                 workers=args.workers, families=args.families, effects=args.effects, shard=args.shard,
                                 distortion=args.distortion, max_depth=args.max_depth, progress=bar.update)
+    except SystemExit as stop:
+        if stop.code == EXIT_SIGTERM:  # synth.json may have been written just before the signal came
+            done = is_current(args.out, **chosen) and args.shard[1] == 1
+            print("\nstopped by SIGTERM: " + ("the set was complete (synth.json written)" if done else
+                                            "no synth.json written; rerun the same command to render the set"),
+                  file=sys.stderr, flush=True)
+        raise
     except (SynthFolderError, WriteError):
         raise  # a folder or disk problem, not a wrong option: its message and fix, without the usage
     except ValueError as error:

@@ -441,7 +441,8 @@ def test_sigterm_stops_the_render_and_its_workers(tmp_path):
             time.sleep(0.2)
         process.send_signal(signal.SIGTERM)
         _, err = process.communicate(timeout=60)  # before: hung here, the orphaned workers holding stderr
-        assert process.returncode == 143 and "stopped by SIGTERM" in err and "Traceback" not in err
+        assert process.returncode == 143 and "Traceback" not in err
+        assert "stopped by SIGTERM: no synth.json written; rerun the same command" in err, err[-2000:]
         deadline, left = time.monotonic() + 10, ["?"]
         while left and time.monotonic() < deadline:
             time.sleep(0.2)
@@ -474,3 +475,32 @@ def test_stopping_the_render_pool_waits_for_its_manager_thread():
     manager = pool._executor_manager_thread
     _stop_workers(pool)
     assert not manager.is_alive()
+
+
+def test_sigterm_after_the_set_is_written_says_so(tmp_path, capsys, monkeypatch):
+    """A SIGTERM that lands after synth.json was written says the set is complete (before: the handler said
+    'no synth.json written', and a job script rendered it all again)."""
+    import os
+    import signal
+
+    import dapm_lightning.tools.synth as synth_tool
+
+    render = synth_tool.generate_uapd
+
+    def render_then_sigterm(*args, **kwargs):
+        out = render(*args, **kwargs)
+        os.kill(os.getpid(), signal.SIGTERM)
+        return out
+
+    monkeypatch.setattr(synth_tool, "generate_uapd", render_then_sigterm)
+    previous = signal.signal(signal.SIGTERM, signal.SIG_IGN)  # restored after the command (a stray one ends nothing)
+    try:
+        code, err = run_main(["synth", "--out", str(tmp_path / "s"), "--train", "2", "--val", "1", "--size", "16",
+                              "--workers", "1", "--quiet"], capsys)
+        assert signal.getsignal(signal.SIGTERM) is signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    assert code == 143
+    assert err.strip().splitlines()[-1] == "stopped by SIGTERM: the set was complete (synth.json written)"
+    assert (tmp_path / "s" / "synth.json").is_file()
+

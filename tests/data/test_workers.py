@@ -299,13 +299,25 @@ def _running(pid: int) -> bool:
         return False
 
 
+def _ignores_sigterm(pid: int) -> bool:
+    """Whether process ``pid`` ignores SIGTERM (``SigIgn`` in ``/proc/PID/status``, a mask of bit N-1 for signal N)."""
+    try:
+        with open(f"/proc/{pid}/status") as status:
+            mask = next(line.split()[1] for line in status if line.startswith("SigIgn:"))
+    except (FileNotFoundError, StopIteration):
+        return False
+    return bool(int(mask, 16) >> (signal.SIGTERM - 1) & 1)
+
+
 def test_other_processes_of_the_fork_server_still_end_on_terminate():
     """The server is multiprocessing's, shared with this process's other ``forkserver`` processes (a ``Pool``, Python
     3.14's default): only loader workers keep its ignored SIGTERM. Before, ``terminate()`` left them running."""
     list(DataLoader(ParentPid(), **loader_workers(1)))  # the server started with this project's preload
     process = multiprocessing.get_context("forkserver").Process(target=time.sleep, args=(60,))
     process.start()
-    time.sleep(1.0)
+    deadline = time.monotonic() + 30  # until it has set its own SIGTERM (a sleep of 1 s raced a loaded machine)
+    while _ignores_sigterm(process.pid) and time.monotonic() < deadline:
+        time.sleep(0.05)
     process.terminate()
     process.join(10)
     if process.is_alive():
@@ -426,11 +438,11 @@ if __name__ == "__main__":
     child = os.fork()  # as Lightning's ddp_fork / ddp_notebook start their processes
     if child == 0:
         try:
-            faulthandler.dump_traceback_later(60, exit=True)  # a hang shows where it waits (the test waits 120 s)
+            faulthandler.dump_traceback_later(100, exit=True)  # a hang shows where it waits (the test, 150 s)
             print("child", int(next(iter(DataLoader(ParentPid(), **loader_workers(1))))), flush=True)
         finally:
             os._exit(0)
-    faulthandler.dump_traceback_later(90, exit=True)  # armed after the fork: its thread is not forked
+    faulthandler.dump_traceback_later(130, exit=True)  # armed after the fork: its thread is not forked
     os.waitpid(child, 0)
     print("parent", int(first[0]), flush=True)
 """
@@ -463,7 +475,7 @@ def test_a_process_forked_after_a_loader_starts_its_own_fork_server(tmp_path):
     parent's server: its first loader died with ``ChildProcessError: [Errno 10] No child processes``."""
     script = tmp_path / "forked.py"
     script.write_text(FORKED)
-    result = run_whole_session([sys.executable, str(script)], tmp_path, 120, {**os.environ, "PYTHONPATH": str(REPO)})
+    result = run_whole_session([sys.executable, str(script)], tmp_path, 150, {**os.environ, "PYTHONPATH": str(REPO)})
     assert result.returncode == 0, result.stderr[-3000:]
     servers = dict(line.split() for line in result.stdout.splitlines() if line.startswith(("child", "parent")))
     assert set(servers) == {"child", "parent"} and servers["child"] != servers["parent"], result.stdout + result.stderr

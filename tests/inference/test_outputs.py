@@ -527,6 +527,65 @@ def test_the_lightning_form_stops_at_sigterm_after_the_batch_with_the_tables_and
     assert len(table) == len(cameras) == 4 and (out / "contact_sheet.png").is_file()  # the batch it was writing
 
 
+def camera_prediction(name, height=30.0):
+    return make_prediction(name, (20, 30), torch.full((1, 8, 8), 30.0), torch.zeros(1, 8, 8),
+                           torch.tensor([height, -40.0, 2.0, 70.0]), IGDSpec())
+
+
+@pytest.fixture()
+def ctrl_c_at(monkeypatch):
+    """``ctrl_c_at(module, name)``: a Ctrl-C to this process as ``module.name`` is called (Python's own handler)."""
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+
+    def install(module, name):
+        function = getattr(module, name)
+
+        def interrupted(*args, **kwargs):
+            os.kill(os.getpid(), signal.SIGINT)
+            return function(*args, **kwargs)
+
+        monkeypatch.setattr(module, name, interrupted)
+
+    yield install
+    signal.signal(signal.SIGINT, previous)
+
+
+def test_ctrl_c_while_an_image_is_written_by_the_library_waits_for_its_row(tmp_path, ctrl_c_at):
+    """The Lightning form's writer (no handler of the command's): a KeyboardInterrupt raised between an image's files
+    and its row left a ``_camera.json`` the tables written on stopping did not describe."""
+    import dapm_lightning.inference.writers as writers
+
+    out = tmp_path / "out"
+    files = PredictionFiles(out, ["camera"], exist_ok=True)
+    files.add(camera_prediction("im0"))
+    ctrl_c_at(writers, "remove_stale_files")  # the image's files written, its row not yet kept
+    with pytest.raises(KeyboardInterrupt):
+        files.add(camera_prediction("im1"))
+    files.close()
+    table, cameras = table_describes_the_files(out)
+    assert sorted(table) == sorted(cameras) == ["im0", "im1"]
+
+
+@pytest.mark.parametrize("stage", ["finish", "close"])
+def test_ctrl_c_while_the_tables_are_written_leaves_them_whole(tmp_path, ctrl_c_at, stage):
+    """Ctrl-C (or SIGTERM) as the run writes its tables, at the end (finish) or after an earlier stop (close, a
+    second Ctrl-C): they are written, then the stop goes on (before: at finish no table at all, the run marked as
+    finished; at close the table left as it was)."""
+    import dapm_lightning.inference.writers as writers
+
+    out = tmp_path / "out"
+    files = PredictionFiles(out, ["camera"], exist_ok=True)
+    for k in range(3):
+        files.add(camera_prediction(f"im{k}", 30.0 + k))
+    ctrl_c_at(writers, "write_poses")
+    with pytest.raises(KeyboardInterrupt):
+        files.finish() if stage == "finish" else files.close()
+    files.close()
+    table, cameras = table_describes_the_files(out)
+    assert sorted(table) == sorted(cameras) == ["im0", "im1", "im2"]
+    assert (out / "poses.json").is_file() and (out / "contact_sheet.png").is_file()
+
+
 def test_a_writer_closed_without_finishing_writes_the_tables_of_what_it_wrote(tmp_path):
     """The Lightning form's writer after a failed batch: the rows of the images written, the sheet of them."""
     from types import SimpleNamespace

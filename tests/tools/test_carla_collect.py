@@ -211,3 +211,20 @@ def test_missing_server_and_missing_package_are_clear(tmp_path, monkeypatch):
 def test_carla_depth_decoding():
     for depth in (0.0, 1.5, 50.0, 999.0):
         assert decode_carla_depth(carla_depth_bgra(depth, (1, 1)))[0, 0] == pytest.approx(depth, abs=1e-4)
+
+
+def test_a_sample_that_cannot_be_written_stops_the_run_and_is_never_taken_for_done(tmp_path):
+    """Each file is written whole or not at all, and a failed write stops the run naming the file (before:
+    ``cv2.imwrite``'s False was ignored, the run reported the sample written, and a kill mid-write left a cut rgb
+    PNG that every resume took for a finished sample)."""
+    from dapm_lightning.data.files import WriteError
+
+    cfg = config(tmp_path)
+    params = sample_params(cfg, 2)
+    blocked = tmp_path / params.split / "rgb" / params.name()
+    blocked.mkdir(parents=True)  # a folder where the rgb file goes: its write fails
+    with pytest.raises(WriteError, match=params.name()):
+        CarlaCollector(cfg, FakeCarla()).run()
+    assert done_indices(tmp_path) == {0, 1} and not list(tmp_path.rglob("*.tmp"))
+    blocked.rmdir()
+    assert CarlaCollector(cfg, FakeCarla()).run() == 4 and done_indices(tmp_path) == set(range(6))
