@@ -30,6 +30,7 @@ import torch
 from torch import Tensor, nn
 
 from dapm_lightning import __version__
+from dapm_lightning.data.files import stops_deferred
 from dapm_lightning.geometry.constants import POSE_KEYS, POSE_UNITS, SKY_PROBABILITY_THRESHOLD
 from dapm_lightning.inference.inputs import SIZE_MULTIPLE, network_size
 from dapm_lightning.models.config import DAPMConfig
@@ -345,13 +346,18 @@ def missing_weights_message(path: Path) -> str | None:
 
 
 def move_exported(staged: Path, final: Path) -> None:
-    """Move an export (its graph and, where there is one, its weights file) from ``staged`` to ``final``."""
+    """Move an export (its graph and, where there is one, its weights file) from ``staged`` to ``final``.
+
+    Two renames that must agree: SIGTERM and Ctrl-C wait until both are done (:func:`stops_deferred`), so a stop
+    never leaves an earlier export's graph reading this export's weights.
+    """
     staged_data, final_data = weights_file(staged), weights_file(final)
-    if staged_data.is_file():
-        os.replace(staged_data, final_data)
-    else:
-        final_data.unlink(missing_ok=True)  # an earlier export's weights, not this graph's
-    os.replace(staged, final)
+    with stops_deferred():
+        if staged_data.is_file():
+            os.replace(staged_data, final_data)
+        else:
+            final_data.unlink(missing_ok=True)  # an earlier export's weights, not this graph's
+        os.replace(staged, final)
 
 
 def ensure_exported(module: nn.Module, path: Path) -> Path:

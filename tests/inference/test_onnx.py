@@ -422,3 +422,35 @@ def test_a_weights_file_cut_short_is_named_with_its_size_and_the_fix(tmp_path, k
     assert str(info.value).startswith(f"{model}: its weights file {data} is cut short: {kept} bytes, where the graph "
                                       f"reads {64 * 64 * 4:,}")
     assert "\nFix: copy the .onnx and its weights file again together" in str(info.value)
+
+
+def test_a_stop_between_moving_the_weights_and_the_graph_waits_for_both(tmp_path, monkeypatch):
+    """Ctrl-C (or SIGTERM) after an export's weights file was moved into place but before its graph: the stop waits
+    for the graph (before: the earlier export's graph was left reading the new weights)."""
+    import os
+    import signal
+
+    import dapm_lightning.inference.onnx as onnx_module
+
+    staging, final = tmp_path / "staging", tmp_path / "m.onnx"
+    staging.mkdir()
+    for folder, what in ((staging, "new"), (tmp_path, "old")):
+        (folder / "m.onnx").write_text(f"{what} graph")
+        (folder / "m.onnx.data").write_text(f"{what} weights")
+    replace, moved = os.replace, []
+
+    def replace_then_ctrl_c(source, target):
+        replace(source, target)
+        moved.append(Path(target).name)
+        if len(moved) == 1:
+            os.kill(os.getpid(), signal.SIGINT)
+
+    monkeypatch.setattr(onnx_module.os, "replace", replace_then_ctrl_c)
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            onnx_module.move_exported(staging / "m.onnx", final)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    assert moved == ["m.onnx.data", "m.onnx"]
+    assert (final.read_text(), (tmp_path / "m.onnx.data").read_text()) == ("new graph", "new weights")
