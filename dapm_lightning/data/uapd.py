@@ -100,10 +100,11 @@ def format_uapd_filename(tokens: Sequence[str], pose: Sequence[float] | np.ndarr
                          suffix: str = ".png") -> str:
     """The UAPD file name :func:`parse_uapd_filename` reads back (docs/data.md, "UAPD layout").
 
-    ``tokens`` (e.g. ``["Town03", "000123"]``) come first, then ``x, y, z`` (the height), ``pitch, roll, yaw,
+    ``tokens`` (e.g. ``["Town03", "000123"]``) come first, then ``x, y, z`` (the height), ``pitch, yaw, roll,
     fov`` with 2 decimals (the precision the renderers place the camera with), then ``extra`` keys with 3
-    decimals, in the given order; e.g. ``Town03_000123_x_1.00_y_2.00_z_57.20_pitch_-63.40_roll_12.75_yaw_33.00
-    _fov_88.10.png`` (one line).
+    decimals, in the given order; e.g. ``Town03_000123_x_1.00_y_2.00_z_57.20_pitch_-63.40_yaw_33.00_roll_12.75
+    _fov_88.10.png`` (one line). The pose keys follow the published UAPD set's order, ``z, pitch, yaw, roll,
+    fov``, which the authors' evaluation matches as one pattern; the parser takes any order.
 
     Raises:
         ValueError: a token or an ``extra`` key that the parser would misread.
@@ -115,8 +116,8 @@ def format_uapd_filename(tokens: Sequence[str], pose: Sequence[float] | np.ndarr
     for key in extra or {}:
         if not _KEY.match(key) or key.lower() in KEY_ALIASES or key in ("x", "y", "yaw"):
             raise ValueError(f"extra key {key!r} must be letters and not a pose, x, y or yaw key")
-    fields = [*tokens, f"x_{x:.2f}", f"y_{y:.2f}", f"z_{height:.2f}", f"pitch_{pitch:.2f}", f"roll_{roll:.2f}",
-              f"yaw_{yaw:.2f}", f"fov_{fov:.2f}", *(f"{k}_{v:.3f}" for k, v in (extra or {}).items())]
+    fields = [*tokens, f"x_{x:.2f}", f"y_{y:.2f}", f"z_{height:.2f}", f"pitch_{pitch:.2f}", f"yaw_{yaw:.2f}",
+              f"roll_{roll:.2f}", f"fov_{fov:.2f}", *(f"{k}_{v:.3f}" for k, v in (extra or {}).items())]
     return "_".join(fields) + suffix
 
 

@@ -1,3 +1,5 @@
+import re
+
 import pytest
 
 from dapm_lightning.data import format_uapd_filename, parse_uapd_filename
@@ -84,6 +86,15 @@ def test_format_reads_back(tokens, pose, extra):
 def test_format_refuses_what_would_not_read_back(tokens, extra):
     with pytest.raises(ValueError, match="read back|must be letters"):
         format_uapd_filename(tokens, (50.0, -45.0, 0.0, 90.0), extra=extra)
+
+
+def test_the_names_written_have_the_pose_keys_in_the_published_uapd_order():
+    """The published set's names carry ``_z_H_pitch_P_yaw_Y_roll_R_fov_F`` (with decimals), which the authors'
+    evaluation matches as one pattern; before, ``roll`` came before ``yaw`` and that evaluation found no pose."""
+    published = re.compile(r"_z_(-?\d+\.\d+)_pitch_(-?\d+\.\d+)_yaw_(-?\d+\.\d+)_roll_(-?\d+\.\d+)_fov_(\d+\.\d+)")
+    name = format_uapd_filename(["Town03", "000123"], (57.2, -63.4, -12.75, 88.1), x=-1.0, y=2.0, yaw=-33.0,
+                                extra={"lensk": 0.1})
+    assert published.search(name).groups() == ("57.20", "-63.40", "-33.00", "-12.75", "88.10")
 
 
 def test_both_writers_use_the_one_format():

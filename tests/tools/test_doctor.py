@@ -85,8 +85,8 @@ def test_swapped_pitch_and_roll_is_flagged(demo_like, tmp_path):
     names = [p.name for p in sorted((root / "train" / "depth").iterdir())]
     chosen = next(n for n in clear_ground(root, names) if abs(pose_of(n)[1] - pose_of(n)[2]) > 20)
     p = parse_uapd_filename(chosen)
-    swapped = chosen.replace(f"_pitch_{p['pitch']:.2f}_roll_{p['roll']:.2f}_",
-                             f"_pitch_{p['roll']:.2f}_roll_{p['pitch']:.2f}_")
+    swapped = chosen.replace(f"_pitch_{p['pitch']:.2f}_", f"_pitch_{p['roll']:.2f}_").replace(
+        f"_roll_{p['roll']:.2f}_", f"_roll_{p['pitch']:.2f}_")
     assert swapped != chosen
     rename(root, "train", chosen, swapped)
     assert doctor_main([str(root), "--json", str(tmp_path / "r.json")]) == 1

@@ -23,8 +23,8 @@ from dapm_lightning.data.uapd import format_uapd_filename, is_uapd_image
 from dapm_lightning.geometry.constants import MAX_DEPTH_M, POSE_KEYS, POSE_RANGES
 from dapm_lightning.geometry.depth_codec import depth_to_grey
 
-GENERATOR_VERSION = 4
-"""Bumped whenever the same settings would render different pictures (so caches re-render)."""
+GENERATOR_VERSION = 5  # 5: version 4's pictures, the pose keys in file names in the published UAPD order
+"""Bumped whenever the same settings would render different files, pictures or names (so caches re-render)."""
 _SPLIT_IDS = {"train": 0, "val": 1, "test": 2}
 MAX_IMAGE_SIDE = 8192
 """The largest image side rendered (the network's, ``inference.onnx.MAX_EXPORT_SIDE``)."""
