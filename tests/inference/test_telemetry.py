@@ -90,6 +90,23 @@ def test_fov_from_35mm_uses_the_diagonal_definition():
         math.degrees(2 * math.atan(43.2666 * 0.6 / 48)), abs=1e-3)
 
 
+def test_a_frame_wider_than_3_2_is_cut_from_the_sensor_s_width():
+    """DJI quotes one focal length (24 mm) for its photos and its 16:9 video, which uses the sensor's full width:
+    before, the 16:9 frame's own diagonal was taken for the full frame's, putting a 4K video at 76.3 degrees, wider
+    than the 4:3 photos of the same lens (71.6)."""
+    assert horizontal_fov_from_focal_35mm(24, 3840, 2160) == pytest.approx(FOV_24MM_4_3, abs=1e-3)
+    assert horizontal_fov_from_focal_35mm(24, 4096, 2160) == pytest.approx(FOV_24MM_4_3, abs=1e-3)  # DCI 4K
+    assert horizontal_fov_from_focal_35mm(24, 3840, 2160, sensor_aspect=1.5) == pytest.approx(FOV_24MM_3_2, abs=1e-3)
+    # a portrait 16:9 frame: the sensor's long side spans its height
+    assert horizontal_fov_from_focal_35mm(24, 2160, 3840) == pytest.approx(
+        math.degrees(2 * math.atan(43.2666 * 0.8 * 2160 / 3840 / 48)), abs=1e-3)
+    # frames up to 3:2 fill their sensor, a thermal camera's 5:4 included
+    assert horizontal_fov_from_focal_35mm(24, 640, 512) == pytest.approx(
+        math.degrees(2 * math.atan(43.2666 * 640 / math.hypot(640, 512) / 48)), abs=1e-3)
+    with pytest.raises(ValueError, match="sensor_aspect"):
+        horizontal_fov_from_focal_35mm(24, 3840, 2160, sensor_aspect=16 / 9)
+
+
 def test_fov_from_focal_and_sensor_width():
     assert horizontal_fov_from_focal(8.8, 13.2) == pytest.approx(FOV_24MM_3_2, abs=1e-3)  # Phantom 4 Pro
     assert horizontal_fov_from_focal(10.0, 20.0) == pytest.approx(90.0)
@@ -678,4 +695,5 @@ def test_srt_table_drives_the_reading(tmp_path, monkeypatch):
     assert_pose(frames[0], [45.6, NAN, 1.0, NAN])
     assert not caught
     monkeypatch.setattr(srt, "SRT_FIELDS", ())
+    monkeypatch.setattr(srt, "SRT_CAPTION_FIELDS", ())  # else `H` alone makes it a caption cut short
     assert read_srt(path) == {0: PoseTelemetry()}

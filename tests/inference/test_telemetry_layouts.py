@@ -30,7 +30,7 @@ from dapm_lightning.inference.telemetry import (
 from dapm_lightning.inference.telemetry import fields as meaning
 
 NAN = math.nan
-FOV_24_UHD = horizontal_fov_from_focal_35mm(24.0, 3840, 2160)  # 76.3
+FOV_24_UHD = horizontal_fov_from_focal_35mm(24.0, 3840, 2160)  # 71.6: the 4:3 sensor's width
 DOCS = Path(__file__).resolve().parents[2] / "docs" / "conventions.md"
 
 
@@ -128,7 +128,7 @@ def test_fixed_point_focal_length_and_digital_zoom(tmp_path):
     path = write_srt(tmp_path / "M2EA.SRT", [m2ea.format(k=1, zoom=10746), m2ea.format(k=2, zoom=10000)])
     frames = read_srt(path, 3840, 2160)
     assert frames[0].fov_deg == pytest.approx(horizontal_fov_from_focal_35mm(24.0 * 1.0746, 3840, 2160))
-    assert frames[0].fov_deg == pytest.approx(72.3, abs=0.05) and frames[1].fov_deg == pytest.approx(76.3, abs=0.05)
+    assert frames[0].fov_deg == pytest.approx(67.7, abs=0.05) and frames[1].fov_deg == pytest.approx(71.6, abs=0.05)
     assert frames[0].provenance[3] == "M2EA.SRT subtitle 1 focal_len x dzoom_ratio"
     assert_pose(frames[0], [4.134, NAN, NAN, frames[0].fov_deg])  # `Drone: Pitch` is the aircraft's: not read
     mavic_2_pro = ('<font size="36">FrameCnt : 218, DiffTime : 40ms\n2019-09-27 10:28:08,438,904\n'
@@ -226,6 +226,18 @@ def test_per_second_captions_apart_in_time_are_held_not_interpolated(tmp_path):
     assert 10 not in frames and 14 not in frames  # the gap: no subtitle
     assert frames[15].height_m == 90.0 and frames[19].height_m == 90.0  # not towards the overlapping third
     assert frames[9].provenance[0] == "gaps.SRT subtitle 1 H"
+
+
+def test_a_caption_cut_short_at_the_end_of_a_clip_is_still_read(tmp_path):
+    """The recording stopped 0.4 s into the last second: its caption lasts 0.4 s. Before, a subtitle of 0.5 s or
+    less was read for per-frame fields only, and its frames were left without telemetry, with no warning."""
+    (tmp_path / "cut.SRT").write_text(
+        f"1\n00:00:00,000 --> 00:00:01,000\n{p4_rtk(45.6, -30.0)}\n\n"
+        f"2\n00:00:01,000 --> 00:00:01,400\n{p4_rtk(47.6, -32.0)}\n\n")
+    frames, caught = record(read_srt, tmp_path / "cut.SRT", fps=10.0)
+    assert not caught and sorted(frames) == list(range(14))
+    assert frames[10].height_m == 47.6 and frames[13].height_m == 47.6 and frames[13].pitch_deg == -32.0
+    assert frames[5].height_m == pytest.approx(46.6)  # interpolated towards the short one, which starts as 1 ends
 
 
 def test_srt_timings_with_fewer_fraction_digits_are_read_as_decimals(tmp_path):

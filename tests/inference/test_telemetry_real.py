@@ -59,7 +59,7 @@ SRT_EXPECTED = {  # file: (frame, [height, pitch, roll, fov] there, the file's o
     "ruz76__DJI_MAVIC_3T.SRT": (0, [80.504, -10.7, 0.0, horizontal_fov_from_focal_35mm(643.3, *UHD)], None),
     "ruz76__DJI_MAVIC_ENTERPRISE.SRT": (0, [NAN, NAN, NAN, F24], "above sea level"),  # altitude 499.41
     "ruz76__DJI_MAVIC_ENTERPRISE_ADVANCED.SRT": (0, [4.134, NAN, NAN, horizontal_fov_from_focal_35mm(
-        24 * 1.0746, *UHD)], None),  # dzoom_ratio 10746: 72.3 degrees
+        24 * 1.0746, *UHD)], None),  # dzoom_ratio 10746: 67.7 degrees
 }
 
 XMP_EXPECTED = {  # packet: (image size, [height, pitch, roll, fov])

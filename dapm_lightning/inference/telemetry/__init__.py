@@ -36,6 +36,7 @@ from dapm_lightning.inference.telemetry.gather import (
 )
 from dapm_lightning.inference.telemetry.image_metadata import telemetry_from_image
 from dapm_lightning.inference.telemetry.pose import (
+    CROP_SENSOR_ASPECT,
     FULL_FRAME_DIAGONAL_MM,
     MIN_HEIGHT_M,
     PoseTelemetry,
@@ -48,6 +49,7 @@ from dapm_lightning.inference.telemetry.pose import (
 from dapm_lightning.inference.telemetry.srt import read_srt
 
 __all__ = [
+    "CROP_SENSOR_ASPECT",
     "CSV_COLUMNS",
     "FIELD_MEANINGS",
     "FULL_FRAME_DIAGONAL_MM",

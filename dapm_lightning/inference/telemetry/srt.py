@@ -239,7 +239,8 @@ SRT_CAPTION_FIELDS: tuple[SrtField, ...] = (
     SrtField("G.PRY", "roll", _gimbal_pry),
 )
 """DJI's one-per-second captions (Phantom 4, Mavic Pro, Mavic Mini, Matrice 300), in subtitles over
-:data:`MAX_SUBTITLE_S`, placed on frames by their timing. ``F.PRY`` (the aircraft), ``Hs``, ``D`` are never read."""
+:data:`MAX_SUBTITLE_S` (or shorter, holding no per-frame field: a clip's last, cut short), placed on frames by their
+timing. ``F.PRY`` (the aircraft), ``Hs``, ``D`` are never read."""
 
 
 def read_srt(path: StrPath, width: int | None = None, height: int | None = None, *,
@@ -281,7 +282,9 @@ def read_srt(path: StrPath, width: int | None = None, height: int | None = None,
             reading.untimed += 1
             continue
         values, read = _pose_values(subtitle, SRT_FIELDS)
-        if raw.end - raw.start <= MAX_SUBTITLE_S:
+        caption = (not any(row.name in subtitle.fields for row in SRT_FIELDS)
+                   and any(row.name in subtitle.fields for row in SRT_CAPTION_FIELDS))
+        if raw.end - raw.start <= MAX_SUBTITLE_S and not caption:  # a caption cut short (a clip's last) is one
             reading.add_frame(raw.number, raw.start, raw.end, values, read, subtitle.notes)
             continue
         if not all(math.isnan(v) for v in values):
