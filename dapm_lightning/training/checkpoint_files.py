@@ -633,6 +633,10 @@ class NotADAPMCheckpointError(ValueError):
     """A readable file that is not a dapm-lightning checkpoint (another model's, a bare state dict...)."""
 
 
+class NonFiniteWeightsError(ValueError):
+    """A dapm-lightning checkpoint whose weights hold NaN or infinite values (a training that diverged)."""
+
+
 def _some_keys(keys: Iterable[Any], count: int = 3) -> str:
     names = [str(k) for k in keys]
     shown = ", ".join(repr(k) for k in names[:count])
@@ -670,15 +674,33 @@ def foreign_checkpoint(checkpoint: Any) -> str | None:
 
 
 def check_dapm_checkpoint(checkpoint: Any, source: str | Path) -> None:
-    """Raise :class:`NotADAPMCheckpointError` (a ValueError naming ``source`` and the fix) unless ours."""
+    """Raise :class:`NotADAPMCheckpointError` (a ValueError naming ``source`` and the fix) unless ours.
+
+    Raises :class:`NonFiniteWeightsError` for one of ours whose weights hold NaN or infinite values: every output
+    of that network would be NaN (before, ``predict`` wrote files of NaN and stopped on a drawing error).
+    """
     what = foreign_checkpoint(checkpoint)
     if what is None:
+        check_finite_weights(checkpoint["state_dict"], source)
         return
     fix = ("Fix: pass a checkpoint written by `dapm-lightning fit` (the run's checkpoints/last.ckpt or best-*.ckpt)")
     if "DAPM" in what:
         fix += ("; to use bare DAPM weights, build the model with the settings they were trained with and call "
                 "`DAPMModule(net=...).load_state_dict(...)`")
     raise NotADAPMCheckpointError(f"{source}: not a dapm-lightning checkpoint ({what}).\n{fix}.")
+
+
+def check_finite_weights(state_dict: Mapping[str, Any], source: str | Path) -> None:
+    """Raise :class:`NonFiniteWeightsError`, naming ``source``, the tensors and the fix, if a weight is NaN or inf."""
+    bad = [name for name, value in state_dict.items()
+           if isinstance(value, Tensor) and value.is_floating_point() and not bool(torch.isfinite(value).all())]
+    if bad:
+        raise NonFiniteWeightsError(
+            f"{source}: {len(bad)} of its {len(state_dict)} weight tensors hold NaN or infinite values "
+            f"({_some_keys(bad, 2)}): the training that wrote it diverged (or the file was altered), so every "
+            "output of this network would be NaN.\nFix: use an earlier checkpoint of that run (its "
+            "checkpoints/best-*.ckpt, or a last.ckpt saved before the loss turned NaN), or train again with a lower "
+            "learning rate (--model.optimizer.lr).")
 
 
 INFERENCE_KEYS = ("hyper_parameters", "epoch", "global_step", "pytorch-lightning_version", "dapm_train_image_size")

@@ -101,6 +101,33 @@ def test_missing_and_damaged_checkpoints_and_sources(checkpoint, tmp_path, capsy
     assert code == 1 and f"{tmp_path / 'photos'}: no such file or folder" in err
 
 
+def test_a_checkpoint_of_a_diverged_training_is_refused_before_anything_is_written(checkpoint, tiny_uapd, tmp_path,
+                                                                                    capsys, monkeypatch):
+    """Weights holding NaN (a training that diverged): before, the one-line predict wrote a `_camera.json` of NaN
+    (not JSON) and a black picture, then stopped on `cannot convert float NaN to integer`, naming no file."""
+    import torch
+
+    monkeypatch.chdir(tmp_path)
+    saved = torch.load(checkpoint, weights_only=True)
+    name = next(k for k, v in saved["state_dict"].items() if v.is_floating_point() and v.numel() > 1)
+    saved["state_dict"][name][0] = float("nan")
+    diverged = tmp_path / "diverged.ckpt"
+    torch.save(saved, diverged)
+    images = tiny_uapd / "val" / "rgb"
+    code, err = run_main(["predict", str(images), "--ckpt_path", str(diverged), "--out", str(tmp_path / "out"),
+                          "--device", "cpu"], capsys)
+    assert code == 1 and f"{diverged}: 1 of its" in err and "hold NaN or infinite values" in err, err
+    assert "Fix: use an earlier checkpoint of that run" in err and not (tmp_path / "out").exists()
+    data = ["--data.class_path", "dapm_lightning.data.datamodules.UAPDDataModule", "--data.init_args.root",
+            str(tiny_uapd), "--trainer.default_root_dir", str(tmp_path / "run")]
+    for subcommand in ("test", "fit"):  # a resume would train on from NaN
+        code, err = run_main([subcommand, "--config", str(QUICKSTART), *data, "--ckpt_path", str(diverged)], capsys)
+        assert code == 1 and "hold NaN or infinite values" in err, err
+    code, err = run_main(["fit", "--config", str(QUICKSTART), *data, "--model.init_weights", str(diverged)], capsys)
+    assert code == 1 and "hold NaN or infinite values" in err, err
+    assert not (tmp_path / "run").exists()
+
+
 def test_a_wrong_ckpt_path_stops_fit_and_test_before_their_log_folders_are_made(tiny_uapd, tmp_path, capsys,
                                                                                  monkeypatch):
     monkeypatch.chdir(tmp_path)
