@@ -5,6 +5,7 @@ from __future__ import annotations
 import difflib
 import importlib
 import inspect
+import os
 import re
 import sys
 from collections.abc import Sequence
@@ -428,8 +429,10 @@ class DAPMCLI(LightningCLI):
             configs = tuple([b for a, b in zip(words, words[1:]) if a == "--config"]
                             + [w.split("=", 1)[1] for w in words if w.startswith("--config=")])
             subcommands = getattr(parser, "_subcommands_action", None)
+            # absolute: the parser reads a config from its own folder (os.chdir), where a relative path is not there
+            absolute = tuple(os.path.abspath(config) for config in configs)
             for each in [parser, *getattr(subcommands, "_name_parser_map", {}).values()]:  # a subcommand reports
-                each.config_files = configs
+                each.config_files = absolute
             for config in configs:  # a binary or empty file: named before the parser's decoding error or bare report
                 if (problem := config_file_problem(config)) is not None:
                     parser.error(problem)

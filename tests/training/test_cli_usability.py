@@ -218,6 +218,19 @@ def test_a_data_setting_out_of_range_is_refused_before_anything_is_rendered(opti
     assert not (tmp_path / "never_rendered").exists()
 
 
+def test_a_config_given_by_a_relative_path_in_another_folder_is_named(capsys, tmp_path, monkeypatch):
+    """The parser reads a config from inside its folder: `--config in/broken.yaml` was looked for there as
+    `in/in/broken.yaml`, so the YAML error lost the file's name and line, and a wrong type its `(set in FILE)`."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "in").mkdir()
+    (tmp_path / "in" / "broken.yaml").write_text("trainer:\n  max_steps: 3\n   devices: [1,\n")
+    (tmp_path / "in" / "typed.yaml").write_text("trainer:\n  max_steps: two\n")
+    code, err = run_main(["fit", "--config", str(QUICKSTART), "--config", "in/broken.yaml"], capsys)
+    assert code == 2 and f"{tmp_path / 'in' / 'broken.yaml'}: not valid YAML (line 3, column 11)" in err, err
+    code, err = run_main(["fit", "--config", str(QUICKSTART), "--config", "in/typed.yaml"], capsys)
+    assert code == 2 and f"(set in {tmp_path / 'in' / 'typed.yaml'})" in err, err
+
+
 @pytest.mark.parametrize("subcommand", ["fit", "test"])
 def test_a_config_that_is_not_yaml_is_named_with_its_line(subcommand, capsys, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
