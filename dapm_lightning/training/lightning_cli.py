@@ -625,6 +625,8 @@ class DAPMCLI(LightningCLI):
         """
         if isinstance(self.datamodule, DAPMDataModule):
             self.datamodule.read_early(stage)
+        if isinstance(self.model, DAPMModule):  # the depth kind and limit: before the loggers' folders too
+            self.model.check_data_agrees(self.datamodule, self.config[stage].get("ckpt_path"))
 
     def before_instantiate_classes(self) -> None:
         subcommand = self.config.get("subcommand")

@@ -366,17 +366,30 @@ class DAPMModule(L.LightningModule):
         rank_zero_info(f"model.init_weights: the network starts from {path} ({len(weights)} tensors)")
 
     def setup(self, stage: str) -> None:
-        datamodule = getattr(self._trainer, "datamodule", None) if self._trainer is not None else None
+        self.check_data_agrees(getattr(self._trainer, "datamodule", None) if self._trainer is not None else None)
+
+    def check_data_agrees(self, datamodule: Any, checkpoint: str | None = None) -> None:
+        """Raise a ValueError with the fix when ``datamodule``'s depth kind or depth limit is not the network's.
+
+        ``checkpoint``: where the network's settings came from (``--ckpt_path``); its settings cannot be changed,
+        so the fix is then the data's, or another checkpoint.
+        """
         data_kind = getattr(datamodule, "depth_kind", None)
         model_kind = self.net_config.igd.depth_kind
         if data_kind is not None and data_kind != model_kind and self.net_config.use_pose:
-            raise ValueError(f"the data holds {data_kind} depth but the model's IGD computes {model_kind} depth: set "
-                             f"model.net.igd.depth_kind: {data_kind} (or fix data.init_args.depth_kind)")
+            fix = (f"the network of {checkpoint} was trained for {model_kind} depth and keeps it: evaluate it on "
+                   f"{model_kind} depth (data.init_args.depth_kind: {model_kind}, if the files hold it), or train "
+                   f"one with model.net.igd.depth_kind: {data_kind}" if checkpoint else
+                   f"set model.net.igd.depth_kind: {data_kind} (or fix data.init_args.depth_kind)")
+            raise ValueError(f"the data holds {data_kind} depth but the model's IGD computes {model_kind} depth: {fix}")
         data_limit, model_limit = getattr(datamodule, "max_depth", None), self.net_config.igd.max_depth
         if data_limit is not None and data_limit != model_limit:
+            fix = (f"the network of {checkpoint} keeps its {model_limit:g} m: give the data its files' own limit "
+                   f"(data.init_args.max_depth: {model_limit:g}, if they encode that), or train one with "
+                   f"model.net.igd.max_depth: {data_limit:g}" if checkpoint else
+                   f"set model.net.igd.max_depth: {data_limit:g} (or fix data.init_args.max_depth)")
             raise ValueError(f"the data's depth PNGs encode depth up to {data_limit:g} m (grey 255) but the model's "
-                             f"limit is {model_limit:g} m: set model.net.igd.max_depth: {data_limit:g} (or fix "
-                             "data.init_args.max_depth)")
+                             f"limit is {model_limit:g} m: {fix}")
 
     def forward(self, image: Tensor, prior: PosePrior | None = None) -> DAPMOutput:
         """``image [B, 3, H, W]`` (uint8 or float in [0, 1]) -> :class:`DAPMOutput` (predictions only).

@@ -128,6 +128,29 @@ def test_a_checkpoint_of_a_diverged_training_is_refused_before_anything_is_writt
     assert not (tmp_path / "run").exists()
 
 
+def test_data_of_another_depth_kind_or_limit_than_the_checkpoint_s_is_refused_before_the_log_folders(
+        checkpoint, tiny_uapd, tmp_path, capsys, monkeypatch):
+    """Before, the check ran as the trainer set the module up, after the loggers made `version_0/` (left with
+    `config_test.yaml`), and its fix, `set model.net.igd.depth_kind`, cannot change a checkpoint's network."""
+    monkeypatch.chdir(tmp_path)
+    data = ["--data.class_path", "dapm_lightning.data.datamodules.UAPDDataModule", "--data.init_args.root",
+            str(tiny_uapd), "--trainer.default_root_dir", str(tmp_path / "run"), "--ckpt_path", str(checkpoint)]
+    code, err = run_main(["test", "--config", str(QUICKSTART), *data, "--data.init_args.depth_kind", "planar"],
+                         capsys)
+    assert code == 1 and "the data holds planar depth but the model's IGD computes range depth" in err, err
+    assert f"the network of {checkpoint} was trained for range depth and keeps it" in err, err
+    assert not (tmp_path / "run").exists()
+    from types import SimpleNamespace
+
+    from dapm_lightning.training.checkpointing import load_dapm_module
+
+    module = load_dapm_module(checkpoint)
+    with pytest.raises(ValueError, match=f"limit is 1000 m: the network of {checkpoint} keeps its 1000 m"):
+        module.check_data_agrees(SimpleNamespace(depth_kind="range", max_depth=500.0), str(checkpoint))
+    with pytest.raises(ValueError, match="limit is 1000 m: set model.net.igd.max_depth: 500"):
+        module.check_data_agrees(SimpleNamespace(depth_kind="range", max_depth=500.0))
+
+
 def test_a_wrong_ckpt_path_stops_fit_and_test_before_their_log_folders_are_made(tiny_uapd, tmp_path, capsys,
                                                                                  monkeypatch):
     monkeypatch.chdir(tmp_path)
