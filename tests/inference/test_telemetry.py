@@ -343,6 +343,22 @@ def test_csv_rows_named_by_folder_tell_apart_images_of_one_name(tmp_path):
         telemetry_for_images([first], alike, read_metadata=False)
 
 
+def test_a_name_with_accents_matches_whichever_unicode_form_the_file_system_and_the_csv_use(tmp_path):
+    """macOS writes `ö` as `o` + a combining diaeresis (NFD), a spreadsheet as one letter (NFC): before, the row
+    matched no image (a warning listing two names that look the same) and its telemetry was not used."""
+    import unicodedata
+
+    folder = tmp_path / unicodedata.normalize("NFD", "flüge")
+    folder.mkdir()
+    image = write_jpeg(folder / unicodedata.normalize("NFD", "föto.jpg"))
+    table = write_csv(tmp_path / "t.csv", "name,height_m\n" + unicodedata.normalize("NFC", "flüge/föto") + ",42\n")
+    out, caught = record(telemetry_for_images, [image], table, read_metadata=False)
+    assert [t.height_m for t in out] == [42.0] and not caught
+    decomposed = write_csv(tmp_path / "d.csv", "name,height_m\n" + unicodedata.normalize("NFD", "föto") + ",43\n")
+    out, caught = record(telemetry_for_images, [image], decomposed, read_metadata=False)
+    assert [t.height_m for t in out] == [43.0] and not caught
+
+
 def test_an_srt_given_as_the_images_csv_says_it_goes_with_a_video(tmp_path):
     srt = tmp_path / "DJI_0001.SRT"
     srt.write_text("1\n00:00:00,000 --> 00:00:00,033\n[rel_alt: 50.0 abs_alt: 120.0]\n\n")

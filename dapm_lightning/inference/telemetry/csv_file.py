@@ -6,6 +6,7 @@ import codecs
 import csv
 import io
 import math
+import unicodedata
 import warnings
 from collections.abc import Mapping
 from pathlib import Path
@@ -37,12 +38,19 @@ _CSV_FIX = {
 }
 
 
+def same_text(name: str) -> str:
+    """``name`` in Unicode's composed form (NFC): ``föto`` typed in a CSV matches a file macOS named decomposed."""
+    return unicodedata.normalize("NFC", name)
+
+
 def _csv_key(name: str) -> str:
-    """The image a CSV ``name`` refers to: its ``/``-separated path, a known image extension stripped.
+    """The image a CSV ``name`` refers to: its ``/``-separated path, a known image extension stripped, composed.
 
     ``DJI_0001.JPG`` -> ``DJI_0001``; ``100MEDIA/DJI_0001.JPG`` (Windows separators alike) -> ``100MEDIA/DJI_0001``
-    (the folders tell apart images of one name in several folders: :func:`row_for_image`).
+    (the folders tell apart images of one name in several folders: :func:`row_for_image`); letters with accents
+    in composed form (:func:`same_text`), as image paths are compared.
     """
+    name = same_text(name)
     parts = [part for part in name.replace("\\", "/").split("/") if part not in ("", ".")] or [name]
     stem, dot, suffix = parts[-1].rpartition(".")
     if dot and stem and f".{suffix.lower()}" in CSV_NAME_SUFFIXES:
@@ -71,10 +79,10 @@ def row_for_image(path: Path, rows: Mapping[str, PoseTelemetry], by_stem: Mappin
         TelemetryError: two rows of different values share as many folders with the image's path, so the CSV does
             not say which is the image's (naming both).
     """
-    keys = by_stem.get(path.stem, [])
+    keys = by_stem.get(same_text(path.stem), [])
     if not keys:
         return None
-    folders = path.absolute().parent.parts[::-1]
+    folders = [same_text(folder) for folder in path.absolute().parent.parts[::-1]]
 
     def shared(key: str) -> int:
         count = 0

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from dapm_lightning.geometry.constants import POSE_KEYS
-from dapm_lightning.inference.telemetry.csv_file import read_telemetry_csv, row_for_image, rows_by_stem
+from dapm_lightning.inference.telemetry.csv_file import read_telemetry_csv, row_for_image, rows_by_stem, same_text
 from dapm_lightning.inference.telemetry.image_metadata import SHOW_NAMES, image_telemetry, warn_notes
 from dapm_lightning.inference.telemetry.pose import PoseTelemetry, StrPath, TelemetryError, TelemetryWarning
 from dapm_lightning.inference.telemetry.srt import read_srt
@@ -255,7 +255,7 @@ def video_telemetry(video: Path, frames: Sequence[int] | None, srt_path: StrPath
             report.fell_back.append(Path(srt_path).name)
     table, shared = _table(csv_path), isinstance(csv_path, TelemetryCsv)
     rows = frame_rows(table.rows) if table is not None else {}
-    prefix = video.stem if name is None else name  # the CSV names frames as their outputs are named
+    prefix = same_text(video.stem if name is None else name)  # the CSV names frames as their outputs are named
     frame_name = re.compile(re.escape(prefix) + r"_f(\d{6,})")
     if frames is None:
         named = (frame_name.fullmatch(k) for k in rows)
