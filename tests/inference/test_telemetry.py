@@ -423,6 +423,26 @@ def test_csv_bad_values_are_errors_naming_file_line_column_and_fix(tmp_path, cel
     assert "leave the cell empty for unknown" in message
 
 
+@pytest.mark.parametrize("rows, warned", [
+    ("a,50,-0.7,0.1,1.2\nb,60,-1.5,-0.05,1.2\n", "every fov_deg lies within (0, pi] (1.2 to 1.2)"),
+    ("a,50,-0.7,0.1,\nb,60,-1.5,-0.05,\n", "every pitch_deg lies within +-pi/2 (-1.5 to -0.7)"),
+    ("a,50,-45,0.1,1.2\n", None),  # a telephoto's FoV at a real pitch
+    ("a,50,-0.7,0.1,70\n", None),  # a camera level, its FoV in degrees
+    ("a,50,-0.2,0.1,\nb,60,0.3,0,\n", None),  # level within half a degree all flight
+])
+def test_angles_that_look_like_radians_are_warned_about(tmp_path, rows, warned):
+    """Radians in the degree columns were used as degrees without a word (a FoV of 1.2 degrees)."""
+    path = write_csv(tmp_path / "t.csv", "name,height_m,pitch_deg,roll_deg,fov_deg\n" + rows)
+    out, caught = record(read_telemetry_csv, path)
+    assert out["a"].height_m == 50.0
+    messages = [str(w.message) for w in caught]
+    if warned is None:
+        assert not messages
+    else:
+        assert len(messages) == 1 and messages[0].startswith(f"{path}: {warned}"), messages
+        assert "if they are radians, convert them (degrees = radians x 57.2958)" in messages[0]
+
+
 def test_csv_duplicates(tmp_path):
     same = write_csv(tmp_path / "same.csv", "name,height_m\na.jpg,40\na,40.0\n")
     assert_pose(read_telemetry_csv(same)["a"], [40.0, NAN, NAN, NAN])

@@ -219,4 +219,31 @@ def read_telemetry_csv(path: StrPath) -> dict[str, PoseTelemetry]:
         detail = "every value cell is empty" if out else "no row under the header"
         warnings.warn(f"{path}: no usable telemetry in the file: {detail}; the network estimates the pose (write one "
                       "row per image under the header)", TelemetryWarning, stacklevel=2)
+    elif (radians := angles_look_like_radians(out)) is not None:
+        warnings.warn(f"{path}: {radians}, as radians would be; the columns are degrees (pitch_deg, roll_deg, "
+                      "fov_deg): if they are radians, convert them (degrees = radians x 57.2958)", TelemetryWarning,
+                      stacklevel=2)
     return out
+
+
+def angles_look_like_radians(rows: Mapping[str, PoseTelemetry]) -> str | None:
+    """Which of the angles in ``rows`` all lie within +-pi as radians would, or None when they do not look so.
+
+    A FoV of at most pi degrees in every row (a strong telephoto), or, without a FoV, a pitch within +-pi/2 in every
+    row that averages at least 0.5 in size (a camera held within 3 degrees of level all flight), besides every
+    roll within +-pi: degrees that small are rare from a drone, radians that large are every survey's.
+    """
+    def known(values: list[float]) -> list[float]:
+        return [v for v in values if math.isfinite(v)]
+
+    pitch = known([t.pitch_deg for t in rows.values()])
+    roll = known([t.roll_deg for t in rows.values()])
+    fov = known([t.fov_deg for t in rows.values()])
+    if any(abs(v) > math.pi for v in pitch + roll) or not (pitch or fov):
+        return None
+    if fov and max(fov) <= math.pi:
+        return f"every fov_deg lies within (0, pi] ({min(fov):g} to {max(fov):g}), and every pitch and roll within +-pi"
+    if not fov and pitch and all(abs(v) <= math.pi / 2 + 1e-6 for v in pitch) and \
+            sum(abs(v) for v in pitch) / len(pitch) >= 0.5:
+        return f"every pitch_deg lies within +-pi/2 ({min(pitch):g} to {max(pitch):g}), and every roll within +-pi"
+    return None
