@@ -239,10 +239,12 @@ def exclusive_lock(path: str | Path) -> Iterator[Path]:
 
 
 def check_folder_writable(folder: str | Path, option: str | None = None) -> Path:
-    """Refuse, before any work is done, an output ``folder`` that cannot be created or written; nothing is made.
+    """Refuse, before any work is done, an output ``folder`` that cannot be created or written; nothing is left made.
 
     The nearest existing folder on the way must be a folder (not a file) that this process may write in (read-only
-    file systems included). Returns the folder. ``option``: the setting that chose it, named in the fix.
+    file systems included), and a missing ``folder`` is created and removed again, which finds a place where even
+    root cannot make one (``/proc``, ``/sys``). Returns the folder. ``option``: the setting that chose it, named
+    in the fix.
 
     Raises:
         WriteError: naming the folder, why, and the fix.
@@ -260,6 +262,12 @@ def check_folder_writable(folder: str | Path, option: str | None = None) -> Path
     if not os.access(existing, os.W_OK | os.X_OK):
         where = "it is" if existing == folder else f"{existing} is"
         raise WriteError(folder, f"{where} read-only or not yours", fix)
+    if existing != folder:  # made and removed again: what os.access does not know (root under /proc or /sys)
+        try:
+            created = make_folder(folder)
+        except WriteError as error:
+            raise WriteError(folder, error.reason, fix) from error
+        remove_empty_folders(created)
     return folder
 
 

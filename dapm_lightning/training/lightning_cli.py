@@ -20,6 +20,7 @@ from lightning.pytorch.cli import LightningArgumentParser, LightningCLI, SaveCon
 from lightning.pytorch.utilities import rank_zero_info, rank_zero_only
 
 from dapm_lightning.data.datamodules import DAPMDataModule
+from dapm_lightning.data.files import check_folder_writable
 from dapm_lightning.models.config import DAPMConfig
 from dapm_lightning.training.checkpoint_files import (
     CheckpointReadError,
@@ -555,6 +556,7 @@ class DAPMCLI(LightningCLI):
         """
         model = self.model
         resumes = self.config["fit"].get("ckpt_path")
+        self._check_run_folder_writable()
         if not getattr(self, "ckpt_path_given", resumes):  # a run asked to resume continues the one there
             self._refuse_writing_over_a_run()
         if isinstance(model, DAPMModule) and model.init_weights is not None and not resumes:
@@ -598,12 +600,20 @@ class DAPMCLI(LightningCLI):
             "run a new version folder).")
 
     def before_validate(self) -> None:
+        self._check_run_folder_writable()
         self._read_initial_weights("validate")
         self._read_data_early("validate")
 
     def before_test(self) -> None:
+        self._check_run_folder_writable()
         self._read_initial_weights("test")
         self._read_data_early("test")
+
+    def _check_run_folder_writable(self) -> None:
+        """A run folder (``trainer.default_root_dir``) that cannot be made or written: refused before any work."""
+        root = str(self.trainer.default_root_dir)
+        if not is_remote(root):
+            check_folder_writable(root, "--trainer.default_root_dir")
 
     def before_predict(self) -> None:
         self._read_initial_weights("predict")

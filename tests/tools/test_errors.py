@@ -483,3 +483,21 @@ def test_lightning_s_word_for_a_checkpoint_outside_the_lightning_form_says_where
     assert "Fix: give the checkpoint file" in err and "Traceback" not in err
     code, err = run_main(["export", "lastly.ckpt"], capsys)  # not one of the words: no hint
     assert code == 1 and "lastly.ckpt: no such checkpoint file" in err and "Lightning's word" not in err, err
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="needs Linux's /proc, where no folder can be made")
+def test_an_output_folder_no_one_can_make_is_refused_before_any_work(tmp_path, capsys, monkeypatch):
+    """os.access says root may write in /proc; mkdir says otherwise. Before, synth and fit stopped later with a raw
+    `[Errno 2] No such file or directory` and the fix `check the path`."""
+    from dapm_lightning.data.files import check_folder_writable
+
+    monkeypatch.chdir(tmp_path)
+    code, err = run_main(["synth", "--out", "/proc/dapm_out", "--train", "2", "--val", "1", "--size", "16"], capsys)
+    assert code == 1 and "/proc/dapm_out: cannot be written (the folder cannot be created" in err, err
+    assert "Fix: give another output folder (--out)" in err
+    code, err = run_main(["fit", "--config", str(QUICKSTART), "--trainer.default_root_dir", "/proc/dapm_run",
+                          "--data.init_args.root", str(tmp_path / "data")], capsys)
+    assert code == 1 and "/proc/dapm_run: cannot be written (the folder cannot be created" in err, err
+    assert "Fix: give another output folder (--trainer.default_root_dir)" in err
+    assert list(tmp_path.iterdir()) == []  # no data rendered
+    assert check_folder_writable(tmp_path / "a" / "b") == tmp_path / "a" / "b" and list(tmp_path.iterdir()) == []
