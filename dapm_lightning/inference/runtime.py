@@ -125,6 +125,8 @@ class OnnxRuntime:
         self.path = Path(path)
         if not self.path.is_file():
             raise FileNotFoundError(f"{self.path}: no such ONNX file")
+        if (missing := missing_weights_message(self.path)) is not None:  # before onnxruntime logs its own error
+            raise ValueError(missing)
         try:
             self.session = onnxruntime.InferenceSession(str(self.path), providers=["CPUExecutionProvider"])
         except Exception as error:  # onnxruntime raises its own exception types

@@ -400,8 +400,9 @@ def test_the_docs_name_every_input_and_output_of_the_exported_model():
 
 
 @pytest.mark.parametrize("kept", [0, 100])
-def test_a_weights_file_cut_short_is_named_with_its_size_and_the_fix(tmp_path, kept):
-    """Before, a .onnx.data cut short (or empty) gave onnxruntime's own message, never saying the file was short."""
+def test_a_weights_file_cut_short_is_named_with_its_size_and_the_fix(tmp_path, kept, monkeypatch):
+    """Before, a .onnx.data cut short (or empty) gave onnxruntime's own message, never saying the file was short;
+    then it came after onnxruntime's own error log (C++, on the process's stderr): now onnxruntime is not asked."""
     import numpy as np
     import onnx
     from onnx import TensorProto, helper, numpy_helper
@@ -422,6 +423,12 @@ def test_a_weights_file_cut_short_is_named_with_its_size_and_the_fix(tmp_path, k
     assert str(info.value).startswith(f"{model}: its weights file {data} is cut short: {kept} bytes, where the graph "
                                       f"reads {64 * 64 * 4:,}")
     assert "\nFix: copy the .onnx and its weights file again together" in str(info.value)
+
+    sessions = []
+    monkeypatch.setattr(onnxruntime, "InferenceSession", lambda *args, **kwargs: sessions.append(args))
+    with pytest.raises(ValueError, match="is cut short"):  # the same message, and no C++ error log before it
+        OnnxRuntime(model)
+    assert sessions == []
 
 
 def test_a_stop_between_moving_the_weights_and_the_graph_waits_for_both(tmp_path, monkeypatch):
