@@ -20,6 +20,7 @@ import errno
 import os
 import secrets
 import signal
+import tempfile
 import threading
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
@@ -242,9 +243,9 @@ def check_folder_writable(folder: str | Path, option: str | None = None) -> Path
     """Refuse, before any work is done, an output ``folder`` that cannot be created or written; nothing is left made.
 
     The nearest existing folder on the way must be a folder (not a file) that this process may write in (read-only
-    file systems included), and a missing ``folder`` is created and removed again, which finds a place where even
-    root cannot make one (``/proc``, ``/sys``). Returns the folder. ``option``: the setting that chose it, named
-    in the fix.
+    file systems included), and a file is made in it and removed again (a missing ``folder`` made and removed
+    too), which finds a place where even root cannot write (``/proc``, ``/sys``). Returns the folder. ``option``:
+    the setting that chose it, named in the fix.
 
     Raises:
         WriteError: naming the folder, why, and the fix.
@@ -262,11 +263,19 @@ def check_folder_writable(folder: str | Path, option: str | None = None) -> Path
     if not os.access(existing, os.W_OK | os.X_OK):
         where = "it is" if existing == folder else f"{existing} is"
         raise WriteError(folder, f"{where} read-only or not yours", fix)
-    if existing != folder:  # made and removed again: what os.access does not know (root under /proc or /sys)
-        try:
-            created = make_folder(folder)
-        except WriteError as error:
-            raise WriteError(folder, error.reason, fix) from error
+    # made and removed again (a missing folder) or a file made and removed in it: what os.access does not know
+    # (root under /proc or /sys)
+    created: list[Path] = []
+    try:
+        created = make_folder(folder) if existing != folder else []
+        descriptor, probe = tempfile.mkstemp(prefix=_TEMP_PREFIX + "probe-", suffix=_TEMP_SUFFIX, dir=folder)
+        os.close(descriptor)
+        _remove(Path(probe))
+    except WriteError as error:
+        raise WriteError(folder, error.reason, fix) from error
+    except OSError as error:
+        raise WriteError(folder, _reason(error), fix) from error
+    finally:
         remove_empty_folders(created)
     return folder
 

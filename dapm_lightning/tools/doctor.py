@@ -38,7 +38,7 @@ from dapm_lightning.data.depth_kind import (
     other_kind,
 )
 from dapm_lightning.data.errors import DatasetError
-from dapm_lightning.data.files import write_error, write_text
+from dapm_lightning.data.files import WriteError, check_folder_writable, write_error, write_text
 from dapm_lightning.data.potsdam import ISPRS_PRODUCT_DIRS, ISPRS_RGB_DIR, PotsdamCrops, is_potsdam_root
 from dapm_lightning.data.uapd import (
     BAD_DEPTH_RECORD_FIX,
@@ -466,6 +466,10 @@ def _unwritable_report(path: Path) -> str | None:
     folder = next((p for p in (path.parent, *path.parent.parents) if p.exists()), Path.cwd())
     if not folder.is_dir() or not os.access(folder, os.W_OK | os.X_OK):
         return f"--json {path}: {folder} cannot be written (give a file in a folder you can write)"
+    try:
+        check_folder_writable(path.parent, "--json")  # what os.access does not know (root under /proc)
+    except WriteError as error:
+        return f"--json {path}: {error.path} cannot be written ({error.reason}; give a file in a folder you can write)"
     return None
 
 
