@@ -637,7 +637,8 @@ class NonFiniteWeightsError(ValueError):
     """A dapm-lightning checkpoint whose weights hold NaN or infinite values (a training that diverged)."""
 
 
-def _some_keys(keys: Iterable[Any], count: int = 3) -> str:
+def some_keys(keys: Iterable[Any], count: int = 3) -> str:
+    """Up to ``count`` of ``keys``, quoted, and how many there are when more: ``'a', 'b', ... (5 in all)``."""
     names = [str(k) for k in keys]
     shown = ", ".join(repr(k) for k in names[:count])
     return shown + (f", ... ({len(names)} in all)" if len(names) > count else "")
@@ -656,9 +657,9 @@ def foreign_checkpoint(checkpoint: Any) -> str | None:
         if checkpoint and all(isinstance(v, Tensor) for v in checkpoint.values()):
             whose = ("the weights of a DAPM network" if any(str(k).startswith("net.") for k in checkpoint)
                      else "another model's weights")
-            return (f"a plain PyTorch state dict, {whose} ({_some_keys(checkpoint, 2)}), without the settings "
+            return (f"a plain PyTorch state dict, {whose} ({some_keys(checkpoint, 2)}), without the settings "
                     "that rebuild the network")
-        return f"a dictionary with the keys {_some_keys(checkpoint, 6)}, not a Lightning checkpoint"
+        return f"a dictionary with the keys {some_keys(checkpoint, 6)}, not a Lightning checkpoint"
     hyper_parameters = checkpoint.get("hyper_parameters")
     settings = hyper_parameters if isinstance(hyper_parameters, Mapping) else {}
     ours = isinstance(settings.get("net"), Mapping) and any(str(k).startswith("net.") for k in state_dict)
@@ -669,8 +670,8 @@ def foreign_checkpoint(checkpoint: Any) -> str | None:
     kind = "a Lightning checkpoint" if "pytorch-lightning_version" in checkpoint else "a checkpoint"
     class_path = settings.get("_class_path")
     model = f" of {class_path}" if isinstance(class_path, str) else " of another model"
-    shown = f"; settings {_some_keys([k for k in settings if not str(k).startswith('_')], 4)}" if settings else ""
-    return f"{kind}{model}: {len(state_dict)} weight tensor(s) such as {_some_keys(state_dict, 2)}{shown}"
+    shown = f"; settings {some_keys([k for k in settings if not str(k).startswith('_')], 4)}" if settings else ""
+    return f"{kind}{model}: {len(state_dict)} weight tensor(s) such as {some_keys(state_dict, 2)}{shown}"
 
 
 def check_dapm_checkpoint(checkpoint: Any, source: str | Path) -> None:
@@ -697,7 +698,7 @@ def check_finite_weights(state_dict: Mapping[str, Any], source: str | Path) -> N
     if bad:
         raise NonFiniteWeightsError(
             f"{source}: {len(bad)} of its {len(state_dict)} weight tensors hold NaN or infinite values "
-            f"({_some_keys(bad, 2)}): the training that wrote it diverged (or the file was altered), so every "
+            f"({some_keys(bad, 2)}): the training that wrote it diverged (or the file was altered), so every "
             "output of this network would be NaN.\nFix: use an earlier checkpoint of that run (its "
             "checkpoints/best-*.ckpt, or a last.ckpt saved before the loss turned NaN), or train again with a lower "
             "learning rate (--model.optimizer.lr).")

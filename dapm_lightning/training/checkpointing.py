@@ -41,6 +41,7 @@ from dapm_lightning.training.checkpoint_files import (  # the check of foreign f
     read_checkpoint,
     remove_unfinished_saves,
     save_atomically,
+    some_keys,
 )
 from dapm_lightning.training.module import DAPMModule
 from dapm_lightning.training.signals import request_stop, validation_follows
@@ -192,10 +193,33 @@ def load_dapm_module(path: str | Path, map_location: Any = "cpu",
         module.load_state_dict(checkpoint["state_dict"], strict=True)
     except RuntimeError as error:
         raise NotADAPMCheckpointError(
-            f"{path}: its weights do not fit the network its settings describe ({str(error).splitlines()[0]}).\n"
+            f"{path}: its weights do not fit the network its settings describe "
+            f"({weights_mismatch(module.state_dict(), checkpoint['state_dict']) or str(error).splitlines()[0]}).\n"
             "Fix: pass a checkpoint written by `dapm-lightning fit`, unmodified.") from error
     first = next((t for t in checkpoint["state_dict"].values() if isinstance(t, Tensor)), None)
     return module.to(first.device) if first is not None else module
+
+
+def weights_mismatch(expected: Mapping[str, Any], found: Mapping[str, Any]) -> str:
+    """How the weights ``found`` in a file differ from those a network ``expected``: missing, unexpected, reshaped.
+
+    E.g. ``2 missing: 'net.a.weight', 'net.a.bias'; 1 of another shape: 'net.b.weight' [8, 3] in the file, [16, 3]
+    here``; empty when they agree.
+    """
+    missing = [key for key in expected if key not in found]
+    unexpected = [key for key in found if key not in expected]
+    reshaped = [key for key in expected if key in found and isinstance(found[key], Tensor)
+                and isinstance(expected[key], Tensor) and found[key].shape != expected[key].shape]
+    parts = []
+    if missing:
+        parts.append(f"{len(missing)} missing: {some_keys(missing, 2)}")
+    if unexpected:
+        parts.append(f"{len(unexpected)} not in the network: {some_keys(unexpected, 2)}")
+    if reshaped:
+        key = reshaped[0]
+        parts.append(f"{len(reshaped)} of another shape: {key!r} {list(found[key].shape)} in the file, "
+                     f"{list(expected[key].shape)} here")
+    return "; ".join(parts)
 
 
 class LastCheckpoint(ModelCheckpoint):

@@ -128,6 +128,27 @@ def test_a_checkpoint_of_a_diverged_training_is_refused_before_anything_is_writt
     assert not (tmp_path / "run").exists()
 
 
+def test_a_checkpoint_missing_weights_says_which(checkpoint, tiny_uapd, tmp_path, capsys):
+    """Before: `its weights do not fit the network its settings describe (Error(s) in loading state_dict for
+    DAPMModule:)`, the detail cut off at the colon."""
+    import torch
+
+    saved = torch.load(checkpoint, weights_only=True)
+    names = sorted(saved["state_dict"])
+    for name in names[::2]:
+        del saved["state_dict"][name]
+    first_kept = names[1]
+    saved["state_dict"][first_kept] = torch.zeros(1, *saved["state_dict"][first_kept].shape[1:])
+    saved["state_dict"]["net.extra.weight"] = torch.zeros(2)
+    halved = tmp_path / "halved.ckpt"
+    torch.save(saved, halved)
+    code, err = run_main(["predict", str(tiny_uapd / "val" / "rgb"), "--ckpt_path", str(halved), "--out",
+                          str(tmp_path / "out")], capsys)
+    assert code == 1 and f"{halved}: its weights do not fit the network its settings describe " \
+        f"({len(names[::2])} missing: '" in err and f"... ({len(names[::2])} in all); 1 not in the network: " \
+        f"'net.extra.weight'; 1 of another shape: {first_kept!r} [1" in err, err
+
+
 def test_data_of_another_depth_kind_or_limit_than_the_checkpoint_s_is_refused_before_the_log_folders(
         checkpoint, tiny_uapd, tmp_path, capsys, monkeypatch):
     """Before, the check ran as the trainer set the module up, after the loggers made `version_0/` (left with
