@@ -188,7 +188,39 @@ def config_file_problem(path: str) -> str | None:
     if not isinstance(loaded, dict):
         kind = "a list" if isinstance(loaded, list) else f"a single value ({str(loaded)[:40]!r})"
         return f"{path}: not a mapping of settings (the file holds {kind})\n{fix}"
+    if (twice := repeated_key(text)) is not None:
+        key, first, second = twice
+        return (f"{path}: {key} is set twice (lines {first} and {second}); YAML would keep the second silently\n"
+                f"  fix: keep one of the two lines")
     return None
+
+
+def repeated_key(text: str) -> tuple[str, int, int] | None:
+    """The first key set twice in one mapping of the YAML ``text``: ``(dotted key, first line, second line)``."""
+    try:
+        root = yaml.compose(text, Loader=yaml.SafeLoader)
+    except yaml.YAMLError:
+        return None
+
+    def walk(node: Any, prefix: str) -> tuple[str, int, int] | None:
+        if isinstance(node, yaml.MappingNode):
+            seen: dict[Any, int] = {}
+            for key_node, value_node in node.value:
+                key = key_node.value if isinstance(key_node, yaml.ScalarNode) else None
+                line = key_node.start_mark.line + 1
+                if key is not None and key in seen:
+                    return f"{prefix}{key}", seen[key], line
+                if key is not None:
+                    seen[key] = line
+                if (found := walk(value_node, f"{prefix}{key}.")) is not None:
+                    return found
+        elif isinstance(node, yaml.SequenceNode):
+            for index, item in enumerate(node.value):
+                if (found := walk(item, f"{prefix[:-1]}[{index}].")) is not None:
+                    return found
+        return None
+
+    return walk(root, "")
 
 
 def option_strings(parser: Any) -> list[str]:

@@ -218,6 +218,21 @@ def test_a_data_setting_out_of_range_is_refused_before_anything_is_rendered(opti
     assert not (tmp_path / "never_rendered").exists()
 
 
+def test_a_setting_given_twice_in_one_config_is_named_with_both_lines(capsys, tmp_path, monkeypatch):
+    """YAML keeps the second of two equal keys without a word: a config edited twice ran with one of its values."""
+    monkeypatch.chdir(tmp_path)
+    twice = tmp_path / "twice.yaml"
+    twice.write_text("trainer:\n  max_steps: 3\n  devices: 1\n  max_steps: 5\n")
+    code, err = run_main(["fit", "--config", str(QUICKSTART), "--config", str(twice)], capsys)
+    assert code == 2 and f"{twice}: trainer.max_steps is set twice (lines 2 and 4)" in err, err
+    assert "fix: keep one of the two lines" in err and not (tmp_path / "outputs").exists()
+    from dapm_lightning.training.lightning_cli import repeated_key
+
+    assert repeated_key("data:\n  init_args:\n    augmentation: {hflip_p: 0.5, hflip_p: 0}\n") == (
+        "data.init_args.augmentation.hflip_p", 3, 3)
+    assert repeated_key("a: 1\nb: {a: 2}\nc:\n- {a: 1}\n- {a: 2}\n") is None  # one key per mapping
+
+
 def test_a_config_given_by_a_relative_path_in_another_folder_is_named(capsys, tmp_path, monkeypatch):
     """The parser reads a config from inside its folder: `--config in/broken.yaml` was looked for there as
     `in/in/broken.yaml`, so the YAML error lost the file's name and line, and a wrong type its `(set in FILE)`."""
