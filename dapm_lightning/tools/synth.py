@@ -117,12 +117,12 @@ def synth_main(argv: Sequence[str]) -> None:
             out = generate_uapd(args.out, train=args.train, val=args.val, size=size, seed=args.seed,
                                 workers=args.workers, families=args.families, effects=args.effects, shard=args.shard,
                                 distortion=args.distortion, max_depth=args.max_depth, progress=bar.update)
-    except SystemExit as stop:
-        if stop.code == EXIT_SIGTERM:  # synth.json may have been written just before the signal came
-            done = is_current(args.out, **chosen) and args.shard[1] == 1
-            print("\nstopped by SIGTERM: " + ("the set was complete (synth.json written)" if done else
-                                            "no synth.json written; rerun the same command to render the set"),
-                  file=sys.stderr, flush=True)
+    except (SystemExit, KeyboardInterrupt) as stop:
+        if isinstance(stop, KeyboardInterrupt) or stop.code == EXIT_SIGTERM:  # synth.json may have been written
+            done = is_current(args.out, **chosen) and args.shard[1] == 1  # just before the stop came
+            print(f"\nstopped by {'Ctrl-C' if isinstance(stop, KeyboardInterrupt) else 'SIGTERM'}: "
+                  + ("the set was complete (synth.json written)" if done else
+                     "no synth.json written; rerun the same command to render the set"), file=sys.stderr, flush=True)
         raise
     except (SynthFolderError, WriteError):
         raise  # a folder or disk problem, not a wrong option: its message and fix, without the usage

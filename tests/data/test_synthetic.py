@@ -504,3 +504,24 @@ def test_sigterm_after_the_set_is_written_says_so(tmp_path, capsys, monkeypatch)
     assert err.strip().splitlines()[-1] == "stopped by SIGTERM: the set was complete (synth.json written)"
     assert (tmp_path / "s" / "synth.json").is_file()
 
+
+
+@pytest.mark.parametrize("rendered", [True, False])
+def test_ctrl_c_says_what_state_the_set_is_in(tmp_path, capsys, monkeypatch, rendered):
+    """As SIGTERM does (before, Ctrl-C printed only `interrupted`)."""
+    import dapm_lightning.tools.synth as synth_tool
+
+    render = synth_tool.generate_uapd
+
+    def render_then_ctrl_c(*args, **kwargs):
+        if rendered:
+            render(*args, **kwargs)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(synth_tool, "generate_uapd", render_then_ctrl_c)
+    code, err = run_main(["synth", "--out", str(tmp_path / "s"), "--train", "2", "--val", "1", "--size", "16",
+                          "--workers", "1", "--quiet"], capsys)
+    assert code == 130
+    said = "the set was complete (synth.json written)" if rendered else "no synth.json written; rerun the same " \
+        "command to render the set"
+    assert f"stopped by Ctrl-C: {said}" in err, err
