@@ -26,7 +26,14 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from dapm_lightning.data.files import WRITE_ERRNOS, WriteError, check_folder_writable, write_error
+from dapm_lightning.data.files import (
+    WRITE_ERRNOS,
+    WriteError,
+    check_folder_writable,
+    make_folder,
+    remove_empty_folders,
+    write_error,
+)
 from dapm_lightning.inference.inputs import SIZE_MULTIPLE, checkpoint_network_size, network_size
 from dapm_lightning.inference.onnx import (
     CHECK_DRAW,
@@ -104,11 +111,12 @@ def export(ckpt_path: str | Path, out: Path | None = None, height: int | None = 
     start = time.perf_counter()
     metadata = {**export_metadata(module.net, module.train_image_size, ckpt_path),
                 "dapm.precision": "float16" if fp16 else "float32"}
-    float_out.parent.mkdir(parents=True, exist_ok=True)
+    created = make_folder(float_out.parent)  # removed again if nothing is kept in them (a failure, Ctrl-C)
     # written beside the target first, moved into place once checked: a failed export leaves an earlier one whole
     try:
         staging = Path(tempfile.mkdtemp(prefix=f".{float_out.name}.", dir=float_out.parent))
     except OSError as error:  # a folder that looked writable but is not (/sys): named as --out, not the staging
+        remove_empty_folders(created)
         raise _out_error(float_out, error) from error
     try:
         rows = export_onnx(module.net.eval(), staging / float_out.name, (height, width), checks=checks,
@@ -123,6 +131,7 @@ def export(ckpt_path: str | Path, out: Path | None = None, height: int | None = 
         raise _out_error(float_out, error) from error  # a full disk while exporting: --out named, not the staging
     finally:
         shutil.rmtree(staging, ignore_errors=True)
+        remove_empty_folders(created)
     names = [k for k in rows[0] if k not in ("shape", CHECK_DRAW, DEPTH_SHARE_OFF)]
     shape = "[batch, 3, height, width]" if dynamic else f"[1, 3, {height}, {width}]"
     data = weights_file(float_out)

@@ -159,6 +159,20 @@ def test_export_replaces_an_earlier_one_only_once_checked(tmp_path, capsys, monk
     assert sorted(p.name for p in tmp_path.iterdir()) == ["shipped.onnx", "shipped.onnx.data"]  # no staging left
 
 
+def test_an_export_stopped_or_refused_leaves_no_folder_it_made(tmp_path, monkeypatch):
+    """Ctrl-C during the export (or a refused one) left the new, empty --out folder behind."""
+    import dapm_lightning.tools.export as export_tool
+
+    def interrupted(net, path, size, **kwargs):
+        path.write_bytes(b"half a graph")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(export_tool, "export_onnx", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        export_tool.export(SHIPPED, tmp_path / "new" / "models" / "m.onnx", height=64, width=64)
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_a_folder_that_refuses_the_export_is_named_as_out_not_the_hidden_staging(tmp_path, capsys, monkeypatch):
     """/sys passes the writable check (root) yet refuses a folder: the message names --out, as does a disk that
     fills while exporting; the hidden staging folder beside it is not named and not left."""
