@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 import warnings
 from pathlib import Path
 
@@ -441,6 +442,18 @@ def test_angles_that_look_like_radians_are_warned_about(tmp_path, rows, warned):
     else:
         assert len(messages) == 1 and messages[0].startswith(f"{path}: {warned}"), messages
         assert "if they are radians, convert them (degrees = radians x 57.2958)" in messages[0]
+
+
+@pytest.mark.parametrize("head, kind", [(b"PK\x03\x04\x14\x00\x08\x08\xff",
+                                         "a zip archive (a PyTorch checkpoint is one)"),
+                                        (b"\x89PNG\r\n\x1a\n\x00\xff", "a PNG image")])
+def test_a_checkpoint_or_image_given_as_telemetry_says_what_it_is(tmp_path, head, kind):
+    """Before: `not UTF-8 text (byte 0x.. on line 1); save it as CSV UTF-8`, for a file that is no table at all."""
+    path = tmp_path / "given.ckpt"
+    path.write_bytes(head + bytes(range(256)))
+    with pytest.raises(TelemetryError, match=re.escape(f"{path}: {kind}, not a telemetry table; --telemetry takes a "
+                                                       "CSV with the header name,height_m,pitch_deg")):
+        read_telemetry_csv(path)
 
 
 def test_csv_duplicates(tmp_path):

@@ -109,6 +109,16 @@ def _show(t: PoseTelemetry) -> str:
     return ", ".join(f"{k}={'' if math.isnan(v) else f'{v:g}'}" for k, v in zip(POSE_FIELDS, t.values().tolist()))
 
 
+_BINARY_HEADS = ((b"PK\x03\x04", "a zip archive (a PyTorch checkpoint is one)"), (b"\x80", "a pickle (a checkpoint)"),
+                 (b"\x89PNG", "a PNG image"), (b"\xff\xd8\xff", "a JPEG image"), (b"\x08", "an ONNX model or other "
+                 "binary file"))
+
+
+def _binary_kind(data: bytes) -> str | None:
+    """What a file that is not text is, by its first bytes (a checkpoint, an image), or None."""
+    return next((kind for head, kind in _BINARY_HEADS if data.startswith(head)), None)
+
+
 def _csv_text(path: Path) -> str:
     """The file as text: UTF-8 (a byte-order mark allowed), or UTF-16 with its mark (Excel's "Unicode text")."""
     data = path.read_bytes()
@@ -117,6 +127,10 @@ def _csv_text(path: Path) -> str:
     try:
         return data.decode("utf-8-sig")
     except UnicodeDecodeError as error:
+        kind = _binary_kind(data)
+        if kind is not None:
+            raise TelemetryError(f"{path}: {kind}, not a telemetry table; --telemetry takes a CSV with the header "
+                                 "name,height_m,pitch_deg,roll_deg,fov_deg (or a video's .SRT)") from None
         line = data[:error.start].count(b"\n") + 1
         raise TelemetryError(f"{path}: not UTF-8 text (byte 0x{data[error.start]:02x} on line {line}); save it as "
                              "CSV UTF-8 (in a spreadsheet: CSV UTF-8, comma-delimited)") from None
