@@ -13,6 +13,7 @@ import inspect
 import os
 import re
 import signal
+import sys
 import threading
 from collections.abc import Iterable, Mapping
 from pathlib import Path
@@ -454,6 +455,9 @@ class CheckpointOnSigterm(L.Callback):
         checkpoint = last[0] if last else trainer.checkpoint_callback
         folder = getattr(checkpoint, "dirpath", None) or Path(trainer.default_root_dir) / "checkpoints"
         path = Path(folder) / "last.ckpt"
-        trainer.save_checkpoint(path, weights_only=False)  # the full state, said (no log line)
+        trainer.save_checkpoint(path, weights_only=False)  # the full state
         if checkpoint is not None and hasattr(checkpoint, "last_model_path"):
             checkpoint.last_model_path = str(path)
+        if trainer.is_global_zero:
+            print(f"saved {path} (step {trainer.global_step}); resume with the same command and --ckpt_path last",
+                  file=sys.stderr, flush=True)

@@ -170,6 +170,8 @@ def test_killed_and_terminated_runs_resume_to_the_uninterrupted_weights(data8, t
     code, out = finish(interrupted)
     assert code == EXIT_SIGINT == 130 and "Received SIGINT (Ctrl-C)" in out, out[-2000:]
     assert torch.load(tmp_path / "ctrl_c" / "last.ckpt", weights_only=True)["global_step"] == 6
+    assert f"saved {tmp_path / 'ctrl_c' / 'last.ckpt'} (step 6); resume with the same command and --ckpt_path " \
+        "last" in out, out[-2000:]
 
     in_validation = start(tmp_path, "termed_val", data8, extra=SCHEDULE, pause="4,val")  # after 1 of 2 val batches
     wait_for(tmp_path / "termed_val.marker", in_validation)
