@@ -332,6 +332,24 @@ def test_an_xmp_namespace_declared_twice_is_read(tmp_path):
         telemetry_from_image(jpeg(tmp_path / "clash.jpg", clash))
 
 
+def test_a_thermal_camera_s_packet_with_the_flir_namespace_is_read(tmp_path):
+    """Zenmuse XT2 / XTR: drone-dji attributes beside FLIR ones (bound to http://www.dji.com/FLIR/1.0/) and FLIR
+    elements holding rdf:Seq lists; the gimbal's angles are read, the aircraft's and the camera's FLIR values not."""
+    packet = ('<?xpacket begin="\ufeff" id="W5M0MpCehiHzreSzNTczkc9d"?>\n<x:xmpmeta xmlns:x="adobe:ns:meta/">\n'
+              '<rdf:RDF xmlns:rdf="http://www.w3.org/1999/02/22-rdf-syntax-ns#">\n<rdf:Description rdf:about=""\n'
+              'xmlns:drone-dji="http://www.dji.com/drone-dji/1.0/"\nxmlns:FLIR="http://www.dji.com/FLIR/1.0/"\n'
+              'drone-dji:AbsoluteAltitude="52.5" drone-dji:RelativeAltitude="23.400000" '
+              'drone-dji:GimbalRollDegree="0.300000" drone-dji:GimbalYawDegree="12.0" '
+              'drone-dji:GimbalPitchDegree="-61.200001" drone-dji:FlightRollDegree="-4.0" '
+              'drone-dji:FlightPitchDegree="7.5" FLIR:CentralTemperature="34" FLIR:TlinearGain="0">\n'
+              "<FLIR:BandName>\n<rdf:Seq>\n<rdf:li>LWIR</rdf:li>\n</rdf:Seq>\n</FLIR:BandName>\n"
+              "<FLIR:CentralWavelength>\n<rdf:Seq>\n<rdf:li>10000</rdf:li>\n</rdf:Seq>\n</FLIR:CentralWavelength>\n"
+              '</rdf:Description>\n</rdf:RDF>\n</x:xmpmeta>\n<?xpacket end="w"?>').encode()
+    t = telemetry_from_image(jpeg(tmp_path / "DJI_XT2.jpg", packet))
+    assert_pose(t, [23.4, -61.2, 0.3, NAN])
+    assert t.provenance[1] == "DJI_XT2.jpg XMP drone-dji:GimbalPitchDegree"
+
+
 DTD_PACKET = ('<?xml version="1.0" encoding="{enc}"?><!DOCTYPE x [<!ENTITY h "45.2">]>'
               '<x:xmpmeta xmlns:x="adobe:ns:meta/"><rdf:RDF xmlns:rdf="http://www.w3.org/1999/02/22-rdf-syntax-ns#">'
               '<rdf:Description xmlns:drone-dji="http://www.dji.com/drone-dji/1.0/" drone-dji:RelativeAltitude="&h;"/>'
