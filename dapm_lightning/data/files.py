@@ -243,9 +243,9 @@ def check_folder_writable(folder: str | Path, option: str | None = None) -> Path
     """Refuse, before any work is done, an output ``folder`` that cannot be created or written; nothing is left made.
 
     The nearest existing folder on the way must be a folder (not a file) that this process may write in (read-only
-    file systems included), and a file is made in it and removed again (a missing ``folder`` made and removed
-    too), which finds a place where even root cannot write (``/proc``, ``/sys``). Returns the folder. ``option``:
-    the setting that chose it, named in the fix.
+    file systems included), and a uniquely named folder is made in it and removed again, which finds a place where
+    even root cannot write (``/proc``, ``/sys``); ``folder`` itself is not made. Returns the folder. ``option``: the
+    setting that chose it, named in the fix.
 
     Raises:
         WriteError: naming the folder, why, and the fix.
@@ -263,20 +263,12 @@ def check_folder_writable(folder: str | Path, option: str | None = None) -> Path
     if not os.access(existing, os.W_OK | os.X_OK):
         where = "it is" if existing == folder else f"{existing} is"
         raise WriteError(folder, f"{where} read-only or not yours", fix)
-    # made and removed again (a missing folder) or a file made and removed in it: what os.access does not know
-    # (root under /proc or /sys)
-    created: list[Path] = []
+    # a uniquely named folder made and removed in the nearest existing one: what os.access does not know (root under
+    # /proc or /sys); the target itself is never made or removed, so processes checking one folder at once agree
     try:
-        created = make_folder(folder) if existing != folder else []
-        descriptor, probe = tempfile.mkstemp(prefix=_TEMP_PREFIX + "probe-", suffix=_TEMP_SUFFIX, dir=folder)
-        os.close(descriptor)
-        _remove(Path(probe))
-    except WriteError as error:
-        raise WriteError(folder, error.reason, fix) from error
+        os.rmdir(tempfile.mkdtemp(prefix=_TEMP_PREFIX + "probe-", suffix=_TEMP_SUFFIX, dir=existing))
     except OSError as error:
-        raise WriteError(folder, _reason(error), fix) from error
-    finally:
-        remove_empty_folders(created)
+        raise WriteError(folder, f"nothing can be made in {existing}: {_reason(error)}", fix) from error
     return folder
 
 

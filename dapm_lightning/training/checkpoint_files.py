@@ -148,9 +148,9 @@ def is_remote(path: str | Path) -> bool:
 
 
 def local_path(path: str | Path) -> Path:
-    """``path`` as a local :class:`~pathlib.Path` (a ``file://`` URL's path; anything else as it is)."""
+    """``path`` as a local :class:`~pathlib.Path`: a ``file://`` URL's path (``file:/x`` too), else as it is."""
     text = str(path)
-    if text.startswith("file://"):
+    if text.startswith("file:"):
         return Path(unquote(urlsplit(text).path))
     return Path(path)
 
@@ -713,9 +713,17 @@ def inference_checkpoint(checkpoint: Mapping[str, Any], dtype: torch.dtype = tor
 
     That is the weights (floating point ones as ``dtype``), the hyper-parameters (without ``init_weights``: where
     its fit started is no setting of the shipped model) and the training size.
+
+    Raises:
+        ValueError: a finite weight beyond ``dtype``'s range (float16: 65504), which would be shipped as inf.
     """
     weights = {name: value.to(dtype) if value.is_floating_point() else value
                for name, value in checkpoint["state_dict"].items()}
+    overflowed = [name for name, value in weights.items() if value.is_floating_point()
+                  and bool((torch.isinf(value) & torch.isfinite(checkpoint["state_dict"][name])).any())]
+    if overflowed:
+        raise ValueError(f"{len(overflowed)} weight tensor(s) hold values beyond {dtype}'s range "
+                         f"({some_keys(overflowed, 2)}), which would be shipped as inf; ship them as torch.float32")
     kept = {key: checkpoint[key] for key in INFERENCE_KEYS if key in checkpoint}
     if isinstance(kept.get("hyper_parameters"), Mapping):
         kept["hyper_parameters"] = {k: v for k, v in kept["hyper_parameters"].items() if k != "init_weights"}

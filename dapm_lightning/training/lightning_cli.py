@@ -644,8 +644,8 @@ class DAPMCLI(LightningCLI):
     def _check_run_folder_writable(self) -> None:
         """A run folder (``trainer.default_root_dir``) that cannot be made or written: refused before any work."""
         root = str(self.trainer.default_root_dir)
-        if not is_remote(root):
-            check_folder_writable(root, "--trainer.default_root_dir")
+        if not is_remote(root):  # Lightning writes file:///x as file:/x, a local folder too
+            check_folder_writable(local_path(root), "--trainer.default_root_dir")
 
     def before_predict(self) -> None:
         self._read_initial_weights("predict")

@@ -377,7 +377,7 @@ class DAPMModule(L.LightningModule):
         data_kind = getattr(datamodule, "depth_kind", None)
         model_kind = self.net_config.igd.depth_kind
         if data_kind is not None and data_kind != model_kind and self.net_config.use_pose:
-            fix = (f"the network of {checkpoint} was trained for {model_kind} depth and keeps it: evaluate it on "
+            fix = (f"the network of {checkpoint} was trained for {model_kind} depth and keeps it: give it data of "
                    f"{model_kind} depth (data.init_args.depth_kind: {model_kind}, if the files hold it), or train "
                    f"one with model.net.igd.depth_kind: {data_kind}" if checkpoint else
                    f"set model.net.igd.depth_kind: {data_kind} (or fix data.init_args.depth_kind)")

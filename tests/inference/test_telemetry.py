@@ -104,8 +104,12 @@ def test_a_frame_wider_than_3_2_is_cut_from_the_sensor_s_width():
     # frames up to 3:2 fill their sensor, a thermal camera's 5:4 included
     assert horizontal_fov_from_focal_35mm(24, 640, 512) == pytest.approx(
         math.degrees(2 * math.atan(43.2666 * 640 / math.hypot(640, 512) / 48)), abs=1e-3)
+    # the sensor's aspect given: a frame narrower than it is cut to its height (a 4:3 photo of a 3:2 sensor)
+    assert horizontal_fov_from_focal_35mm(24, 4864, 3648, sensor_aspect=1.5) == pytest.approx(
+        math.degrees(2 * math.atan(24 * 4 / 3 / 48)), abs=1e-3)
+    assert horizontal_fov_from_focal_35mm(24, 4000, 3000, sensor_aspect=4 / 3) == pytest.approx(FOV_24MM_4_3, abs=1e-3)
     with pytest.raises(ValueError, match="sensor_aspect"):
-        horizontal_fov_from_focal_35mm(24, 3840, 2160, sensor_aspect=16 / 9)
+        horizontal_fov_from_focal_35mm(24, 3840, 2160, sensor_aspect=0.5)
 
 
 def test_fov_from_focal_and_sensor_width():

@@ -163,3 +163,11 @@ def test_a_resumed_run_does_not_read_init_weights(checkpoint, tiny_uapd, tmp_pat
     init.unlink()
     resumed = _fit_from(init, tiny_uapd, run, "--trainer.max_steps", "2", "--ckpt_path", str(last))
     assert resumed.trainer.global_step == 2
+
+
+def test_a_weight_beyond_float16_is_refused_not_shipped_as_inf():
+    """Before, it was converted to inf and the shipped model was then refused as one of a diverged training."""
+    state = {"net.a": torch.tensor([1.0, 7e4]), "net.b": torch.ones(2), "net.steps": torch.tensor(3)}
+    with pytest.raises(ValueError, match=r"1 weight tensor\(s\) hold values beyond torch.float16's range \('net.a'\)"):
+        inference_checkpoint({"state_dict": state})
+    assert inference_checkpoint({"state_dict": state}, torch.float32)["state_dict"]["net.a"][1] == 7e4

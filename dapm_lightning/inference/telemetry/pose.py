@@ -153,40 +153,49 @@ class PoseTelemetry:
 
 
 CROP_SENSOR_ASPECT: float = 4.0 / 3.0
-"""The sensor a frame wider than 3:2 is cut from, for :func:`horizontal_fov_from_focal_35mm`: 4:3, DJI's Mini, Air,
-Mavic 3 and Mavic Pro lines (the Phantom 4 Pro, Mavic 2 Pro and Air 2S have 3:2 sensors: pass 1.5)."""
+"""The sensor a frame wider than 3:2 is taken to be cut from when :func:`horizontal_fov_from_focal_35mm` is not told
+the sensor's aspect: 4:3, DJI's Mini, Air, Mavic 3 and Mavic Pro lines (the Phantom 4 Pro, Mavic 2 Pro and Air 2S
+have 3:2 sensors)."""
 WIDEST_SENSOR_ASPECT: float = 1.5
-"""Frames at most this wide (4:3, 3:2, a thermal camera's 5:4) fill their sensor; wider ones (16:9 video) are crops."""
+"""Frames at most this wide (4:3, 3:2, a thermal camera's 5:4) are taken to fill their sensor; wider ones (16:9
+video) to be crops, when the sensor's aspect is not known."""
 
 
 def horizontal_fov_from_focal_35mm(f35_mm: float, width: int, height: int,
-                                   sensor_aspect: float = CROP_SENSOR_ASPECT) -> float:
+                                   sensor_aspect: float | None = None) -> float:
     """Horizontal FoV (degrees) of a ``width`` x ``height`` image from its 35-mm-equivalent focal length.
 
     The 35 mm equivalent is that of the whole sensor: its diagonal is equated with a 36 x 24 mm frame's 43.27 mm
-    (CIPA / Exif practice). An image of the sensor's aspect, at most 3:2 (4:3, 3:2, 5:4), covers the whole sensor,
-    so its width is ``43.27 * W / sqrt(W^2 + H^2)`` mm and ``fov = 2 * atan(that / (2 * f35))``: exactly 36 mm on
-    3:2; 24 mm on a 4000 x 3000 image gives 2 * atan(34.62 / 48) = 71.6 degrees. A wider frame (16:9 video, a
-    16:9 photo mode) is cut from the full width of a ``sensor_aspect`` sensor, which DJI quotes the same focal
-    length for (``focal_len: 24`` in a 4K video's SRT, 24 in its photos' EXIF): its long side spans
-    ``43.27 * a / sqrt(a^2 + 1)`` mm, 34.62 mm on 4:3, so 3840 x 2160 at 24 mm is 71.6 degrees wide, as the
-    photos are (taking the 16:9 frame's own diagonal for 43.27 mm gave 76.3).
+    (CIPA / Exif practice), and DJI quotes the same focal length for every frame it cuts from it (``focal_len: 24``
+    in a 4K video's SRT, 24 in its photos' EXIF). An image of the sensor's aspect covers it whole, so its width is
+    ``43.27 * W / sqrt(W^2 + H^2)`` mm and ``fov = 2 * atan(that / (2 * f35))``: exactly 36 mm on 3:2; 24 mm on a
+    4000 x 3000 image gives 2 * atan(34.62 / 48) = 71.6 degrees. A frame wider than the sensor spans its width
+    (``43.27 * a / sqrt(a^2 + 1)`` mm for aspect ``a``), a narrower one its height.
+
+    ``sensor_aspect``: the sensor's width over its height (long side over short side), when known. Without it, an
+    image at most 3:2 wide (4:3, 3:2, 5:4) is taken to fill its sensor and a wider one (16:9 video, a 16:9 photo
+    mode) to be cut from the full width of a :data:`CROP_SENSOR_ASPECT` (4:3) sensor: 3840 x 2160 at 24 mm is
+    71.6 degrees wide, as the photos are (taking the 16:9 frame's own diagonal for 43.27 mm gave 76.3).
     """
-    f35, w, h, a = float(f35_mm), float(width), float(height), float(sensor_aspect)
+    f35, w, h = float(f35_mm), float(width), float(height)
     if not (math.isfinite(f35) and f35 > 0):
         raise ValueError(f"35-mm-equivalent focal length must be a positive number of mm, got {f35_mm!r}")
     if not (math.isfinite(w) and math.isfinite(h) and w > 0 and h > 0):
         raise ValueError(f"image size must be positive, got width={width!r} height={height!r}")
-    if not (math.isfinite(a) and 1.0 <= a <= WIDEST_SENSOR_ASPECT):
-        raise ValueError(f"sensor_aspect must be from 1 to {WIDEST_SENSOR_ASPECT:g} (4:3 = 1.333), got "
-                         f"{sensor_aspect!r}")
     long_side, short_side = max(w, h), min(w, h)
-    if long_side / short_side <= WIDEST_SENSOR_ASPECT + 1e-3:  # the whole sensor (3:2 written as 5472 x 3648)
-        width_mm = FULL_FRAME_DIAGONAL_MM * w / math.hypot(w, h)
-    else:  # cut from the sensor's full long side
-        long_mm = FULL_FRAME_DIAGONAL_MM * a / math.hypot(a, 1.0)
-        width_mm = long_mm * (w / long_side)
-    return math.degrees(2.0 * math.atan(width_mm / (2.0 * f35)))
+    frame = long_side / short_side
+    if sensor_aspect is None:
+        if frame <= WIDEST_SENSOR_ASPECT + 1e-3:  # the whole sensor (3:2 written as 5472 x 3648)
+            return math.degrees(2.0 * math.atan(FULL_FRAME_DIAGONAL_MM * w / math.hypot(w, h) / (2.0 * f35)))
+        sensor = CROP_SENSOR_ASPECT
+    else:
+        sensor = float(sensor_aspect)
+        if not (math.isfinite(sensor) and 1.0 <= sensor <= 3.0):
+            raise ValueError(f"sensor_aspect must be the sensor's long side over its short side, from 1 to 3 "
+                             f"(4:3 = 1.333), got {sensor_aspect!r}")
+    sensor_long = FULL_FRAME_DIAGONAL_MM * sensor / math.hypot(sensor, 1.0)
+    long_mm = sensor_long if frame >= sensor else sensor_long / sensor * frame  # its width, or cut to its height
+    return math.degrees(2.0 * math.atan(long_mm * (w / long_side) / (2.0 * f35)))
 
 
 def horizontal_fov_from_focal(focal_mm: float, sensor_width_mm: float) -> float:
