@@ -185,7 +185,9 @@ def test_a_folder_that_refuses_the_export_is_named_as_out_not_the_hidden_staging
     def refuse(*args, **kwargs):
         raise PermissionError(errno.EPERM, "Operation not permitted", str(tmp_path / ".dapm.onnx.x1y2z3"))
 
-    monkeypatch.setattr(export_tool.tempfile, "mkdtemp", refuse)
+    from types import SimpleNamespace
+
+    monkeypatch.setattr(export_tool, "tempfile", SimpleNamespace(mkdtemp=refuse))  # the staging only, not the check
     with pytest.raises(SystemExit) as info:
         main(["export", str(SHIPPED), "--out", str(out)])
     err = capsys.readouterr().err
