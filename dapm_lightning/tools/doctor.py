@@ -17,7 +17,6 @@ means --max_depth metres: by default the max_depth that ROOT/synth.json records 
 from __future__ import annotations
 
 import math
-import os
 import sys
 import warnings
 from collections.abc import Iterator, Sequence
@@ -463,11 +462,8 @@ def _unwritable_report(path: Path) -> str | None:
     """Why the JSON report could not be written to ``path`` (checked before the scan), or None."""
     if path.is_dir():
         return f"--json {path} is a folder (give the report's file, e.g. {path / 'doctor.json'})"
-    folder = next((p for p in (path.parent, *path.parent.parents) if p.exists()), Path.cwd())
-    if not folder.is_dir() or not os.access(folder, os.W_OK | os.X_OK):
-        return f"--json {path}: {folder} cannot be written (give a file in a folder you can write)"
     try:
-        check_folder_writable(path.parent, "--json")  # what os.access does not know (root under /proc)
+        check_folder_writable(path.parent, "--json")
     except WriteError as error:
         return f"--json {path}: {error.path} cannot be written ({error.reason}; give a file in a folder you can write)"
     return None

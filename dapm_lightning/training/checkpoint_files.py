@@ -585,8 +585,9 @@ def read_checkpoint(path: str | Path, map_location: Any = "cpu") -> dict[str, An
         raise CheckpointReadError(f"{path}: not a readable checkpoint ({what})", fix) from error
 
 
-_IMAGE_HEADS = {b"\x89PNG": "a PNG image", b"\xff\xd8\xff": "a JPEG image", b"GIF8": "a GIF image",
-                b"II*\x00": "a TIFF image", b"MM\x00*": "a TIFF image"}
+IMAGE_HEADS = {b"\x89PNG": "a PNG image", b"\xff\xd8\xff": "a JPEG image", b"GIF8": "a GIF image",
+               b"II*\x00": "a TIFF image", b"MM\x00*": "a TIFF image"}
+"""The first bytes of image files, with what each is: named where an image is given for a checkpoint or a table."""
 _SETTINGS = re.compile(r"^(?:trainer|model|data|ckpt_path|seed_everything)\s*:", re.MULTILINE)
 
 
@@ -613,7 +614,7 @@ def _unloadable(path: str | Path, source: Path | bytes, error: BaseException) ->
         text = codecs.getincrementaldecoder("utf-8")().decode(head)  # a character cut at the end is no error
     except UnicodeDecodeError:
         text = "\x00"
-    image = next((kind for start, kind in _IMAGE_HEADS.items() if head.startswith(start)), None)
+    image = next((kind for start, kind in IMAGE_HEADS.items() if head.startswith(start)), None)
     fix = NOT_A_CHECKPOINT_FIX
     if zipped:
         kind = "a zip archive without the data.pkl of a PyTorch checkpoint"

@@ -22,6 +22,7 @@ from dapm_lightning.inference.telemetry.pose import (
     TelemetryWarning,
     limit_error,
 )
+from dapm_lightning.training.checkpoint_files import IMAGE_HEADS, looks_like_onnx
 
 CSV_COLUMNS: tuple[str, ...] = ("name", *POSE_FIELDS)
 """The telemetry CSV's header; only ``name`` is required, a missing value column means unknown."""
@@ -109,14 +110,15 @@ def _show(t: PoseTelemetry) -> str:
     return ", ".join(f"{k}={'' if math.isnan(v) else f'{v:g}'}" for k, v in zip(POSE_FIELDS, t.values().tolist()))
 
 
-_BINARY_HEADS = ((b"PK\x03\x04", "a zip archive (a PyTorch checkpoint is one)"), (b"\x80", "a pickle (a checkpoint)"),
-                 (b"\x89PNG", "a PNG image"), (b"\xff\xd8\xff", "a JPEG image"), (b"\x08", "an ONNX model or other "
-                 "binary file"))
+_BINARY_HEADS = {b"PK\x03\x04": "a zip archive (a PyTorch checkpoint is one)", b"\x80": "a pickle (a checkpoint)",
+                 **IMAGE_HEADS}
 
 
 def _binary_kind(data: bytes) -> str | None:
-    """What a file that is not text is, by its first bytes (a checkpoint, an image), or None."""
-    return next((kind for head, kind in _BINARY_HEADS if data.startswith(head)), None)
+    """What a file that is not text is, by its first bytes (a checkpoint, an image, an ONNX model), or None."""
+    if looks_like_onnx(data[:16]):
+        return "an ONNX model"
+    return next((kind for head, kind in _BINARY_HEADS.items() if data.startswith(head)), None)
 
 
 def _csv_text(path: Path) -> str:
