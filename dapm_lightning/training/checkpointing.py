@@ -24,6 +24,7 @@ import lightning as L
 from lightning.fabric.plugins.environments.lightning import LightningEnvironment
 from lightning.fabric.plugins.io.checkpoint_io import CheckpointIO
 from lightning.fabric.plugins.io.torch_io import TorchCheckpointIO
+from lightning.fabric.utilities.cloud_io import get_filesystem
 from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.plugins.io.wrapper import _WrappingCheckpointIO
 from lightning.pytorch.trainer.states import TrainerFn
@@ -288,6 +289,30 @@ def best_or_last_checkpoint(trainer: L.Trainer) -> str:
     last = [cb.best_model_path for cb in callbacks if isinstance(cb, LastCheckpoint)]  # its one file
     last += [cb.last_model_path for cb in callbacks]  # a user's ModelCheckpoint(save_last=True)
     return next((path for path in best + last if path and Path(path).is_file()), "")
+
+
+def fit_checkpoints_summary(trainer: L.Trainer) -> list[tuple[str, str]]:
+    """What a finished fit saved: (what it is, path) for every best checkpoint, with its score, then ``last.ckpt``.
+
+    Only files that are there are named (saves are atomic: a file there is whole); [] when there are none.
+    """
+    saved: list[tuple[str, str]] = []
+
+    def there(path: str) -> bool:
+        return bool(path) and path not in {each for _, each in saved} and get_filesystem(path).isfile(path)
+
+    for callback in trainer.checkpoint_callbacks:
+        if not isinstance(callback, ModelCheckpoint):
+            continue
+        path = callback.best_model_path
+        if callback.monitor is not None and there(path):
+            score = callback.best_model_score
+            shown = f"{callback.monitor} {float(score):.4g}" if score is not None else callback.monitor
+            saved.append((f"best checkpoint ({shown})", path))
+        last = path if isinstance(callback, LastCheckpoint) else callback.last_model_path
+        if there(last):
+            saved.append((f"last checkpoint (step {trainer.global_step})", last))
+    return saved
 
 
 def _last_files(roots: Iterable[str | Path]) -> list[Path]:

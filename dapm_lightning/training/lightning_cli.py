@@ -17,6 +17,7 @@ import torch
 import yaml
 from lightning.pytorch.callbacks import DeviceStatsMonitor, LearningRateMonitor
 from lightning.pytorch.cli import LightningArgumentParser, LightningCLI, SaveConfigCallback
+from lightning.pytorch.trainer.states import TrainerStatus
 from lightning.pytorch.utilities import rank_zero_info, rank_zero_only
 
 from dapm_lightning.data.datamodules import DAPMDataModule
@@ -38,6 +39,7 @@ from dapm_lightning.training.checkpoint_files import (
 from dapm_lightning.training.checkpointing import (
     enforce_safe_checkpoint_io,
     find_last_checkpoint,
+    fit_checkpoints_summary,
     resolve_last_checkpoint,
 )
 from dapm_lightning.training.module import DAPMModule
@@ -594,6 +596,20 @@ class DAPMCLI(LightningCLI):
         if isinstance(model, DAPMModule) and model.init_weights is not None and not resumes:
             model.load_initial_weights()
         self._read_data_early("fit")
+
+    def after_fit(self) -> None:
+        """A fit that finished names what it saved, and how to evaluate it (the first process only)."""
+        trainer = self.trainer
+        if not trainer.is_global_zero or trainer.state.status != TrainerStatus.FINISHED:
+            return
+        saved = fit_checkpoints_summary(trainer)
+        if not saved:
+            return
+        config = next((os.path.join(trainer.log_dir or "", callback.config_filename) for callback in trainer.callbacks
+                       if isinstance(callback, SaveConfigOfRun)), "")
+        config = config if os.path.isfile(config) else "CONFIG"  # the run's own config.yaml, which test can read
+        print("\n".join([f"fit finished at step {trainer.global_step}.", *(f"{what}: {path}" for what, path in saved),
+                         f"evaluate it: dapm-lightning test --config {config} --ckpt_path {saved[0][1]}"]), flush=True)
 
     def _refuse_writing_over_a_run(self) -> None:
         """A new ``fit`` whose checkpoint folders hold an earlier run's checkpoints: refused.

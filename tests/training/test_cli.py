@@ -66,7 +66,7 @@ def test_potsdam_config_trains_depth_only(tiny_potsdam, tmp_path, monkeypatch):
     assert len(dm.datasets["val"]) == 2 and not set(dm.datasets["train"].names) & set(dm.datasets["val"].names)
 
 
-def test_quickstart_config_fit_test_and_outputs(tiny_uapd, tmp_path, monkeypatch):
+def test_quickstart_config_fit_test_and_outputs(tiny_uapd, tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
     common = ["--config", str(QUICKSTART), "--data.class_path",
               "dapm_lightning.data.datamodules.UAPDDataModule", "--data.init_args.root", str(tiny_uapd),
@@ -74,6 +74,14 @@ def test_quickstart_config_fit_test_and_outputs(tiny_uapd, tmp_path, monkeypatch
     run_lightning_cli(["fit", *common, "--trainer.max_epochs", "1", "--trainer.limit_train_batches", "2"])
     last = find_last_checkpoint([tmp_path / "outputs"])
     assert last is not None and torch.load(last, weights_only=True)["global_step"] == 2
+    said = capsys.readouterr().out  # the fit's closing lines name the files it saved, each there
+    named = dict(line.split(": ", 1) for line in said.splitlines() if line.endswith(".ckpt"))
+    best = next(path for what, path in named.items() if what.startswith("best checkpoint (val_"))
+    assert Path(named["last checkpoint (step 2)"]).resolve() == last.resolve() and Path(best).is_file()
+    evaluate = next(line for line in said.splitlines() if line.startswith("evaluate it: "))
+    assert evaluate.endswith(f"--ckpt_path {best}")
+    run_config = evaluate.split("--config ", 1)[1].split(" --ckpt_path")[0]  # the run's saved config.yaml
+    assert Path(run_config).resolve() == last.resolve().parents[1] / "config.yaml"
     test = run_lightning_cli(["test", *common, "--ckpt_path", "last"])  # found in the fit's log version
     assert Path(test.trainer.ckpt_path).resolve() == last.resolve()
     metrics = test.trainer.callback_metrics
