@@ -525,3 +525,22 @@ def test_ctrl_c_says_what_state_the_set_is_in(tmp_path, capsys, monkeypatch, ren
     said = "the set was complete (synth.json written)" if rendered else "no synth.json written; rerun the same " \
         "command to render the set"
     assert f"stopped by Ctrl-C: {said}" in err, err
+
+
+@pytest.mark.parametrize("existed", [False, True])
+def test_a_render_stopped_before_its_first_image_leaves_no_empty_folder_it_made(tmp_path, monkeypatch, existed):
+    """A stop during the first image: the folders this render made are removed again (before: an empty train/rgb
+    and its siblings were left); a folder that was there before is kept, and so is anything in it."""
+    import dapm_lightning.data.synthetic.generate as generate
+
+    def stopped(job):
+        raise KeyboardInterrupt
+
+    out = tmp_path / "s"
+    if existed:
+        (out / "train").mkdir(parents=True)
+    monkeypatch.setattr(generate, "_render_one", stopped)
+    with pytest.raises(KeyboardInterrupt):
+        generate_uapd(out, train=2, val=1, size=16, workers=1)
+    assert sorted(p.relative_to(tmp_path).as_posix() for p in tmp_path.rglob("*")) == (
+        ["s", "s/train"] if existed else [])

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import multiprocessing
 import os
@@ -239,8 +240,27 @@ def generate_uapd(out: str | Path, *, train: int = 200, val: int = 50, size: int
         for folder in _image_folders(out):
             for path in folder.glob("synth_*.png"):
                 path.unlink(missing_ok=True)  # each node of a multi-node run replaces a shared folder's set at once
+    new_folders = [folder for folder in (out, out / "train", out / "val", *_image_folders(out)) if not folder.exists()]
     for folder in _image_folders(out):
         folder.mkdir(parents=True, exist_ok=True)
+    try:
+        _render_jobs(jobs, workers, out, shard, progress)
+    except BaseException:  # a stop before the set is whole: no empty folder of this run left (a shard's may be shared)
+        if shard[1] == 1:
+            for folder in reversed(new_folders):
+                with contextlib.suppress(OSError):
+                    folder.rmdir()  # only when empty
+        raise
+    # last, so that a crashed run is not "current"; atomically, as shards of an array job finish side by side
+    partial = out / f".synth.json.{os.getpid()}"
+    partial.write_text(json.dumps({**info, "cache": True} if cache else info, indent=2) + "\n")
+    os.replace(partial, out / "synth.json")
+    return out
+
+
+def _render_jobs(jobs: list[tuple], workers: int | None, out: Path, shard: tuple[int, int],
+                 progress: Callable[[int], object] | None) -> None:
+    """Render and write ``jobs`` in ``workers`` processes (one: in this one), telling ``progress`` of each image."""
     workers = workers or min(os.cpu_count() or 1, 8)
     if workers > 1 and len(jobs) > 1:
         saved = {k: os.environ.get(k) for k in _THREAD_VARS}
@@ -270,8 +290,3 @@ def generate_uapd(out: str | Path, *, train: int = 200, val: int = 50, size: int
             _render_one(job)
             if progress is not None:
                 progress(1)
-    # last, so that a crashed run is not "current"; atomically, as shards of an array job finish side by side
-    partial = out / f".synth.json.{os.getpid()}"
-    partial.write_text(json.dumps({**info, "cache": True} if cache else info, indent=2) + "\n")
-    os.replace(partial, out / "synth.json")
-    return out
