@@ -566,6 +566,11 @@ class DAPMModule(L.LightningModule):
             self.nonfinite_steps = int(checkpoint.get("dapm_nonfinite_steps", 0))  # "N so far" counts the whole run
             roots = [self.trainer.default_root_dir, *(getattr(log, "save_dir", None) for log in self.trainer.loggers)]
             keep_checkpoint_rankings(checkpoint, self.trainer.checkpoint_callbacks, roots)
+        else:  # validate, test, predict save no checkpoint: the fit's rankings are not restored (nor warned about)
+            states = checkpoint.get("callbacks") or {}
+            for callback in self.trainer.checkpoint_callbacks:
+                for key in (getattr(callback, "state_key", None), getattr(callback, "_legacy_state_key", None)):
+                    states.pop(key, None)
         per_rank = checkpoint.get("dapm_rng_states_per_rank")
         if per_rank is not None:  # saved under DDP: [world size, ...] per state
             saved_ranks = per_rank["torch"].shape[0]
