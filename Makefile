@@ -37,6 +37,7 @@ bench: $(STAMP)
 	$(BIN)/python -m benchmarks.bench
 	$(BIN)/python -m benchmarks.bench_synth speed
 	$(BIN)/python -m benchmarks.bench_predict speed --rounds 3
+	$(BIN)/python -m benchmarks.bench_fit_memory
 	@if [ -n "$(INT8_CKPT)" ]; then $(BIN)/python -m benchmarks.bench_predict int8 --ckpt_path "$(INT8_CKPT)"; \
 	else echo "bench_predict int8: no trained checkpoint in $(OUT) (make demo, or INT8_CKPT=FILE)"; fi
 

@@ -1,6 +1,7 @@
 """Lightning callbacks the benchmarks measure with.
 
-Step times and losses, loader stalls, peak memory, channels-last training, resident memory while predicting.
+Step times and losses, loader stalls, peak memory, channels-last training, resident memory while predicting and
+over a long fit (its loader workers too).
 Every benchmark that trains runs ``DAPMModule`` in a Lightning ``Trainer`` and measures it with these.
 """
 
@@ -181,5 +182,59 @@ class MemoryProbe(Callback):
                   flush=True)
 
 
-__all__ = ["ChannelsLast", "LoaderStall", "MemoryProbe", "PeakMemory", "StepTimer", "current_rss_mb", "peak_memory_mb",
-           "peak_rss_mb", "reset_peak_memory", "sync"]
+def descendant_pids(pid: int | str = "self") -> list[int]:
+    """The live processes started by ``pid`` or by those (Linux ``/proc``; [] elsewhere).
+
+    A fit's loader workers are among them: started by the forkserver the fit started, or by the fit itself.
+    """
+    found: list[int] = []
+    parents = [pid]
+    while parents:
+        children = []
+        for task in (task for parent in parents for task in Path(f"/proc/{parent}/task").glob("*")):
+            try:
+                children += [int(each) for each in (task / "children").read_text().split()]
+            except OSError:  # a thread or process that ended, or a kernel without the file
+                continue
+        parents = sorted(set(children) - set(found))
+        found += parents
+    return sorted(found)
+
+
+def proportional_mb(pid: int) -> float:
+    """A process's proportional set size (MiB: its private pages, and its share of those it shares), else its RSS.
+
+    0 when it has ended.
+    """
+    for name, field in (("smaps_rollup", "Pss:"), ("status", "VmRSS:")):
+        try:
+            for line in Path(f"/proc/{pid}/{name}").read_text().splitlines():
+                if line.startswith(field):
+                    return int(line.split()[1]) / 1024
+        except OSError:
+            continue
+    return 0.0
+
+
+class FitMemoryProbe(Callback):
+    """Memory after each training epoch (its validation and checkpoints done), in ``samples``.
+
+    Each sample: the epoch, the step, this process's RSS and the PSS of the processes it started (the loader workers,
+    their forkserver), MiB. ``worker_sets``: the sets of those processes seen, in order (one set: persistent workers).
+    """
+
+    def __init__(self) -> None:
+        self.samples: list[dict[str, Any]] = []
+        self.worker_sets: list[tuple[int, ...]] = []
+
+    def on_train_epoch_end(self, trainer: Any, pl_module: Any) -> None:
+        workers = tuple(descendant_pids())
+        if not self.worker_sets or self.worker_sets[-1] != workers:
+            self.worker_sets.append(workers)
+        self.samples.append({"epoch": trainer.current_epoch, "step": trainer.global_step,
+                             "main_mb": current_rss_mb(), "workers_mb": sum(map(proportional_mb, workers)),
+                             "workers": len(workers)})
+
+
+__all__ = ["ChannelsLast", "FitMemoryProbe", "LoaderStall", "MemoryProbe", "PeakMemory", "StepTimer", "current_rss_mb",
+           "descendant_pids", "peak_memory_mb", "peak_rss_mb", "proportional_mb", "reset_peak_memory", "sync"]

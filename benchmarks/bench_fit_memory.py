@@ -1,0 +1,123 @@
+"""Memory of a long ``fit``: does the training process, or its loader workers, grow with the steps?
+
+``python -m benchmarks.bench_fit_memory``: the quickstart recipe (``dapm_lightning/configs/quickstart.yaml``: its
+callbacks, loggers, checkpoints, validation every epoch) on a small synthetic set at 32², with persistent loader
+workers, for many short epochs. After each epoch (its validation and checkpoints included) it prints the training
+process's resident memory and its loader workers' proportional share (PSS: pages they share are counted once), and
+whether the workers are the ones of the first epoch. The growth is how fast the median memory of each quarter of
+the epochs after the warm-up rises from the third quarter to the last, in MiB per 1,000 steps, projected
+to the paper's 32,000 steps: a leak (a tensor kept by a metric or a callback, a list a worker fills) keeps raising it
+there, where what settles has stopped. Figures vary between machines; compare them within one run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import statistics
+import tempfile
+import warnings
+from pathlib import Path
+from typing import Any
+
+import dapm_lightning
+from benchmarks.callbacks import FitMemoryProbe
+
+QUICKSTART = Path(dapm_lightning.__file__).resolve().parent / "configs" / "quickstart.yaml"
+PAPER_STEPS = 32_000
+"""The paper's training length (iterations), to which the growth is projected."""
+FLAT_MIB_PER_1000_STEPS = 2.0
+"""Growth below this per 1,000 steps (64 MiB over the paper's 32,000) is reported as flat."""
+
+
+def quarter_floors(samples: list[dict[str, Any]], key: str, warmup: int) -> list[tuple[float, float]]:
+    """``(mean step, median value)`` of ``key`` in each quarter of the samples after the first ``warmup``.
+
+    The median: what the allocator holds or gives back for a moment (a checkpoint's buffers, a trimmed arena) moves
+    a few samples and not the median, while a leak lifts every sample after it. [] with fewer than four samples
+    after the warm-up.
+    """
+    settled = samples[warmup:]
+    if len(settled) < 4:
+        return []
+    bounds = [round(i * len(settled) / 4) for i in range(5)]
+    quarters = [settled[a:b] for a, b in zip(bounds, bounds[1:])]
+    return [(sum(row["step"] for row in rows) / len(rows), statistics.median(row[key] for row in rows))
+            for rows in quarters]
+
+
+def growth_per_1000_steps(samples: list[dict[str, Any]], key: str, warmup: int) -> float:
+    """How fast the median of ``key`` (MiB) rises at the end: from the third quarter's to the last's, per 1,000 steps.
+
+    A leak keeps raising it there; what settles (the allocator's first arenas, the workers' pages copied as they are
+    written) has stopped. NaN with fewer than four samples after the warm-up.
+    """
+    floors = quarter_floors(samples, key, warmup)
+    if not floors or floors[3][0] == floors[2][0]:
+        return float("nan")
+    return 1000 * (floors[3][1] - floors[2][1]) / (floors[3][0] - floors[2][0])
+
+
+def run(epochs: int = 60, train: int = 64, val: int = 16, size: int = 32, batch: int = 4, workers: int = 2,
+        warmup: int = 5, root: str | None = None) -> FitMemoryProbe:
+    """Fit the quickstart recipe for ``epochs`` epochs of ``train // batch`` steps; print its memory (:func:`report`).
+
+    ``workers`` persistent loader workers (0: loading in this process); the synthetic set is rendered into a
+    temporary folder, or read from ``root``.
+    """
+    from dapm_lightning.training.lightning_cli import run_lightning_cli
+
+    warnings.filterwarnings("ignore", message="LightningCLI's args parameter")  # the CLI called from Python
+    with tempfile.TemporaryDirectory() as folder:
+        cli = run_lightning_cli([
+            "fit", "--config", str(QUICKSTART), "--trainer.default_root_dir", str(Path(folder) / "run"),
+            "--trainer.max_epochs", str(epochs), "--trainer.enable_progress_bar", "false",
+            "--trainer.enable_model_summary", "false", "--trainer.callbacks+=benchmarks.callbacks.FitMemoryProbe",
+            "--data.init_args.root", root or str(Path(folder) / "data"), "--data.init_args.train_size", str(train),
+            "--data.init_args.val_size", str(val), "--data.init_args.image_size", str(size),
+            "--data.init_args.batch_size", str(batch), "--data.init_args.num_workers", str(workers),
+            "--data.init_args.persistent_workers", "true"])
+        probe = next(c for c in cli.trainer.callbacks if isinstance(c, FitMemoryProbe))
+    report(probe, warmup)
+    return probe
+
+
+def report(probe: FitMemoryProbe, warmup: int) -> None:
+    """Print the samples every few epochs, the growth after ``warmup`` epochs and its projection."""
+    samples = probe.samples
+    shown = sorted({0, *range(warmup - 1, len(samples), max(1, len(samples) // 8)), len(samples) - 1})
+    print(f"{'epoch':>6}{'step':>7}{'main RSS MiB':>14}{'workers PSS MiB':>17}{'workers':>9}")
+    for i in (i for i in shown if 0 <= i < len(samples)):
+        row = samples[i]
+        print(f"{row['epoch']:>6}{row['step']:>7}{row['main_mb']:>14.1f}{row['workers_mb']:>17.1f}{row['workers']:>9}")
+    restarted = len(probe.worker_sets) - 1
+    print(f"loader workers replaced {restarted} time(s) over {len(samples)} epochs"
+          + (" (persistent: the same processes throughout)" if restarted == 0 else ""))
+    for key, what in (("main_mb", "training process"), ("workers_mb", "loader workers")):
+        floors = quarter_floors(samples, key, warmup)
+        slope = growth_per_1000_steps(samples, key, warmup)
+        verdict = "too few epochs to tell" if math.isnan(slope) else \
+            "flat" if abs(slope) < FLAT_MIB_PER_1000_STEPS else "GROWS"
+        print(f"{what}: median MiB in each quarter after epoch {warmup}: "
+              f"{', '.join(f'{floor:.1f}' for _, floor in floors) or '-'}; {slope:+.2f} MiB per 1000 steps in the "
+              f"last ({verdict}; {slope * PAPER_STEPS / 1000:+.0f} MiB over the paper's {PAPER_STEPS} steps)")
+
+
+def main(argv: list[str] | None = None) -> None:
+    """``python -m benchmarks.bench_fit_memory [--epochs N ...]``."""
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--epochs", type=int, default=60)
+    parser.add_argument("--train", type=int, default=64, help="training images (steps per epoch: train // batch)")
+    parser.add_argument("--val", type=int, default=16)
+    parser.add_argument("--size", type=int, default=32)
+    parser.add_argument("--batch", type=int, default=4)
+    parser.add_argument("--workers", type=int, default=2, help="persistent loader workers (0: none)")
+    parser.add_argument("--warmup", type=int, default=5, help="epochs left out of the growth (allocator warm-up)")
+    args = parser.parse_args(argv)
+    if args.epochs < args.warmup + 4:  # a sample, at least, in each quarter after the warm-up
+        parser.error(f"--epochs must exceed --warmup by at least 4 (got {args.epochs} and {args.warmup})")
+    run(args.epochs, args.train, args.val, args.size, args.batch, args.workers, args.warmup)
+
+
+if __name__ == "__main__":
+    main()
