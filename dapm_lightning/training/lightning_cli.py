@@ -605,7 +605,10 @@ class DAPMCLI(LightningCLI):
         saved = fit_checkpoints_summary(trainer)
         if not saved:
             return
-        config = next((os.path.join(trainer.log_dir or "", callback.config_filename) for callback in trainer.callbacks
+        # trainer.log_dir without its broadcast, a collective the other processes would not join here
+        logger = trainer.loggers[0] if trainer.loggers else None
+        log_dir = trainer.default_root_dir if logger is None else getattr(logger, "log_dir", None) or logger.save_dir
+        config = next((os.path.join(str(log_dir or ""), callback.config_filename) for callback in trainer.callbacks
                        if isinstance(callback, SaveConfigOfRun)), "")
         config = config if os.path.isfile(config) else "CONFIG"  # the run's own config.yaml, which test can read
         print("\n".join([f"fit finished at step {trainer.global_step}.", *(f"{what}: {path}" for what, path in saved),
