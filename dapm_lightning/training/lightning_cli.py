@@ -608,7 +608,8 @@ class DAPMCLI(LightningCLI):
         # trainer.log_dir without its broadcast, a collective the other processes would not join here
         logger = trainer.loggers[0] if trainer.loggers else None
         log_dir = trainer.default_root_dir if logger is None else getattr(logger, "log_dir", None) or logger.save_dir
-        config = next((os.path.join(str(log_dir or ""), callback.config_filename) for callback in trainer.callbacks
+        callbacks: list[L.Callback] = getattr(trainer, "callbacks", [])  # set by Lightning's connector
+        config = next((os.path.join(str(log_dir or ""), callback.config_filename) for callback in callbacks
                        if isinstance(callback, SaveConfigOfRun)), "")
         config = config if os.path.isfile(config) else "CONFIG"  # the run's own config.yaml, which test can read
         print("\n".join([f"fit finished at step {trainer.global_step}.", *(f"{what}: {path}" for what, path in saved),
