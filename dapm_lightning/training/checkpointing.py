@@ -284,35 +284,34 @@ class LastCheckpoint(ModelCheckpoint):
 
 def best_or_last_checkpoint(trainer: L.Trainer) -> str:
     """The path of the best checkpoint of a finished fit, else its ``last.ckpt`` ("" when neither exists)."""
-    callbacks = [cb for cb in trainer.checkpoint_callbacks if isinstance(cb, ModelCheckpoint)]
-    best = [cb.best_model_path for cb in callbacks if cb.monitor is not None]
-    last = [cb.best_model_path for cb in callbacks if isinstance(cb, LastCheckpoint)]  # its one file
-    last += [cb.last_model_path for cb in callbacks]  # a user's ModelCheckpoint(save_last=True)
-    return next((path for path in best + last if path and Path(path).is_file()), "")
+    saved = fit_checkpoints_summary(trainer)
+    return saved[0][1] if saved else ""
 
 
 def fit_checkpoints_summary(trainer: L.Trainer) -> list[tuple[str, str]]:
     """What a finished fit saved: (what it is, path) for every best checkpoint, with its score, then ``last.ckpt``.
 
-    Only files that are there are named (saves are atomic: a file there is whole); [] when there are none.
+    Every best checkpoint comes before any last one, whatever the order of the callbacks. Only files that are there
+    are named (saves are atomic: a file there is whole); [] when there are none.
     """
-    saved: list[tuple[str, str]] = []
+    best: list[tuple[str, str]] = []
+    last: list[tuple[str, str]] = []
 
     def there(path: str) -> bool:
-        return bool(path) and path not in {each for _, each in saved} and get_filesystem(path).isfile(path)
+        return bool(path) and path not in {each for _, each in best + last} and get_filesystem(path).isfile(path)
 
-    for callback in trainer.checkpoint_callbacks:
-        if not isinstance(callback, ModelCheckpoint):
-            continue
+    callbacks = [callback for callback in trainer.checkpoint_callbacks if isinstance(callback, ModelCheckpoint)]
+    for callback in callbacks:
         path = callback.best_model_path
         if callback.monitor is not None and there(path):
             score = callback.best_model_score
             shown = f"{callback.monitor} {float(score):.4g}" if score is not None else callback.monitor
-            saved.append((f"best checkpoint ({shown})", path))
-        last = path if isinstance(callback, LastCheckpoint) else callback.last_model_path
-        if there(last):
-            saved.append((f"last checkpoint (step {trainer.global_step})", last))
-    return saved
+            best.append((f"best checkpoint ({shown})", path))
+    for callback in callbacks:
+        path = callback.best_model_path if isinstance(callback, LastCheckpoint) else callback.last_model_path
+        if there(path):  # LastCheckpoint's one file, or a user's ModelCheckpoint(save_last=True)
+            last.append((f"last checkpoint (step {trainer.global_step})", path))
+    return best + last
 
 
 def _last_files(roots: Iterable[str | Path]) -> list[Path]:

@@ -239,3 +239,27 @@ def test_only_this_runs_rankings_are_kept(tmp_path):
     assert keep_checkpoint_rankings(checkpoint, callbacks, [str(run)]) == ["own"]
     assert checkpoint["callbacks"]["own"]["dirpath"] == new
     assert checkpoint["callbacks"]["foreign"]["dirpath"] == str(other / "checkpoints")
+
+
+def test_the_fit_summary_names_best_checkpoints_before_last_whatever_the_callback_order(tmp_path):
+    """best_or_last_checkpoint (what `make demo` tests) and the closing lines of `fit` prefer a best checkpoint."""
+    from types import SimpleNamespace
+
+    from lightning.pytorch.callbacks import ModelCheckpoint
+
+    from dapm_lightning.training.checkpointing import best_or_last_checkpoint, fit_checkpoints_summary
+
+    last_file, best_file = tmp_path / "last.ckpt", tmp_path / "best.ckpt"
+    last_file.write_bytes(b"x")
+    last = LastCheckpoint(dirpath=tmp_path)
+    last.best_model_path = str(last_file)
+    best = ModelCheckpoint(dirpath=tmp_path, monitor="val_loss")
+    best.best_model_path, best.best_model_score = str(best_file), torch.tensor(0.25)
+    trainer = SimpleNamespace(checkpoint_callbacks=[last, best], global_step=7)
+    assert fit_checkpoints_summary(trainer) == [("last checkpoint (step 7)", str(last_file))]  # no best file yet
+    assert best_or_last_checkpoint(trainer) == str(last_file)
+    best_file.write_bytes(b"x")
+    assert fit_checkpoints_summary(trainer) == [("best checkpoint (val_loss 0.25)", str(best_file)),
+                                                ("last checkpoint (step 7)", str(last_file))]
+    assert best_or_last_checkpoint(trainer) == str(best_file)
+    assert best_or_last_checkpoint(SimpleNamespace(checkpoint_callbacks=[], global_step=0)) == ""
