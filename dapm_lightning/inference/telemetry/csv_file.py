@@ -237,7 +237,8 @@ def read_telemetry_csv(path: StrPath) -> dict[str, PoseTelemetry]:
                       "row per image under the header)", TelemetryWarning, stacklevel=2)
     elif (radians := angles_look_like_radians(out)) is not None:
         warnings.warn(f"{path}: {radians}, as radians would be; the columns are degrees (pitch_deg, roll_deg, "
-                      "fov_deg): if they are radians, convert them (degrees = radians x 57.2958)", TelemetryWarning,
+                      "fov_deg): if they are radians, convert them (degrees = radians x 57.2958); a zoom camera "
+                      "that narrow (FoV of 3.14 degrees or less) is degrees already: keep them", TelemetryWarning,
                       stacklevel=2)
     return out
 
