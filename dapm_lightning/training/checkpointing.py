@@ -310,7 +310,10 @@ def fit_checkpoints_summary(trainer: L.Trainer) -> list[tuple[str, str]]:
     for callback in callbacks:
         path = callback.best_model_path if isinstance(callback, LastCheckpoint) else callback.last_model_path
         if there(path):  # LastCheckpoint's one file, or a user's ModelCheckpoint(save_last=True)
-            last.append((f"last checkpoint (step {trainer.global_step})", path))
+            # the step of the callback's own last save: a ModelCheckpoint(save_last=True) saves last.ckpt with its
+            # top-k files, which need not be at the fit's final step
+            step = getattr(callback, "_last_global_step_saved", trainer.global_step)
+            last.append((f"last checkpoint (step {step})", path))
     return best + last
 
 

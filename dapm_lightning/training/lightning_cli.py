@@ -7,6 +7,7 @@ import importlib
 import inspect
 import os
 import re
+import shlex
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -417,13 +418,19 @@ class SaveConfigOfRun(SaveConfigCallback):
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         self.fit_filename = self.config_filename
+        self.saved_path = ""
+        """Where the config was saved ("" before :meth:`setup` saves it); what ``fit``'s closing lines name."""
 
     def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
         if stage == "predict":
             return
         name, subcommand = Path(self.fit_filename), getattr(stage, "value", stage)  # a TrainerFn: its value
         self.config_filename = name.name if subcommand == "fit" else f"{name.stem}_{subcommand}{name.suffix}"
+        saves = self.save_to_log_dir and not self.already_saved
+        log_dir = trainer.log_dir if saves else None  # broadcast in every process, as the parent's setup does
         super().setup(trainer, pl_module, stage)
+        if saves and log_dir is not None:
+            self.saved_path = os.path.join(log_dir, self.config_filename)
 
 
 def needs_logger(callback: Any) -> bool:
@@ -605,15 +612,13 @@ class DAPMCLI(LightningCLI):
         saved = fit_checkpoints_summary(trainer)
         if not saved:
             return
-        # trainer.log_dir without its broadcast, a collective the other processes would not join here
-        logger = trainer.loggers[0] if trainer.loggers else None
-        log_dir = trainer.default_root_dir if logger is None else getattr(logger, "log_dir", None) or logger.save_dir
         callbacks: list[L.Callback] = getattr(trainer, "callbacks", [])  # set by Lightning's connector
-        config = next((os.path.join(str(log_dir or ""), callback.config_filename) for callback in callbacks
-                       if isinstance(callback, SaveConfigOfRun)), "")
-        config = config if os.path.isfile(config) else "CONFIG"  # the run's own config.yaml, which test can read
+        config = next((callback.saved_path for callback in callbacks if isinstance(callback, SaveConfigOfRun)), "")
+        # the run's own config.yaml, which test can read, as SaveConfigOfRun wrote it (no collective here)
+        config = shlex.quote(config) if config and os.path.isfile(config) else "CONFIG"
         print("\n".join([f"fit finished at step {trainer.global_step}.", *(f"{what}: {path}" for what, path in saved),
-                         f"evaluate it: dapm-lightning test --config {config} --ckpt_path {saved[0][1]}"]), flush=True)
+                         f"evaluate it: dapm-lightning test --config {config} --ckpt_path {shlex.quote(saved[0][1])}"]),
+              flush=True)
 
     def _refuse_writing_over_a_run(self) -> None:
         """A new ``fit`` whose checkpoint folders hold an earlier run's checkpoints: refused.

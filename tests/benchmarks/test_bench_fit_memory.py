@@ -6,10 +6,18 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 
-from benchmarks.bench_fit_memory import growth_per_1000_steps, main, quarter_floors, report
+from benchmarks.bench_fit_memory import (
+    growth_per_1000_steps,
+    growth_verdict,
+    main,
+    quarter_floors,
+    report,
+    steady_growth_per_1000_steps,
+)
 from benchmarks.callbacks import FitMemoryProbe, descendant_pids, proportional_mb
 
 
@@ -23,6 +31,23 @@ def test_growth_is_how_fast_the_median_rises_at_the_end():
     flat = [{"step": 100 * i, "main_mb": 500.0 + 9 * (i % 3 == 0) - 60 * (i == 7)} for i in range(12)]
     assert growth_per_1000_steps(flat, "main_mb", warmup=0) == 0.0
     assert math.isnan(growth_per_1000_steps(samples, "main_mb", warmup=10))  # three samples left
+
+
+def test_a_rise_in_the_last_quarter_alone_is_a_step_not_growth(capsys):
+    # 0.8 MiB once, late (an allocator's arena): as fast as a leak at the end, not over the whole run
+    samples = [{"epoch": i, "step": 16 * i, "main_mb": 1157.4 + 0.8 * (i >= 45), "workers_mb": 760.0, "workers": 6}
+               for i in range(60)]
+    late = growth_per_1000_steps(samples, "main_mb", warmup=5)
+    steady = steady_growth_per_1000_steps(samples, "main_mb", warmup=5)
+    assert late > 2 > steady > 0
+    assert growth_verdict(late, steady).startswith("a step in the last quarter")
+    assert growth_verdict(late, 2.5) == "GROWS" and growth_verdict(1.0, 0.0) == "flat"
+    assert growth_verdict(-3.0, -1.0) == "falls" and growth_verdict(float("nan"), 0.0) == "too few epochs to tell"
+    probe = FitMemoryProbe()
+    probe.samples, probe.worker_sets = samples, [(1, 2)]
+    report(probe, warmup=5)
+    said = capsys.readouterr().out
+    assert "GROWS" not in said and "training process:" in said and "(a step in the last quarter" in said
 
 
 GRANDCHILD = "import time; x = bytearray(64 << 20); time.sleep(30)"
@@ -63,14 +88,17 @@ def test_report_calls_a_steadily_rising_median_growth(capsys):
         "steps in the last (GROWS; +160 MiB over the paper's 32000 steps)" in said
 
 
-def test_a_short_fit_with_persistent_workers_keeps_its_workers(capsys):
-    main(["--epochs", "5", "--train", "4", "--val", "2", "--batch", "2", "--workers", "1", "--warmup", "1"])
+def test_a_short_fit_with_persistent_workers_keeps_its_workers(capsys, tmp_path):
+    main(["--epochs", "5", "--train", "4", "--val", "2", "--batch", "2", "--workers", "1", "--warmup", "1",
+          "--out", str(tmp_path)])
     said = capsys.readouterr().out
     rows = [line.split() for line in said.splitlines() if line.strip() and line.split()[0].isdigit()]
     assert [(row[0], row[1]) for row in rows] == [(str(epoch), str(2 * epoch + 2)) for epoch in range(5)]
     # a training process, and its loader workers (one for training, one for validation) and their forkserver
-    assert all(float(row[2]) > 100 and float(row[3]) > 10 and row[4] == rows[0][4] >= "2" for row in rows)
+    assert all(float(row[2]) > 100 and float(row[3]) > 10 and int(row[4]) == int(rows[0][4]) >= 2 for row in rows)
     assert "replaced 0 time(s) over 5 epochs (persistent" in said and "median MiB in each quarter after epoch 1" in said
+    named = [line.split(": ", 1)[1] for line in said.splitlines() if line.startswith("last checkpoint (step 10)")]
+    assert len(named) == 1 and Path(named[0]).is_file() and "removed now" not in said  # --out keeps what fit names
 
 
 def test_too_few_epochs_are_refused_and_a_slope_of_one_sample_is_not_called_growth(capsys):
@@ -78,6 +106,10 @@ def test_too_few_epochs_are_refused_and_a_slope_of_one_sample_is_not_called_grow
         main(["--epochs", "4", "--warmup", "1"])
     assert "--epochs must exceed --warmup by at least 4" in capsys.readouterr().err
     probe = FitMemoryProbe()
-    probe.samples = [{"epoch": i, "step": i, "main_mb": 1.0, "workers_mb": 1.0, "workers": 1} for i in range(2)]
+    probe.samples = [{"epoch": i, "step": i, "main_mb": 1.0, "workers_mb": 0.0, "workers": 0} for i in range(2)]
+    probe.worker_sets = [()]
     report(probe, warmup=1)
-    assert "too few epochs to tell" in capsys.readouterr().out
+    said = capsys.readouterr().out
+    assert "too few epochs to tell" in said
+    # no worker process ever seen: neither "persistent" nor a verdict on memory that was not measured
+    assert "no loader worker was seen" in said and "persistent" not in said and "loader workers:" not in said

@@ -536,11 +536,11 @@ def test_a_render_stopped_before_its_first_image_leaves_no_empty_folder_it_made(
     def stopped(job):
         raise KeyboardInterrupt
 
-    out = tmp_path / "s"
+    out = tmp_path / "new" / "s"  # --out's parent made by the render too, and removed with it
     if existed:
         (out / "train").mkdir(parents=True)
     monkeypatch.setattr(generate, "_render_one", stopped)
     with pytest.raises(KeyboardInterrupt):
         generate_uapd(out, train=2, val=1, size=16, workers=1)
     assert sorted(p.relative_to(tmp_path).as_posix() for p in tmp_path.rglob("*")) == (
-        ["s", "s/train"] if existed else [])
+        ["new", "new/s", "new/s/train"] if existed else [])

@@ -446,7 +446,9 @@ def test_angles_that_look_like_radians_are_warned_about(tmp_path, rows, warned):
     else:
         assert len(messages) == 1 and messages[0].startswith(f"{path}: {warned}"), messages
         assert "if they are radians, convert them (degrees = radians x 57.2958)" in messages[0]
-        assert "a zoom camera that narrow (FoV of 3.14 degrees or less) is degrees already" in messages[0]
+        keep = "a zoom camera that narrow (FoV of 3.14 degrees or less)" if "fov_deg" in warned else \
+            "a camera held within 1.57 degrees of level all flight"  # the advice of the case, not the other's
+        assert f"{keep} is degrees already: keep them" in messages[0] and messages[0].count("degrees already") == 1
 
 
 @pytest.mark.parametrize("head, kind", [(b"PK\x03\x04\x14\x00\x08\x08\xff",

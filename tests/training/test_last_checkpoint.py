@@ -255,7 +255,8 @@ def test_the_fit_summary_names_best_checkpoints_before_last_whatever_the_callbac
     last.best_model_path = str(last_file)
     best = ModelCheckpoint(dirpath=tmp_path, monitor="val_loss")
     best.best_model_path, best.best_model_score = str(best_file), torch.tensor(0.25)
-    trainer = SimpleNamespace(checkpoint_callbacks=[last, best], global_step=7)
+    last._last_global_step_saved = 7  # its last save; the fit went on to step 9 (a user's save_last=True)
+    trainer = SimpleNamespace(checkpoint_callbacks=[last, best], global_step=9)
     assert fit_checkpoints_summary(trainer) == [("last checkpoint (step 7)", str(last_file))]  # no best file yet
     assert best_or_last_checkpoint(trainer) == str(last_file)
     best_file.write_bytes(b"x")

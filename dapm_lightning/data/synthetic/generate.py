@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 import torch
 
-from dapm_lightning.data.files import write_image
+from dapm_lightning.data.files import make_folder, write_image
 from dapm_lightning.data.synthetic.lens import distort, sample_lens
 from dapm_lightning.data.synthetic.render import render_scene
 from dapm_lightning.data.synthetic.scene import Scene, normalize_families, sample_scene
@@ -240,9 +240,7 @@ def generate_uapd(out: str | Path, *, train: int = 200, val: int = 50, size: int
         for folder in _image_folders(out):
             for path in folder.glob("synth_*.png"):
                 path.unlink(missing_ok=True)  # each node of a multi-node run replaces a shared folder's set at once
-    new_folders = [folder for folder in (out, out / "train", out / "val", *_image_folders(out)) if not folder.exists()]
-    for folder in _image_folders(out):
-        folder.mkdir(parents=True, exist_ok=True)
+    new_folders = [made for folder in _image_folders(out) for made in make_folder(folder)]  # --out's parents too
     try:
         _render_jobs(jobs, workers, out, shard, progress)
     except BaseException:  # a stop before the set is whole: no empty folder of this run left (a shard's may be shared)

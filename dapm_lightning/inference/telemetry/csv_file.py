@@ -236,10 +236,11 @@ def read_telemetry_csv(path: StrPath) -> dict[str, PoseTelemetry]:
         warnings.warn(f"{path}: no usable telemetry in the file: {detail}; the network estimates the pose (write one "
                       "row per image under the header)", TelemetryWarning, stacklevel=2)
     elif (radians := angles_look_like_radians(out)) is not None:
+        degrees_already = ("a zoom camera that narrow (FoV of 3.14 degrees or less)" if "fov_deg" in radians else
+                           "a camera held within 1.57 degrees of level all flight")
         warnings.warn(f"{path}: {radians}, as radians would be; the columns are degrees (pitch_deg, roll_deg, "
-                      "fov_deg): if they are radians, convert them (degrees = radians x 57.2958); a zoom camera "
-                      "that narrow (FoV of 3.14 degrees or less) is degrees already: keep them", TelemetryWarning,
-                      stacklevel=2)
+                      "fov_deg): if they are radians, convert them (degrees = radians x 57.2958); "
+                      f"{degrees_already} is degrees already: keep them", TelemetryWarning, stacklevel=2)
     return out
 
 
