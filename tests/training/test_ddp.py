@@ -18,8 +18,9 @@ QUICKSTART = HERE.parents[1] / "dapm_lightning" / "configs" / "quickstart.yaml"
 
 
 def run(tmp_path, name, *args, timeout=300):
-    """Rank 0's figures; a run still going after ``timeout`` s fails the test, every process it started killed (the
-    others would wait in a collective for the process group's 30 minutes)."""
+    """Rank 0's figures (what the processes printed: ``NAME.out``); a run still going after ``timeout`` s fails the
+    test, every process it started killed (the others would wait in a collective for the process group's 30
+    minutes)."""
     out = tmp_path / f"{name}.json"
     process = subprocess.Popen([sys.executable, str(HERE / "ddp_run.py"), str(out), *args], cwd=tmp_path, text=True,
                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
@@ -29,6 +30,7 @@ def run(tmp_path, name, *args, timeout=300):
         os.killpg(process.pid, signal.SIGKILL)
         pytest.fail(f"{name}: still running after {timeout} s (processes waiting for each other):\n"
                     f"{process.communicate()[1][-3000:]}")
+    (tmp_path / f"{name}.out").write_text(stdout)
     if process.returncode:
         raise subprocess.CalledProcessError(process.returncode, process.args, stdout, stderr)
     return json.loads(out.read_text())
@@ -200,6 +202,13 @@ def test_fine_tuning_under_two_process_ddp_starts_from_the_weights_and_resumes_w
     ddp = ["--trainer.devices", "2", "--trainer.strategy", "ddp", "--model.init_weights", str(init)]
     tuned = fit("tuned", *ddp, "--trainer.max_steps", "2")
     assert tuned["global_step"] == 2
+    # fit's closing lines, from the first process alone, name files that are there (the run's config as saved)
+    said = (tmp_path / "tuned.out").read_text().splitlines()
+    assert said.count("fit finished at step 2.") == 1, said
+    evaluate = next(line for line in said if line.startswith("evaluate it: dapm-lightning test --config "))
+    config, checkpoint = evaluate.split("--config ", 1)[1].split(" --ckpt_path ")
+    assert (tmp_path / config).is_file() and (tmp_path / config).name == "config.yaml"
+    assert (tmp_path / checkpoint).is_file() and checkpoint in {line.split(": ", 1)[1] for line in said if ": " in line}
     digests = [(tmp_path / "tuned_digests" / f"rank{rank}.txt").read_text() for rank in (0, 1)]
     assert digests == [expected, expected]
     saved = sorted((tmp_path / "tuned").glob("*.ckpt"))[-1]
