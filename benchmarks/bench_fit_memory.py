@@ -49,16 +49,23 @@ def quarter_floors(samples: list[dict[str, Any]], key: str, warmup: int) -> list
             for rows in quarters]
 
 
+def rise_per_1000_steps(floors: list[tuple[float, float]], first: int) -> float:
+    """How fast the median rises from quarter ``first`` of ``floors`` (:func:`quarter_floors`) to the last quarter.
+
+    MiB per 1,000 steps; NaN without four quarters.
+    """
+    if len(floors) < 4 or floors[3][0] == floors[first][0]:
+        return float("nan")
+    return 1000 * (floors[3][1] - floors[first][1]) / (floors[3][0] - floors[first][0])
+
+
 def growth_per_1000_steps(samples: list[dict[str, Any]], key: str, warmup: int) -> float:
-    """How fast the median of ``key`` (MiB) rises at the end: from the third quarter's to the last's, per 1,000 steps.
+    """How fast the median of ``key`` (MiB) rises at the end: from the third quarter's to the last, per 1,000 steps.
 
     A leak keeps raising it there; what settles (the allocator's first arenas, the workers' pages copied as they are
     written) has stopped. NaN with fewer than four samples after the warm-up.
     """
-    floors = quarter_floors(samples, key, warmup)
-    if not floors or floors[3][0] == floors[2][0]:
-        return float("nan")
-    return 1000 * (floors[3][1] - floors[2][1]) / (floors[3][0] - floors[2][0])
+    return rise_per_1000_steps(quarter_floors(samples, key, warmup), 2)
 
 
 def steady_growth_per_1000_steps(samples: list[dict[str, Any]], key: str, warmup: int) -> float:
@@ -67,10 +74,7 @@ def steady_growth_per_1000_steps(samples: list[dict[str, Any]], key: str, warmup
     A leak lifts every quarter, so it shows here as it does at the end; a single step of the allocator late in the
     run (an arena grown once) shows at the end only. NaN with fewer than four samples after the warm-up.
     """
-    floors = quarter_floors(samples, key, warmup)
-    if not floors or floors[3][0] == floors[0][0]:
-        return float("nan")
-    return 1000 * (floors[3][1] - floors[0][1]) / (floors[3][0] - floors[0][0])
+    return rise_per_1000_steps(quarter_floors(samples, key, warmup), 0)
 
 
 def growth_verdict(late: float, steady: float) -> str:
@@ -129,10 +133,11 @@ def report(probe: FitMemoryProbe, warmup: int) -> None:
     else:  # not "persistent" nor "flat" when nothing was measured
         print("no loader worker was seen (--workers 0, or no /proc/PID/task/*/children on this system): the workers' "
               "memory is not measured")
-    for key, what in (("main_mb", "training process"), *((("workers_mb", "loader workers"),) if seen else ())):
+    measured = [("main_mb", "training process")] + ([("workers_mb", "loader workers")] if seen else [])
+    for key, what in measured:
         floors = quarter_floors(samples, key, warmup)
-        slope = growth_per_1000_steps(samples, key, warmup)
-        verdict = growth_verdict(slope, steady_growth_per_1000_steps(samples, key, warmup))
+        slope = rise_per_1000_steps(floors, 2)
+        verdict = growth_verdict(slope, rise_per_1000_steps(floors, 0))
         print(f"{what}: median MiB in each quarter after epoch {warmup}: "
               f"{', '.join(f'{floor:.1f}' for _, floor in floors) or '-'}; {slope:+.2f} MiB per 1000 steps in the "
               f"last ({verdict}; {slope * PAPER_STEPS / 1000:+.0f} MiB over the paper's {PAPER_STEPS} steps)")

@@ -23,7 +23,7 @@ import signal
 import tempfile
 import threading
 from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from pathlib import Path
 from typing import IO, Any
 
@@ -294,13 +294,12 @@ def make_folder(folder: str | Path) -> list[Path]:
 def remove_empty_folders(folders: Sequence[Path]) -> None:
     """Remove the ``folders`` (outermost first, as :func:`make_folder` returns them) that are empty, innermost first.
 
-    A folder that holds anything, or that another process is filling, is left alone.
+    A folder that holds anything, or that another process is filling, is left alone, and the others are still
+    removed: ``folders`` may join the lists of several :func:`make_folder` calls (sibling folders).
     """
     for folder in reversed(folders):
-        try:
+        with suppress(OSError):
             folder.rmdir()
-        except OSError:
-            return
 
 
 @contextmanager

@@ -615,7 +615,7 @@ class DAPMCLI(LightningCLI):
         callbacks: list[L.Callback] = getattr(trainer, "callbacks", [])  # set by Lightning's connector
         config = next((callback.saved_path for callback in callbacks if isinstance(callback, SaveConfigOfRun)), "")
         # the run's own config.yaml, which test can read, as SaveConfigOfRun wrote it (no collective here)
-        config = shlex.quote(config) if config and os.path.isfile(config) else "CONFIG"
+        config = shlex.quote(config) if os.path.isfile(config) else "CONFIG"
         print("\n".join([f"fit finished at step {trainer.global_step}.", *(f"{what}: {path}" for what, path in saved),
                          f"evaluate it: dapm-lightning test --config {config} --ckpt_path {shlex.quote(saved[0][1])}"]),
               flush=True)

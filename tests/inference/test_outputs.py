@@ -21,7 +21,9 @@ from dapm_lightning.data.files import (
     WriteError,
     check_folder_writable,
     exclusive_lock,
+    make_folder,
     open_atomic,
+    remove_empty_folders,
     write_bytes,
     write_image,
 )
@@ -767,3 +769,13 @@ def test_a_failed_finish_writes_the_tables_once_and_keeps_no_early_stop_summary(
         with pytest.raises(WriteError, match="contact_sheet.png"):
             files.finish()
     assert written == [1] and files.kept is None
+
+
+def test_empty_folders_made_in_several_calls_are_removed_past_a_sibling_that_holds_a_file(tmp_path):
+    """A writer or a render joins the folders of several make_folder calls: one sibling that holds a file keeps
+    itself and its parents, and every empty folder of the others is still removed."""
+    made = make_folder(tmp_path / "out" / "a" / "rgb") + make_folder(tmp_path / "out" / "b" / "rgb")
+    (tmp_path / "out" / "b" / "rgb" / "kept.png").write_bytes(b"x")
+    remove_empty_folders(made)
+    assert sorted(p.relative_to(tmp_path).as_posix() for p in tmp_path.rglob("*")) == [
+        "out", "out/b", "out/b/rgb", "out/b/rgb/kept.png"]

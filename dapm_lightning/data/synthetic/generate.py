@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import contextlib
 import json
 import multiprocessing
 import os
@@ -15,7 +14,7 @@ import cv2
 import numpy as np
 import torch
 
-from dapm_lightning.data.files import make_folder, write_image
+from dapm_lightning.data.files import make_folder, remove_empty_folders, write_image
 from dapm_lightning.data.synthetic.lens import distort, sample_lens
 from dapm_lightning.data.synthetic.render import render_scene
 from dapm_lightning.data.synthetic.scene import Scene, normalize_families, sample_scene
@@ -245,9 +244,7 @@ def generate_uapd(out: str | Path, *, train: int = 200, val: int = 50, size: int
         _render_jobs(jobs, workers, out, shard, progress)
     except BaseException:  # a stop before the set is whole: no empty folder of this run left (a shard's may be shared)
         if shard[1] == 1:
-            for folder in reversed(new_folders):
-                with contextlib.suppress(OSError):
-                    folder.rmdir()  # only when empty
+            remove_empty_folders(new_folders)
         raise
     # last, so that a crashed run is not "current"; atomically, as shards of an array job finish side by side
     partial = out / f".synth.json.{os.getpid()}"
