@@ -1,6 +1,7 @@
 """Every relative link of README.md, DEVELOPERS.md and docs/ leads somewhere: the file exists and the ``#anchor``
 names one of its headings as GitHub renders it (lower case, punctuation dropped, spaces to hyphens, ``-1``,
-``-2`` ... for repeated headings). Web addresses are not followed (no network here)."""
+``-2`` ... for repeated headings), and every table ends before the text after it. Web addresses are not followed
+(no network here)."""
 
 from __future__ import annotations
 
@@ -96,3 +97,13 @@ def test_every_document_the_code_points_users_to_exists():
                 named.update(re.findall(r"\bdocs/[\w-]+\.md", path.read_text(encoding="utf-8")))
     assert len(named) >= 5, named
     assert not sorted(name for name in named if not (REPO / name).exists())
+
+
+@pytest.mark.parametrize("document", DOCUMENTS, ids=lambda path: str(path.relative_to(REPO)))
+def test_every_table_ends_at_a_blank_line(document):
+    """A text line right after a table's last row renders as one more row of it (GitHub's Markdown)."""
+    lines = prose_lines(document)
+    glued = [number for (number, line), (next_number, following) in zip(lines, lines[1:])
+             if next_number == number + 1 and line.lstrip().startswith("|") and following.strip()
+             and not following.lstrip().startswith("|")]
+    assert not glued, f"{document.relative_to(REPO)}: a table runs into the text after it at line(s) {glued}"
