@@ -124,7 +124,7 @@ def outputs_listing(out: Path, fit_dir: Path, test_dir: Path, checkpoint: Path) 
     def shown(path: Path) -> str:
         return str(path.relative_to(out)) if path.is_relative_to(out) else str(path)
 
-    lines = ["  metrics.json       all figures above (and the paper's 8-bit log-space depth metrics)"]
+    lines = ["  metrics.json       all figures above (and depth metrics on the 8-bit log encoding's grey levels)"]
     if (test_dir / "viewpoints.png").is_file():
         lines.append(f"  {shown(test_dir / 'viewpoints.png')}  d1 and pose error per bin of pitch, height, roll, FoV")
     panels = [p for run in (fit_dir, test_dir) for p in sorted(run.glob("panels/*.png"))]
