@@ -102,8 +102,13 @@ def test_every_document_the_code_points_users_to_exists():
 @pytest.mark.parametrize("document", DOCUMENTS, ids=lambda path: str(path.relative_to(REPO)))
 def test_every_table_ends_at_a_blank_line(document):
     """A text line right after a table's last row renders as one more row of it (GitHub's Markdown)."""
-    lines = prose_lines(document)
-    glued = [number for (number, line), (next_number, following) in zip(lines, lines[1:])
-             if next_number == number + 1 and line.lstrip().startswith("|") and following.strip()
-             and not following.lstrip().startswith("|")]
+    glued, in_table, previous = [], False, ""
+    for number, line in prose_lines(document):
+        if re.match(r"^\s*\|?\s*:?-{3,}:?\s*(\|\s*:?-{3,}:?\s*)*\|?\s*$", line) and previous.lstrip().startswith("|"):
+            in_table = True  # the delimiter row under a header: a table starts
+        elif in_table and not line.lstrip().startswith("|"):
+            if line.strip():
+                glued.append(number)
+            in_table = False
+        previous = line
     assert not glued, f"{document.relative_to(REPO)}: a table runs into the text after it at line(s) {glued}"
