@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import re
 from collections import Counter
+from functools import cache
 from pathlib import Path
 
 import pytest
@@ -17,6 +18,7 @@ LINK = re.compile(r"(?<!!)\[[^\]]*\]\(([^)\s]+)\)")
 IMAGE = re.compile(r"!\[[^\]]*\]\(([^)\s]+)\)")
 HEADING = re.compile(r"^(#{1,6})\s+(.*?)\s*#*\s*$")
 FENCE = re.compile(r"^\s*(```|~~~)")
+TABLE_DELIMITER = re.compile(r"^\s*\|?\s*:?-{3,}:?\s*(\|\s*:?-{3,}:?\s*)*\|?\s*$")  # the row under a header
 
 
 def prose_lines(path: Path) -> list[tuple[int, str]]:
@@ -38,7 +40,8 @@ def heading_slug(text: str) -> str:
     return text.replace(" ", "-")
 
 
-def anchors(path: Path) -> set[str]:
+@cache
+def anchors(path: Path) -> frozenset[str]:
     """Every heading anchor of ``path``, repeated headings numbered as GitHub numbers them."""
     seen: Counter[str] = Counter()
     found = set()
@@ -48,7 +51,7 @@ def anchors(path: Path) -> set[str]:
             slug = heading_slug(match.group(2))
             found.add(slug if seen[slug] == 0 else f"{slug}-{seen[slug]}")
             seen[slug] += 1
-    return found
+    return frozenset(found)
 
 
 def relative_links(path: Path) -> list[tuple[int, str]]:
@@ -104,8 +107,8 @@ def test_every_table_ends_at_a_blank_line(document):
     """A text line right after a table's last row renders as one more row of it (GitHub's Markdown)."""
     glued, in_table, previous = [], False, ""
     for number, line in prose_lines(document):
-        if re.match(r"^\s*\|?\s*:?-{3,}:?\s*(\|\s*:?-{3,}:?\s*)*\|?\s*$", line) and previous.lstrip().startswith("|"):
-            in_table = True  # the delimiter row under a header: a table starts
+        if TABLE_DELIMITER.match(line) and previous.lstrip().startswith("|"):
+            in_table = True  # a header row and its delimiter row: a table starts
         elif in_table and not line.lstrip().startswith("|"):
             if line.strip():
                 glued.append(number)
