@@ -63,6 +63,12 @@ class RunFolderInUseError(ValueError):
     explained = True
 
 
+class PredictSetupError(ValueError):
+    """``predict`` with a data module or callbacks that would predict nothing to disk (a training config)."""
+
+    explained = True
+
+
 class NoWeightsError(ValueError):
     """``validate``, ``test`` or ``predict`` with no trained weights to run: no checkpoint found, none given."""
 
@@ -673,7 +679,31 @@ class DAPMCLI(LightningCLI):
             check_folder_writable(local_path(root), "--trainer.default_root_dir")
 
     def before_predict(self) -> None:
+        self._check_predict_setup()
         self._read_initial_weights("predict")
+
+    def _check_predict_setup(self) -> None:
+        """``predict`` reads images through :class:`PredictDataModule` and writes with :class:`PredictionWriter`.
+
+        A training config (``configs/paper/*.yaml``) has neither: its batches are labelled samples and nothing would
+        be written, so it is refused, with the two forms that work, before any work.
+        """
+        from dapm_lightning.inference.datamodule import PredictDataModule
+        from dapm_lightning.inference.writers import PredictionWriter
+
+        missing = []
+        if not isinstance(self.datamodule, PredictDataModule):
+            missing.append(f"its data module is {type(self.datamodule).__name__}, not PredictDataModule (images, "
+                           "folders, videos)")
+        if not any(isinstance(c, PredictionWriter) for c in self.trainer.callbacks):
+            missing.append("no PredictionWriter callback writes its outputs")
+        if missing:
+            raise PredictSetupError(
+                "predict with this configuration would write nothing: " + "; ".join(missing) + ".\nFix: "
+                "`dapm-lightning predict SOURCE --ckpt_path CKPT --out OUT`, or `dapm-lightning predict --config "
+                "configs/predict.yaml --ckpt_path CKPT --data.init_args.source SOURCE` (a training config's "
+                "settings are not needed: the checkpoint's network is built from it); to score a labelled split, "
+                "`dapm-lightning test`.")
 
     def _read_initial_weights(self, subcommand: str) -> None:
         """``validate``, ``test`` or ``predict`` without ``--ckpt_path``: the network's weights from ``init_weights``.

@@ -115,6 +115,25 @@ def test_evaluating_without_trained_weights_is_refused(subcommand, tmp_path, cap
     assert sorted(p.name for p in tmp_path.iterdir()) == (["imgs"] if subcommand == "predict" else [])
 
 
+@pytest.mark.parametrize("setup", ["training config", "no writer"])
+def test_predict_that_would_write_nothing_is_refused(setup, checkpoint, tmp_path, capsys, monkeypatch):
+    """A training config's data module (labelled samples) or no PredictionWriter: refused, naming the forms that work."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "imgs").mkdir()
+    if setup == "training config":
+        config = ["--config", str(QUICKSTART), "--trainer.logger", "false"]
+        reason = "its data module is SyntheticDataModule, not PredictDataModule"
+    else:
+        config = ["--config", str(CONFIGS / "predict.yaml"), "--data.init_args.source", str(tmp_path / "imgs"),
+                  "--trainer.callbacks=[]"]
+        reason = "no PredictionWriter callback writes its outputs"
+    code, err = run_main(["predict", *config, "--ckpt_path", str(checkpoint)], capsys)
+    assert code == 1 and len(err.splitlines()) <= 4 and "Traceback" not in err, err
+    assert "predict with this configuration would write nothing: " in err and reason in err, err
+    assert "Fix: `dapm-lightning predict SOURCE --ckpt_path CKPT --out OUT`" in err, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["imgs"]
+
+
 def test_evaluating_with_init_weights_uses_them(checkpoint, tiny_uapd, tmp_path, monkeypatch):
     """``--model.init_weights`` is weights too: the same figures as ``--ckpt_path`` with the same file."""
     monkeypatch.chdir(tmp_path)
