@@ -16,7 +16,7 @@ from typing import Any, NoReturn
 import lightning as L
 import torch
 import yaml
-from lightning.pytorch.callbacks import DeviceStatsMonitor, LearningRateMonitor
+from lightning.pytorch.callbacks import BasePredictionWriter, DeviceStatsMonitor, LearningRateMonitor
 from lightning.pytorch.cli import LightningArgumentParser, LightningCLI, SaveConfigCallback
 from lightning.pytorch.trainer.states import TrainerStatus
 from lightning.pytorch.utilities import rank_zero_info, rank_zero_only
@@ -683,20 +683,19 @@ class DAPMCLI(LightningCLI):
         self._read_initial_weights("predict")
 
     def _check_predict_setup(self) -> None:
-        """``predict`` reads images through :class:`PredictDataModule` and writes with :class:`PredictionWriter`.
+        """``predict`` reads images through :class:`PredictDataModule` and writes with a prediction writer.
 
         A training config (``configs/paper/*.yaml``) has neither: its batches are labelled samples and nothing would
         be written, so it is refused, with the two forms that work, before any work.
         """
         from dapm_lightning.inference.datamodule import PredictDataModule
-        from dapm_lightning.inference.writers import PredictionWriter
 
         missing = []
         if not isinstance(self.datamodule, PredictDataModule):
             missing.append(f"its data module is {type(self.datamodule).__name__}, not PredictDataModule (images, "
                            "folders, videos)")
-        if not any(isinstance(c, PredictionWriter) for c in self.trainer.callbacks):
-            missing.append("no PredictionWriter callback writes its outputs")
+        if not any(isinstance(c, BasePredictionWriter) for c in self.trainer.callbacks):
+            missing.append("no prediction writer callback (PredictionWriter) writes its outputs")
         if missing:
             raise PredictSetupError(
                 "predict with this configuration would write nothing: " + "; ".join(missing) + ".\nFix: "

@@ -126,7 +126,7 @@ def test_predict_that_would_write_nothing_is_refused(setup, checkpoint, tmp_path
     else:
         config = ["--config", str(CONFIGS / "predict.yaml"), "--data.init_args.source", str(tmp_path / "imgs"),
                   "--trainer.callbacks=[]"]
-        reason = "no PredictionWriter callback writes its outputs"
+        reason = "no prediction writer callback (PredictionWriter) writes its outputs"
     code, err = run_main(["predict", *config, "--ckpt_path", str(checkpoint)], capsys)
     assert code == 1 and len(err.splitlines()) <= 4 and "Traceback" not in err, err
     assert "predict with this configuration would write nothing: " in err and reason in err, err
