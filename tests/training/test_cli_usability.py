@@ -117,7 +117,7 @@ def test_evaluating_without_trained_weights_is_refused(subcommand, tmp_path, cap
 
 @pytest.mark.parametrize("setup", ["training config", "no writer"])
 def test_predict_that_would_write_nothing_is_refused(setup, checkpoint, tmp_path, capsys, monkeypatch):
-    """A training config's data module (labelled samples) or no PredictionWriter: refused, naming the forms that work."""
+    """A training config's data module (labelled samples) or no prediction writer: refused, naming what works."""
     monkeypatch.chdir(tmp_path)
     (tmp_path / "imgs").mkdir()
     if setup == "training config":
