@@ -694,7 +694,8 @@ class DAPMCLI(LightningCLI):
         if not isinstance(self.datamodule, PredictDataModule):
             missing.append(f"its data module is {type(self.datamodule).__name__}, not PredictDataModule (images, "
                            "folders, videos)")
-        if not any(isinstance(c, BasePredictionWriter) for c in self.trainer.callbacks):
+        callbacks: list[L.Callback] = self.trainer.callbacks  # type: ignore[attr-defined]
+        if not any(isinstance(c, BasePredictionWriter) for c in callbacks):
             missing.append("no prediction writer callback (PredictionWriter) writes its outputs")
         if missing:
             raise PredictSetupError(
