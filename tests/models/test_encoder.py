@@ -22,6 +22,31 @@ def test_missing_weights_file_is_a_clear_error(tmp_path):
         Encoder("resnet18", weights_path=str(tmp_path / "nope.pth"))
 
 
+def test_weights_file_that_is_not_the_backbones_is_refused_naming_it(tmp_path):
+    """timm alone loads nothing from another model's weights (and trains from random ones) or fails on a bare pickle
+    error: each wrong file is refused naming the setting, the file and what it is."""
+    text = tmp_path / "notes.pth"
+    text.write_text("not weights")
+    whole = tmp_path / "run.ckpt"
+    torch.save({"state_dict": {"net.encoder.body.conv1.weight": torch.zeros(1)}, "pytorch-lightning_version": "2"},
+               whole)
+    other = tmp_path / "resnet34.safetensors"
+    save_file(timm.create_model("resnet34", pretrained=False).state_dict(), str(other))
+    cut = tmp_path / "cut.pth"
+    torch.save(timm.create_model("resnet18", pretrained=False).state_dict(), cut)
+    cut.write_bytes(cut.read_bytes()[:100_000])
+    objects = tmp_path / "pickled.pth"
+    torch.save({"model": torch.nn.Linear(2, 2)}, objects)
+    for path, said in ((text, "not a PyTorch or safetensors file"), (cut, "a PyTorch file cut short or damaged"),
+                       (objects, "holds Python objects besides tensors"),
+                       (whole, "a dapm-lightning checkpoint (the whole network)"),
+                       (other, "not resnet18 weights: ")):
+        with pytest.raises(ValueError) as raised:
+            Encoder("resnet18", weights_path=str(path))
+        assert str(raised.value).startswith(f"model.net.weights_path: {path}: ") and said in str(raised.value)
+        assert "Fix: " in str(raised.value)
+
+
 def test_stages_and_strides():
     encoder = Encoder("resnet18")
     features = encoder(torch.rand(1, 3, 64, 96))
