@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import errno
 import os
+import re
 import secrets
 import signal
 import tempfile
@@ -64,8 +65,16 @@ class WriteError(OSError, ValueError):
         return type(self), (self.path, self.reason, self.fix)
 
 
+_SHORT_WRITE = re.compile(r"\d+ requested and \d+ written")
+"""numpy's (and the ONNX writer's) error for a write the disk cut short, which carries no errno: a full disk."""
+
+
+def _full(error: OSError) -> bool:
+    return error.errno in _FULL or (error.errno is None and bool(_SHORT_WRITE.search(str(error))))
+
+
 def _fix(error: OSError) -> str:
-    if error.errno in _FULL:
+    if _full(error):
         return "free space on that disk, or write to another folder"
     if error.errno in _DENIED:
         return "write to a folder you may write to (this one is read-only or not yours)"
@@ -75,6 +84,8 @@ def _fix(error: OSError) -> str:
 
 
 def _reason(error: OSError) -> str:
+    if error.errno is None and _full(error):
+        return f"{os.strerror(errno.ENOSPC)}: {error}"
     return error.strerror or str(error) or type(error).__name__
 
 

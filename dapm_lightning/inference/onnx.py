@@ -30,7 +30,7 @@ import torch
 from torch import Tensor, nn
 
 from dapm_lightning import __version__
-from dapm_lightning.data.files import stops_deferred
+from dapm_lightning.data.files import stops_deferred, write_error
 from dapm_lightning.geometry.constants import POSE_KEYS, POSE_UNITS, SKY_PROBABILITY_THRESHOLD
 from dapm_lightning.inference.inputs import SIZE_MULTIPLE, network_size
 from dapm_lightning.models.config import DAPMConfig
@@ -225,12 +225,16 @@ def export_onnx(net: nn.Module, path: str | Path, size: tuple[int, int], *, chec
         width = torch.export.Dim("width", min=SIZE_MULTIPLE, max=MAX_EXPORT_SIDE)
         dynamic_shapes = {"image": {0: batch, 2: height, 3: width}}
         dynamic_shapes.update({name: {0: batch} for name in model.input_names[1:]})
-    with torch.no_grad(), warnings.catch_warnings():  # the network's export-time ops: models.blocks
-        # the image's batch and each prior's are one dimension: the exporter's note that it merged their names
-        warnings.filterwarnings("ignore", message=".*will not be used, since it shares the same shape constraints")
-        torch.onnx.export(model, example, str(path), input_names=list(model.input_names),
-                          output_names=list(model.names), dynamo=True, dynamic_shapes=dynamic_shapes, verbose=False)
-    write_metadata(path, metadata if metadata is not None else export_metadata(net))
+    try:
+        with torch.no_grad(), warnings.catch_warnings():  # the network's export-time ops: models.blocks
+            # the image's batch and each prior's are one dimension: the exporter's note that it merged their names
+            warnings.filterwarnings("ignore", message=".*will not be used, since it shares the same shape constraints")
+            torch.onnx.export(model, example, str(path), input_names=list(model.input_names),
+                              output_names=list(model.names), dynamo=True, dynamic_shapes=dynamic_shapes,
+                              verbose=False)
+        write_metadata(path, metadata if metadata is not None else export_metadata(net))
+    except OSError as error:  # a full disk reaches here from the ONNX writer, without the file's name
+        raise write_error(Path(error.filename) if error.filename else path, error) from error
     session = onnxruntime.InferenceSession(str(path), providers=["CPUExecutionProvider"])
     rows = []
     for index, shape in enumerate(check_sizes(size, dynamic)):

@@ -93,8 +93,25 @@ def write_prediction(out: Path, prediction: Prediction, outputs: Iterable[str] =
 def prediction_files(out: Path, prediction: Prediction, outputs: Iterable[str] = DEFAULT_OUTPUTS,
                      points_stride: int | None = None, points_max_depth: float | None = None,
                      depth_range: tuple[float, float] | None = None) -> dict[str, Path]:
-    """:func:`write_prediction`, returning each kind written with its path (what the model could give of it)."""
-    outputs, written, name = set(outputs), {}, prediction.name
+    """:func:`write_prediction`, returning each kind written with its path (what the model could give of it).
+
+    A write that fails (a full disk) removes the image's files written before it: an image has all its files or none.
+    """
+    written: dict[str, Path] = {}
+    try:
+        return _write_prediction_files(out, prediction, set(outputs), written, points_stride, points_max_depth,
+                                       depth_range)
+    except BaseException:
+        for path in written.values():
+            path.unlink(missing_ok=True)
+        raise
+
+
+def _write_prediction_files(out: Path, prediction: Prediction, outputs: set[str], written: dict[str, Path],
+                            points_stride: int | None, points_max_depth: float | None,
+                            depth_range: tuple[float, float] | None) -> dict[str, Path]:
+    """:func:`prediction_files`' writes, each path entered in ``written`` as it is written."""
+    name = prediction.name
 
     def path(kind: str) -> Path:
         return out / PER_IMAGE_FILES[kind].format(name)
@@ -102,9 +119,9 @@ def prediction_files(out: Path, prediction: Prediction, outputs: Iterable[str] =
     if prediction.depth_m is not None:
         depth = prediction.depth_m.astype(np.float32)
         if "depth_npy" in outputs:
-            written["depth_npy"] = path("depth_npy")
-            with open_atomic(written["depth_npy"]) as handle:
+            with open_atomic(path("depth_npy")) as handle:
                 np.save(handle, depth)
+            written["depth_npy"] = path("depth_npy")
         if "depth_tiff" in outputs:  # 32-bit float TIFF: GDAL, QGIS, PIL ("F" mode), tifffile, OpenCV read it
             written["depth_tiff"] = write_image(path("depth_tiff"), depth)
         if "depth16" in outputs:
@@ -124,10 +141,10 @@ def prediction_files(out: Path, prediction: Prediction, outputs: Iterable[str] =
         written["points"] = prediction.points(stride, points_max_depth, prediction.rgb).write_ply(
             path("points"))
     if "npz" in outputs:
-        written["npz"] = path("npz")
         arrays: dict[str, Any] = npz_arrays(prediction)
-        with open_atomic(written["npz"]) as handle:
+        with open_atomic(path("npz")) as handle:
             np.savez_compressed(handle, **arrays)
+        written["npz"] = path("npz")
     remove_stale_files(out, name, written.values())  # an image's files all come from one run
     return written
 
@@ -377,7 +394,8 @@ class PredictionFiles:
             return [write_image(self._folder() / "contact_sheet.png",
                                 cv2.cvtColor(contact_sheet(self.contact_rows), cv2.COLOR_RGB2BGR)).name]
 
-        return [("the video preview", previews), ("poses.csv", poses), ("contact_sheet.png", sheet)]
+        return [("the video preview", previews), ("the poses tables (poses.csv, poses.json)", poses),
+                ("contact_sheet.png", sheet)]
 
     def keep_written(self) -> str | None:
         """After a run that stopped early: the run's files for the images written so far; their summary line.

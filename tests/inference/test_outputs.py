@@ -7,9 +7,11 @@ a run that fails before writing, images of extreme aspect, and runs writing one 
 import csv
 import json
 import os
+import re
 import signal
 import subprocess
 import threading
+from collections import Counter
 
 import cv2
 import numpy as np
@@ -272,8 +274,13 @@ def test_a_full_disk_fails_the_run_naming_the_file_and_keeps_the_table(checkpoin
     table = (out / "poses.csv").read_text()
     assert table.startswith(earlier)  # every earlier row kept, in order
     if small_disk is None or table != earlier:  # the disk took the table: it names the images written, no others
-        assert table != earlier and table_describes_the_files(out)[0].keys() - {f"old{k}" for k in range(100)} == {
-            p.name[:-len("_camera.json")] for p in out.glob("*_camera.json")}
+        written = {p.name[:-len("_camera.json")] for p in out.glob("*_camera.json")}
+        if not (out / "poses.json").exists():  # poses.csv fitted, poses.json not: the run says so
+            assert "could not be updated: the poses tables (poses.csv, poses.json)" in kept, kept
+            assert set(re.findall(r"^(im\w+?),", table, re.MULTILINE)) == written
+        else:
+            assert table != earlier and table_describes_the_files(out)[0].keys() - {
+                f"old{k}" for k in range(100)} == written
 
 
 def test_a_depth_only_model_into_a_full_disk_raises_and_lists_nothing(flight, small_disk, monkeypatch):
@@ -299,6 +306,29 @@ def test_a_depth_only_model_into_a_full_disk_raises_and_lists_nothing(flight, sm
         files.finish()
     assert info.value.path.parent == out and info.value.path.suffix == ".png"
     assert_whole(out)
+
+
+def test_an_image_whose_files_cannot_all_be_written_leaves_none_of_them(flight, monkeypatch):
+    """A disk full after an image's first file: that file goes again, so every image has all its files or none (an
+    image's partial files were left, not in poses.csv, and a later run read them back as drone images)."""
+    torch.manual_seed(0)
+    predictor = DAPMPredictor(DAPMModule(net=DAPMConfig(**TINY, use_pose=False, use_igd_feature=False)),
+                              image_width=32, batch_size=8)
+    calls, encode = [0], cv2.imencode
+
+    def refuse_after_eleven(ext, image, *args):  # five images' two files, then the sixth image's first
+        calls[0] += 1
+        return (False, None) if calls[0] > 11 else encode(ext, image, *args)
+
+    monkeypatch.setattr(files_module.cv2, "imencode", refuse_after_eleven)
+    out = flight.parent / "out"
+    files = PredictionFiles(out, ["depth16", "sky"])
+    with pytest.raises(WriteError, match="_sky.png: cannot be written"), files:
+        for prediction in predictor.predict_source(flight, keep_rgb=True):
+            files.add(prediction)
+        files.finish()
+    images = Counter(name.rsplit("_", 1)[0] for name in assert_whole(out) if name.endswith(".png"))
+    assert len(images) == 5 and set(images.values()) == {2}, images
 
 
 def test_a_run_whose_first_write_fails_leaves_no_folder(checkpoint, flight, small_disk, capsys, monkeypatch):
