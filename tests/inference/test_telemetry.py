@@ -480,6 +480,16 @@ def test_csv_header_errors(tmp_path):
         read_telemetry_csv(write_csv(tmp_path / "empty.csv", ""))
     with pytest.raises(TelemetryError, match="twice.csv, line 2: empty `name`"):
         read_telemetry_csv(write_csv(tmp_path / "twice.csv", "name,height_m\n,40\n"))
+    # columns named otherwise ran every image without the telemetry asked for, exit 0 after two warnings
+    with pytest.raises(TelemetryError, match=r"short.csv: none of the telemetry columns height_m, pitch_deg, roll_deg, "
+                                             r"fov_deg in the header 'name,Height,pitch,roll,fov'; height: did you "
+                                             r"mean height_m\?; pitch: did you mean pitch_deg\?.*the first line must"):
+        read_telemetry_csv(write_csv(tmp_path / "short.csv", "name,Height,pitch,roll,fov\na,50,-40,0,80\n"))
+    rows, caught = record(read_telemetry_csv, write_csv(tmp_path / "one.csv", "name,height_m,pitch\na,50,-40\n"))
+    assert_pose(rows["a"], [50.0, NAN, NAN, NAN])  # one column known: the rest ignored, with the likely names
+    assert [str(w.message) for w in caught] == [f"{tmp_path / 'one.csv'}: column(s) pitch ignored (the telemetry "
+                                                "columns are name,height_m,pitch_deg,roll_deg,fov_deg); pitch: did "
+                                                "you mean pitch_deg?"]
 
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import codecs
 import csv
+import difflib
 import io
 import math
 import unicodedata
@@ -182,9 +183,15 @@ def read_telemetry_csv(path: StrPath) -> dict[str, PoseTelemetry]:
                                      "keep one")
         index = {c: i for i, c in enumerate(columns)}
         unknown = [c for c in columns if c and c not in CSV_COLUMNS]
+        values = [c for c in CSV_COLUMNS if c != "name"]
+        meant = {c: close[0] for c in unknown if (close := difflib.get_close_matches(c, values, n=1, cutoff=0.6))}
+        guesses = "".join(f"; {c}: did you mean {m}?" for c, m in meant.items())
+        if unknown and not any(c in columns for c in values):  # every image would run without the telemetry asked for
+            raise TelemetryError(f"{path}: none of the telemetry columns {', '.join(values)} in the header "
+                                 f"{','.join(header)!r}{guesses}; {header_hint}")
         if unknown:
             warnings.warn(f"{path}: column(s) {', '.join(unknown)} ignored (the telemetry columns are "
-                          f"{','.join(CSV_COLUMNS)})", TelemetryWarning, stacklevel=2)
+                          f"{','.join(CSV_COLUMNS)}){guesses}", TelemetryWarning, stacklevel=2)
         out: dict[str, PoseTelemetry] = {}
         first_line: dict[str, int] = {}
         for row in reader:
