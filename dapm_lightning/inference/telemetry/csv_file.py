@@ -184,9 +184,10 @@ def read_telemetry_csv(path: StrPath) -> dict[str, PoseTelemetry]:
         index = {c: i for i, c in enumerate(columns)}
         unknown = [c for c in columns if c and c not in CSV_COLUMNS]
         value_columns = [c for c in CSV_COLUMNS if c != "name"]
-        meant = {c: close[0] for c in unknown if (close := difflib.get_close_matches(c, value_columns, n=1, cutoff=0.6))}
+        meant = {c: close[0] for c in unknown
+                 if (close := difflib.get_close_matches(c, value_columns, n=1, cutoff=0.6))}
         guesses = "".join(f"; {c}: did you mean {m}?" for c, m in meant.items())
-        if unknown and not any(c in columns for c in value_columns):  # every image would run without the telemetry asked for
+        if unknown and not any(c in columns for c in value_columns):  # no image would get the telemetry asked for
             raise TelemetryError(f"{path}: none of the telemetry columns {', '.join(value_columns)} in the header "
                                  f"{','.join(header)!r}{guesses}; {header_hint}")
         if unknown:
