@@ -58,6 +58,9 @@ NO_VAL_FIX = ("Fix: put a val split in ROOT/val/{rgb,depth}/NAME.png (e.g. move 
               "`dapm-lightning fit` validates on it and refuses to start without it (`test` reads it too unless "
               "data.init_args.test_split names another); UAPD's layout: docs/data.md.")
 """The fix of a set checked whole (no --splits) that has train/ but no val/ split."""
+UNFINISHED_RENDER_FIX = ("Fix: rerun the `dapm-lightning synth` command that rendered it (it replaces the unfinished "
+                         "set and writes synth.json last), or wait for a render still running.")
+"""The fix of a set whose synthetic images have no ``synth.json``."""
 BEYOND_LEVELS = 1
 """A pixel lies beyond the ground of a pose when it is deeper than the pose's IGD by more than one grey level
 (more than the 8-bit rounding). Nothing is seen through the ground: such pixels contradict the pose."""
@@ -417,6 +420,11 @@ def doctor(root: Path, splits: list[str] | None = None, depth_kind: DepthKind = 
     print(f"depth limit: grey 255 = {limit:g} m, {limit_from}" + ("" if max_depth is not None else
                                                                    " (--max_depth METRES sets another)"))
     reports = [diagnose_split(root, split, depth_kind, quiet, limit) for split in splits]
+    rendered = [r for r in reports if any((root / r["split"] / "rgb").glob("synth_*.png"))]
+    if rendered and not (root / "synth.json").is_file():  # synth writes it last, once the set is whole
+        rendered[0]["errors"].append(f"{root}: synthetic images (synth_*.png) but no synth.json: a render cut short "
+                                     "(a full disk, Ctrl-C) or still running, so the set is not whole")
+        rendered[0]["fix"] = UNFINISHED_RENDER_FIX
     no_val = "train" in splits and "val" not in found  # `fit` validates on ROOT/val and refuses to start without it
     if no_val and not asked:  # the whole set checked: a problem (its missing folder), with the fix
         reports.append({**diagnose_split(root, "val", depth_kind, quiet, limit), "fix": NO_VAL_FIX})

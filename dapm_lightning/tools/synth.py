@@ -124,8 +124,14 @@ def synth_main(argv: Sequence[str]) -> None:
                   + ("the set was complete (synth.json written)" if done else
                      "no synth.json written; rerun the same command to render the set"), file=sys.stderr, flush=True)
         raise
-    except (SynthFolderError, WriteError):
-        raise  # a folder or disk problem, not a wrong option: its message and fix, without the usage
+    except SynthFolderError:
+        raise  # a folder problem, not a wrong option: its message and fix, without the usage
+    except WriteError as error:  # a full or read-only disk mid-render: the set is not whole
+        print("stopped by the error below: no synth.json written (the set is unfinished, as `dapm-lightning doctor` "
+              "reports); rerun the same command once the error below is fixed", file=sys.stderr, flush=True)
+        if "--out" in error.fix:
+            raise
+        raise WriteError(error.path, error.reason, f"{error.fix} (--out)") from error
     except ValueError as error:
         parser.error(str(error))
     finally:

@@ -420,6 +420,8 @@ def test_an_image_a_worker_cannot_write_ends_the_command_naming_it(tmp_path, cap
     code, err = run_main(["synth", *args, "--workers", "2"], capsys)
     assert code == 1 and f"{blocked}: cannot be written" in err and "Fix:" in err
     assert "usage:" not in err and "BrokenProcessPool" not in err
+    assert "stopped by the error below: no synth.json written (the set is unfinished" in err, err
+    assert next(line for line in err.splitlines() if line.startswith("Fix: ")).endswith("(--out)"), err
 
 
 def test_sigterm_stops_the_render_and_its_workers(tmp_path):

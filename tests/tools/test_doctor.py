@@ -198,6 +198,19 @@ def test_cli_doctor_exit_status_and_settings_file(synthetic, tmp_path, capsys):
     assert np.isfinite(json.loads((tmp_path / "r.json").read_text())[0]["ground_agreement"]["median"])
 
 
+def test_synthetic_images_without_synth_json_are_an_unfinished_render(synthetic, tmp_path, capsys):
+    """synth writes synth.json last: a render a full disk cut short left images the doctor called "no problems"."""
+    root = tmp_path / "d"
+    shutil.copytree(synthetic, root)
+    assert doctor_main([str(root)]) == 0
+    (root / "synth.json").unlink()
+    capsys.readouterr()
+    assert doctor_main([str(root)]) == 1
+    out = capsys.readouterr().out
+    assert f"ERROR   {root}: synthetic images (synth_*.png) but no synth.json: a render cut short" in out, out
+    assert "Fix: rerun the `dapm-lightning synth` command that rendered it" in out and "1 problem(s)" in out
+
+
 def test_the_report_names_each_depth_files_container(synthetic, tmp_path, capsys):
     root = tmp_path / "d"
     shutil.copytree(synthetic, root)
