@@ -316,6 +316,10 @@ def _class_candidates(module_name: str, class_path: str, name: str) -> list[str]
     return sorted(f"{p}{rest}" for p in paths.values() if p.rpartition(".")[2] in best)[:3]
 
 
+_MISSING_CONFIG = re.compile(r'Parser key "config":\s*(File does not exist|Path is not a file): \'(?P<path>[^\']*)\'')
+"""jsonargparse's error for a ``--config`` path that is not a file."""
+
+
 def short_parse_error(message: str, options: Sequence[str], subcommand: str | None,
                       config_files: Sequence[str] = ()) -> str:
     """``error: ...``, the closest valid options when one is unknown, and the ``--help`` to run.
@@ -363,6 +367,13 @@ def short_parse_error(message: str, options: Sequence[str], subcommand: str | No
     if re.search(r"expected float\. Got value: [+-]?(inf(inity)?|nan)\s*$", message, re.IGNORECASE):
         message = message.replace("expected float.", "expected a finite number.")
     lines = [f"error: {message.strip()}{set_in}"]
+    if missing := _MISSING_CONFIG.search(message):  # --config naming no file (a typo, a folder)
+        path = Path(missing.group("path"))
+        what = "a folder, not a config file" if path.is_dir() else "no such file"
+        lines = [f"error: --config {path}: {what}",
+                 f"  fix: give a YAML config file (relative paths start from the current directory, {os.getcwd()}); "
+                 "the shipped ones: configs/paper/*.yaml, configs/ablations/*.yaml, "
+                 "dapm_lightning/configs/quickstart.yaml"]
     suggestions.update({option: closest(option, options) for option in unknown})
     for option, found in suggestions.items():
         if found:

@@ -265,6 +265,19 @@ def test_a_config_given_by_a_relative_path_in_another_folder_is_named(capsys, tm
     assert code == 2 and f"(set in {tmp_path / 'in' / 'typed.yaml'})" in err, err
 
 
+@pytest.mark.parametrize(("given", "said"), [("nosuch.yaml", "no such file"),
+                                             ("folder", "a folder, not a config file")])
+def test_a_config_path_that_is_no_file_is_named_with_the_fix(given, said, capsys, tmp_path, monkeypatch):
+    """jsonargparse's 'Parser key "config": File does not exist' gave no fix."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "folder").mkdir()
+    code, err = run_main(["fit", "--config", given], capsys)
+    assert code == 2 and err.splitlines()[:2] == [
+        f"error: --config {tmp_path / given}: {said}",
+        f"  fix: give a YAML config file (relative paths start from the current directory, {tmp_path}); the shipped "
+        "ones: configs/paper/*.yaml, configs/ablations/*.yaml, dapm_lightning/configs/quickstart.yaml"], err
+
+
 @pytest.mark.parametrize("subcommand", ["fit", "test"])
 def test_a_config_that_is_not_yaml_is_named_with_its_line(subcommand, capsys, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
