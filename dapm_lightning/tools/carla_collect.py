@@ -103,8 +103,9 @@ class CarlaConfig:
                 setattr(self, f.name, (float(value[0]), float(value[1])))
         if not self.towns:
             raise ValueError("towns must name at least one map")
-        if self.samples < 0 or self.reset_every < 1 or self.image_size < 1:
-            raise ValueError("samples must be >= 0, reset_every and image_size >= 1")
+        for name, least in (("samples", 0), ("reset_every", 1), ("image_size", 1)):
+            if getattr(self, name) < least:
+                raise ValueError(f"--{name} must be at least {least}, got {getattr(self, name)}")
         if not 0.0 <= self.val_fraction <= 1.0:
             raise ValueError(f"val_fraction must lie in [0, 1], got {self.val_fraction}")
 
@@ -315,9 +316,13 @@ def build_parser() -> Any:
 
 
 def parse_config(argv: Sequence[str]) -> CarlaConfig:
-    """The :class:`CarlaConfig` of a command line."""
-    namespace = build_parser().parse_args(list(argv))
-    return CarlaConfig(**{f.name: namespace[f.name] for f in fields(CarlaConfig)})
+    """The :class:`CarlaConfig` of a command line; a value it refuses is a usage error (exit status 2)."""
+    parser = build_parser()
+    namespace = parser.parse_args(list(argv))
+    try:
+        return CarlaConfig(**{f.name: namespace[f.name] for f in fields(CarlaConfig)})
+    except ValueError as error:
+        parser.error(str(error))
 
 
 def collect_main(argv: Sequence[str]) -> None:

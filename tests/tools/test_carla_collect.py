@@ -228,3 +228,14 @@ def test_a_sample_that_cannot_be_written_stops_the_run_and_is_never_taken_for_do
     assert done_indices(tmp_path) == {0, 1} and not list(tmp_path.rglob("*.tmp"))
     blocked.rmdir()
     assert CarlaCollector(cfg, FakeCarla()).run() == 4 and done_indices(tmp_path) == set(range(6))
+
+
+def test_a_value_the_settings_refuse_is_a_usage_error_naming_the_option(tmp_path, capsys):
+    """It was exit status 1 with one message for three settings ("samples must be >= 0, reset_every and ...")."""
+    from dapm_lightning.tools.carla_collect import parse_config
+
+    for option, value, least in (("--samples", "-1", 0), ("--reset_every", "0", 1), ("--image_size", "0", 1)):
+        with pytest.raises(SystemExit) as info:
+            parse_config(["--out", str(tmp_path), option, value])
+        assert info.value.code == 2
+        assert f"error: {option} must be at least {least}, got {value}" in capsys.readouterr().err
