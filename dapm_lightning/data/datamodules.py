@@ -65,6 +65,10 @@ class DAPMDataModule(L.LightningDataModule):
             continues with the batches the uninterrupted run would see.
     """
 
+    serves_prediction = False
+    """Whether ``predict`` batches are images to predict (``PredictBatch``): only ``PredictDataModule``'s are; the
+    other modules' are labelled samples, which ``dapm-lightning predict`` refuses."""
+
     def __init__(self, batch_size: int = 8, num_workers: int = 2, pin_memory: bool = False,
                  persistent_workers: bool = False, augment: bool = True,
                  image_dtype: Literal["float32", "uint8"] = "uint8", eval_batch_size: int | None = None,

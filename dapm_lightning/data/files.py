@@ -69,12 +69,13 @@ _SHORT_WRITE = re.compile(r"\d+ requested and \d+ written")
 """numpy's (and the ONNX writer's) error for a write the disk cut short, which carries no errno: a full disk."""
 
 
-def _full(error: OSError) -> bool:
+def is_full_disk(error: OSError) -> bool:
+    """A full disk or quota: by its errno, or numpy's and the ONNX writer's errno-less short write."""
     return error.errno in _FULL or (error.errno is None and bool(_SHORT_WRITE.search(str(error))))
 
 
 def _fix(error: OSError) -> str:
-    if _full(error):
+    if is_full_disk(error):
         return "free space on that disk, or write to another folder"
     if error.errno in _DENIED:
         return "write to a folder you may write to (this one is read-only or not yours)"
@@ -84,7 +85,7 @@ def _fix(error: OSError) -> str:
 
 
 def _reason(error: OSError) -> str:
-    if error.errno is None and _full(error):
+    if error.errno is None and is_full_disk(error):
         return f"{os.strerror(errno.ENOSPC)}: {error}"
     return error.strerror or str(error) or type(error).__name__
 

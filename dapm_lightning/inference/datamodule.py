@@ -52,6 +52,8 @@ class PredictDataModule(DAPMDataModule):
             beyond ``1 + igd_bound`` times the flat ground of the pose used (default 0.1); None (``null``): no bound.
     """
 
+    serves_prediction = True
+
     def __init__(self, source: str | list[str] = "images", image_width: int | None = None,
                  batch_size: int = DEFAULT_BATCH_SIZE, num_workers: int = 0, frame_step: int = 1,
                  max_frames: int | None = None,

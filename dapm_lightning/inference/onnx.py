@@ -30,7 +30,7 @@ import torch
 from torch import Tensor, nn
 
 from dapm_lightning import __version__
-from dapm_lightning.data.files import stops_deferred, write_error
+from dapm_lightning.data.files import WRITE_ERRNOS, WriteError, is_full_disk, stops_deferred, write_error
 from dapm_lightning.geometry.constants import POSE_KEYS, POSE_UNITS, SKY_PROBABILITY_THRESHOLD
 from dapm_lightning.inference.inputs import SIZE_MULTIPLE, network_size
 from dapm_lightning.models.config import DAPMConfig
@@ -225,16 +225,12 @@ def export_onnx(net: nn.Module, path: str | Path, size: tuple[int, int], *, chec
         width = torch.export.Dim("width", min=SIZE_MULTIPLE, max=MAX_EXPORT_SIDE)
         dynamic_shapes = {"image": {0: batch, 2: height, 3: width}}
         dynamic_shapes.update({name: {0: batch} for name in model.input_names[1:]})
-    try:
-        with torch.no_grad(), warnings.catch_warnings():  # the network's export-time ops: models.blocks
-            # the image's batch and each prior's are one dimension: the exporter's note that it merged their names
-            warnings.filterwarnings("ignore", message=".*will not be used, since it shares the same shape constraints")
-            torch.onnx.export(model, example, str(path), input_names=list(model.input_names),
-                              output_names=list(model.names), dynamo=True, dynamic_shapes=dynamic_shapes,
-                              verbose=False)
-        write_metadata(path, metadata if metadata is not None else export_metadata(net))
-    except OSError as error:  # a full disk reaches here from the ONNX writer, without the file's name
-        raise write_error(Path(error.filename) if error.filename else path, error) from error
+    with torch.no_grad(), warnings.catch_warnings():  # the network's export-time ops: models.blocks
+        # the image's batch and each prior's are one dimension: the exporter's note that it merged their names
+        warnings.filterwarnings("ignore", message=".*will not be used, since it shares the same shape constraints")
+        torch.onnx.export(model, example, str(path), input_names=list(model.input_names),
+                          output_names=list(model.names), dynamo=True, dynamic_shapes=dynamic_shapes, verbose=False)
+    write_metadata(path, metadata if metadata is not None else export_metadata(net))
     session = onnxruntime.InferenceSession(str(path), providers=["CPUExecutionProvider"])
     rows = []
     for index, shape in enumerate(check_sizes(size, dynamic)):
@@ -409,6 +405,10 @@ def ensure_exported(module: nn.Module, path: Path) -> Path:
                                                            METADATA_ON_FIRST_USE: "true"}))
         if not failures:
             move_exported(staging / path.name, path)
+    except OSError as error:  # a full disk while exporting: the model's file named, not the staging folder's
+        if isinstance(error, WriteError) or (error.errno not in WRITE_ERRNOS and not is_full_disk(error)):
+            raise
+        raise write_error(path, error) from error
     finally:
         shutil.rmtree(staging, ignore_errors=True)
     if failures:  # never run a model that disagrees with the network it came from

@@ -30,6 +30,7 @@ from dapm_lightning.data.files import (
     WRITE_ERRNOS,
     WriteError,
     check_folder_writable,
+    is_full_disk,
     make_folder,
     remove_empty_folders,
     write_error,
@@ -126,7 +127,7 @@ def export(ckpt_path: str | Path, out: Path | None = None, height: int | None = 
         if kept:
             move_exported(staging / float_out.name, float_out)
     except OSError as error:
-        if isinstance(error, WriteError) or error.errno not in WRITE_ERRNOS:
+        if isinstance(error, WriteError) or (error.errno not in WRITE_ERRNOS and not is_full_disk(error)):
             raise
         raise _out_error(float_out, error) from error  # a full disk while exporting: --out named, not the staging
     finally:

@@ -690,23 +690,31 @@ class DAPMCLI(LightningCLI):
             check_folder_writable(local_path(root), "--trainer.default_root_dir")
 
     def before_predict(self) -> None:
-        self._check_predict_setup()
         self._read_initial_weights("predict")
 
-    def _check_predict_setup(self) -> None:
-        """``predict`` reads images through :class:`PredictDataModule` and writes with a prediction writer.
+    @staticmethod
+    def _check_predict_setup(config: Any) -> None:
+        """``predict`` of a configuration whose data module serves labelled samples, or without a prediction writer.
 
-        A training config (``configs/paper/*.yaml``) has neither: its batches are labelled samples and nothing would
-        be written, so it is refused, with the two forms that work, before any work.
+        A training config (``configs/paper/*.yaml``) has neither: nothing would be written, so it is refused, with
+        the two forms that work, before its classes are built (the paper's backbone would be downloaded first).
         """
-        from dapm_lightning.inference.datamodule import PredictDataModule
+        def config_class(entry: Any) -> type | None:
+            class_path = entry.get("class_path") if hasattr(entry, "get") else None
+            module_name, _, name = str(class_path or "").rpartition(".")
+            try:
+                return getattr(importlib.import_module(module_name), name) if module_name else None
+            except (ImportError, AttributeError):
+                return None  # the parser names what cannot be imported
 
+        trainer = config.get("trainer") or {}
+        data = config_class(config.get("data"))
         missing = []
-        if not isinstance(self.datamodule, PredictDataModule):
-            missing.append(f"its data module is {type(self.datamodule).__name__}, not PredictDataModule (images, "
-                           "folders, videos)")
-        callbacks: list[L.Callback] = self.trainer.callbacks  # type: ignore[attr-defined]
-        if not any(isinstance(c, BasePredictionWriter) for c in callbacks):
+        if isinstance(data, type) and issubclass(data, DAPMDataModule) and not data.serves_prediction:
+            missing.append(f"its data module is {data.__name__}, which serves labelled samples, not PredictDataModule "
+                           "(images, folders, videos)")
+        callbacks = [config_class(entry) for entry in _as_list(trainer.get("callbacks"))]
+        if not any(isinstance(c, type) and issubclass(c, BasePredictionWriter) for c in callbacks):
             missing.append("no prediction writer callback (PredictionWriter) writes its outputs")
         if missing:
             raise PredictSetupError(
@@ -738,6 +746,8 @@ class DAPMCLI(LightningCLI):
 
     def before_instantiate_classes(self) -> None:
         subcommand = self.config.get("subcommand")
+        if subcommand == "predict":
+            self._check_predict_setup(self.config["predict"])
         trainer = self.config[subcommand].get("trainer") if subcommand else self.config.get("trainer")
         if trainer is not None:
             self._gpu_config_without_gpu(trainer, subcommand)

@@ -207,21 +207,23 @@ def test_a_folder_that_refuses_the_export_is_named_as_out_not_the_hidden_staging
     assert list(tmp_path.iterdir()) == []  # no staging folder left
 
 
-def test_a_disk_that_fills_while_the_onnx_writer_writes_is_named_a_full_disk(tmp_path, monkeypatch):
-    """The ONNX writer's short write carries no errno and no file name: the error names the model's file and says the
-    disk is full (it read ``OSError: 147456 requested and 138048 written``)."""
+def test_a_disk_that_fills_while_the_onnx_writer_writes_is_named_a_full_disk(tmp_path, capsys, monkeypatch):
+    """The ONNX writer's short write carries no errno and no file name: `export` names --out (not its hidden staging
+    folder) and says the disk is full (it read ``OSError: 147456 requested and 138048 written``)."""
     import dapm_lightning.inference.onnx as onnx_module
-    from dapm_lightning.data.files import WriteError
 
     def short_write(*args, **kwargs):
         raise OSError("147456 requested and 138048 written")
 
     monkeypatch.setattr(onnx_module.torch.onnx, "export", short_write)
-    with pytest.raises(WriteError) as raised:
-        export_onnx(tiny_net(), tmp_path / "m.onnx", (32, 32), checks=1)
-    assert str(raised.value).splitlines() == [
-        f"{tmp_path / 'm.onnx'}: cannot be written (No space left on device: 147456 requested and 138048 written)",
-        "Fix: free space on that disk, or write to another folder"]
+    out = tmp_path / "dapm.onnx"
+    with pytest.raises(SystemExit) as info:
+        main(["export", str(SHIPPED), "--out", str(out), "--height", "64", "--width", "64"])
+    err = capsys.readouterr().err.splitlines()
+    assert info.value.code == 1 and err[:2] == [
+        f"error: {out}: cannot be written (No space left on device: 147456 requested and 138048 written)",
+        "Fix: free space on that disk, or write to another folder (--out)"], err
+    assert list(tmp_path.iterdir()) == []  # no staging folder left
 
 
 def test_a_renamed_model_names_the_weights_file_its_graph_records(tmp_path, capsys):

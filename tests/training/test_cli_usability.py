@@ -122,7 +122,7 @@ def test_predict_that_would_write_nothing_is_refused(setup, checkpoint, tmp_path
     (tmp_path / "imgs").mkdir()
     if setup == "training config":
         config = ["--config", str(QUICKSTART), "--trainer.logger", "false"]
-        reason = "its data module is SyntheticDataModule, not PredictDataModule"
+        reason = "its data module is SyntheticDataModule, which serves labelled samples, not PredictDataModule"
     else:
         config = ["--config", str(CONFIGS / "predict.yaml"), "--data.init_args.source", str(tmp_path / "imgs"),
                   "--trainer.callbacks=[]"]
