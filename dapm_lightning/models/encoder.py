@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import difflib
 import re
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import timm
 import torch
+from timm.models import clean_state_dict
 from torch import Tensor, nn
 
 
@@ -31,61 +33,66 @@ def check_backbone(name: str, setting: str = "model.net.backbone") -> None:
 
 def check_backbone_weights(path: Path, model: nn.Module, backbone: str, setting: str = "model.net.weights_path"
                            ) -> None:
-    """A local weights file holds the state dict of ``model`` (``backbone``, built by timm).
+    """A local weights file timm can read, not a whole network's checkpoint, with ``model``'s shapes.
 
-    Every tensor of its body is there in its shape, and none that ``model`` lacks (a deeper model's layers); the
-    classifier may be left out.
+    ``model`` is ``backbone`` as timm builds it; where the file's tensor names do not all match its, a warning.
 
-    timm alone would load a damaged or foreign file with a bare pickle error, or load nothing from another model's
-    weights (a whole dapm-lightning checkpoint among them) and train from random weights with a note.
+    timm alone fails on an unreadable file with a bare pickle error, and from a checkpoint of the whole network
+    (a dapm-lightning one among them) loads nothing and trains from random weights with a note. A partial match
+    is only warned about: timm maps some published layouts on load (each architecture's own filter).
 
     Raises:
-        ValueError: the file cannot be read as weights, is a whole network's checkpoint, or misses tensors.
+        ValueError: the file cannot be read as weights, is a Lightning checkpoint, or has tensors of ``model``'s names
+            in other shapes (timm would stop on them).
     """
-    fix = (f"Fix: --{setting} FILE with the {backbone} backbone's timm (or torchvision) state dict, a .safetensors "
-           "or .pth file, or --model.net.pretrained false to start from random weights.")
+    fix = (f"Fix: --{setting} FILE with the {backbone} backbone's timm state dict (a .safetensors or .pth file), "
+           "or --model.net.pretrained false to start from random weights.")
     try:
         if path.suffix == ".safetensors":
             from safetensors.torch import load_file
 
             state: Any = load_file(str(path))
-        else:
+        else:  # as timm reads it
             state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as error:  # a text file, a cut-short copy, pickled classes: each fails its own way
         with path.open("rb") as stream:
             head = stream.read(4)
         pytorch = head == b"PK\x03\x04" or head[:1] == b"\x80"  # torch.save's zip, or its older pickle
-        reason = ("not a PyTorch or safetensors file" if not pytorch else
+        reason = ("a safetensors file cut short or damaged" if path.suffix == ".safetensors" else
+                  "not a PyTorch or safetensors file" if not pytorch else
                   "it holds Python objects besides tensors, which are not loaded (weights_only)"
                   if "Weights only load failed" in str(error) else "a PyTorch file cut short or damaged")
         raise ValueError(f"{setting}: {path}: cannot be read as weights: {reason}.\n{fix}") from None
     if isinstance(state, dict) and ("pytorch-lightning_version" in state or any(
             str(k).startswith("net.") for k in (state.get("state_dict") or {}))):
-        raise ValueError(f"{setting}: {path}: a dapm-lightning checkpoint (the whole network), not backbone weights."
-                         "\nFix: --model.init_weights FILE to start from its weights, --ckpt_path FILE to resume its "
-                         "training, or name backbone weights here.")
-    for key in ("state_dict", "model", "state_dict_ema"):  # the wrappers timm unwraps
-        if isinstance(state, dict) and isinstance(state.get(key), dict):
-            state = state[key]
-            break
+        raise ValueError(f"{setting}: {path}: a Lightning checkpoint of a whole network, not backbone weights."
+                         "\nFix: for a dapm-lightning checkpoint, --model.init_weights FILE starts from its weights "
+                         "and --ckpt_path FILE resumes its training; or name backbone weights here.")
+    if isinstance(state, dict):  # the wrappers timm unwraps, in its order, and the prefixes it removes
+        wrappers = ("state_dict_ema", "model_ema", "state_dict", "model")
+        key = next((k for k in wrappers if isinstance(state.get(k), dict)), None)
+        state = clean_state_dict(state[key] if key else state)
     if not isinstance(state, dict):
         raise ValueError(f"{setting}: {path}: holds a {type(state).__name__}, not a state dict.\n{fix}")
-    def bare(key: Any) -> str:  # DDP's and timm's feature wrappers' prefixes
-        return str(key).removeprefix("module.").removeprefix("model.")
-
-    counted = ("num_batches_tracked",)  # BatchNorm's step counters: absent from torchvision's files
-    tensors = {bare(k): v for k, v in state.items() if isinstance(v, Tensor) and not str(k).endswith(counted)}
-    own = {bare(k): v for k, v in model.state_dict().items() if not k.endswith(counted)}
+    counted = ("num_batches_tracked",)  # BatchNorm's step counters: absent from some published files
     classifier = getattr(model, "pretrained_cfg", {}).get("classifier") or ()
-    heads = (classifier,) if isinstance(classifier, str) else tuple(classifier)
-    body = {k: v for k, v in own.items() if not k.startswith(tuple(f"{h}." for h in heads))}
-    wrong = [k for k, v in body.items() if k not in tensors or tuple(tensors[k].shape) != tuple(v.shape)]
-    foreign = sorted(set(tensors) - set(own))
-    if wrong or foreign:
-        what = (f"{len(body) - len(wrong)} of the backbone's {len(body)} tensors are there in their shapes (not "
-                f"{wrong[0]!r})" if wrong else
-                f"it holds {len(foreign)} tensors the backbone has no place for, such as {foreign[0]!r}")
-        raise ValueError(f"{setting}: {path}: not {backbone} weights: {what}.\n{fix}")
+    heads = tuple(f"{h}." for h in ((classifier,) if isinstance(classifier, str) else classifier))
+    body = {k: v for k, v in model.state_dict().items() if not k.endswith(counted) and not k.startswith(heads)}
+    tensors = {k: v for k, v in state.items() if isinstance(v, Tensor) and not str(k).endswith(counted)}
+    reshaped = [k for k, v in body.items() if k in tensors and tensors[k].shape != v.shape]
+    if reshaped:  # timm's load would stop on it, with a list of every size mismatch
+        name = reshaped[0]
+        raise ValueError(f"{setting}: {path}: not {backbone} weights: {name} is {list(tensors[name].shape)} in the "
+                         f"file, {list(body[name].shape)} in {backbone} ({len(reshaped)} tensors of other shapes: "
+                         f"another backbone's weights?).\n{fix}")
+    missing = [k for k in body if k not in tensors]
+    extra = [k for k in tensors if k not in body and not k.startswith(heads)]
+    if missing or extra:
+        what = (f"{len(body) - len(missing)} of the backbone's {len(body)} tensors are in it (not {missing[0]!r})"
+                if missing else f"it holds {len(extra)} tensors the backbone has none of (such as {extra[0]!r})")
+        warnings.warn(f"{setting}: {path}: {what}; timm maps some published layouts as it loads, else "
+                      f"{'the rest start from random weights' if missing else 'those are left out'}. If the file "
+                      f"is another backbone's, name {backbone}'s.", UserWarning, stacklevel=2)
 
 
 class Encoder(nn.Module):
@@ -110,7 +117,9 @@ class Encoder(nn.Module):
                 raise FileNotFoundError(f"{weights_path}: backbone weights file not found")
             overlay = {"file": str(weights_path)}
         if weights_path is not None:  # checked against the backbone's own tensors before timm reads it
-            check_backbone_weights(Path(weights_path), timm.create_model(backbone, pretrained=False), backbone)
+            with torch.device("meta"):  # the shapes only: no memory, no initialisation
+                reference = timm.create_model(backbone, pretrained=False)
+            check_backbone_weights(Path(weights_path), reference, backbone)
         self.body = timm.create_model(backbone, features_only=True, pretrained=pretrained or overlay is not None,
                                       out_indices=tuple(out_indices), pretrained_cfg_overlay=overlay)
         feature_info: Any = self.body.feature_info

@@ -127,8 +127,10 @@ def synth_main(argv: Sequence[str]) -> None:
     except SynthFolderError:
         raise  # a folder problem, not a wrong option: its message and fix, without the usage
     except WriteError as error:  # a full or read-only disk mid-render: the set is not whole
-        print("stopped by the error below: no synth.json written (the set is unfinished, as `dapm-lightning doctor` "
-              "reports); rerun the same command once the error below is fixed", file=sys.stderr, flush=True)
+        unfinished = ("this shard's images are unfinished; rerun this shard" if args.shard[1] > 1 else
+                      "no synth.json written (the set is unfinished, as `dapm-lightning doctor` reports); rerun the "
+                      "same command")
+        print(f"stopped by the error below: {unfinished} once the error is fixed", file=sys.stderr, flush=True)
         if "--out" in error.fix:
             raise
         raise WriteError(error.path, error.reason, f"{error.fix} (--out)") from error
